@@ -1,0 +1,26 @@
+"""Explicit numerical precision.
+
+The paper, SE-Sync and the authors' C++ code use float64. JAX defaults to float32 and we never
+flip that global flag silently on import: call :func:`enable_float64` (or set the environment
+variable ``JAX_ENABLE_X64=1``) before building graphs when results are compared with the paper.
+The ``mmpgo`` CLI does this itself unless ``--precision float32`` is given.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+
+def enable_float64() -> None:
+    """Switch JAX to 64-bit floats for this process (call before creating arrays)."""
+    jax.config.update("jax_enable_x64", True)
+
+
+def float64_enabled() -> bool:
+    return bool(jax.config.jax_enable_x64)
+
+
+def default_float_dtype():
+    """The float dtype new arrays get: float64 when enabled, else float32."""
+    return jnp.asarray(0.0).dtype
