@@ -1,0 +1,229 @@
+"""Registry of the standard PGO benchmarks and resolution of the data directory.
+
+The registry lives in ``mmpgo_jax/benchmarks.json`` (package data) and holds, for every benchmark
+of the paper's Tables I/II and the extras shipped by SE-Sync: dimensions, provenance, the paper's
+printed numbers (f*, and f after 100/250/1000 iterations with 10 robots for MM, AMM and DGS), the
+certified SE-Sync optimum (NOTES §6), f at the chordal initialization (NOTES §5) and the
+measurements of the authors' C++ code (NOTES §7).  All objective values are f = 2F (NOTES §2).
+
+The benchmark files themselves are not part of the package.  They are looked up in, by
+precedence: an explicit directory (``data=`` / the CLI's ``--data``), the environment variable
+``MMPGO_DATA``, and ``<repo>/../shared/datasets`` when it exists (repo = the folder holding the
+``mmpgo_jax`` package).  See ``datasets/README.md`` in the repository.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from types import MappingProxyType
+from typing import Mapping
+
+__all__ = [
+    "BenchmarkInfo",
+    "BENCHMARKS",
+    "DatasetNotFoundError",
+    "data_dir",
+    "find_benchmark",
+    "available_benchmarks",
+    "benchmark_info",
+    "ENV_VAR",
+]
+
+ENV_VAR = "MMPGO_DATA"
+_PACKAGE_DIR = Path(__file__).resolve().parent
+_REPO_DIR = _PACKAGE_DIR.parent
+_DEFAULT_DIR = _REPO_DIR.parent / "shared" / "datasets"
+
+IterTable = Mapping[int, float]
+
+
+@dataclass(frozen=True)
+class BenchmarkInfo:
+    """One benchmark: metadata and reference numbers (f = 2F convention throughout).
+
+    Iteration tables (``paper_mm``, ``code_mm``, ...) map 100 / 250 / 1000 to f after that many
+    iterations with 10 robots, or are ``None`` where no number exists.
+    """
+
+    name: str  # the paper's name ("MITb"); extras use the file stem
+    file: str  # file name ("MIT.g2o")
+    dim: int
+    num_poses: int  # n = max id + 1
+    num_edges: int
+    source: str
+    paper_fstar: float | None = None  # Table I/II f*, as printed (4 significant digits)
+    sesync_fstar: float | None = None  # NOTES §6 (certified SE-Sync optimum)
+    chordal_f: float | None = None  # NOTES §5 (f at the centralized chordal initialization)
+    paper_mm: IterTable | None = None  # Table I/II, MM-PGO
+    paper_amm: IterTable | None = None  # Table I/II, AMM-PGO
+    in_paper: bool = False
+    paper_dgs: IterTable | None = None  # Table I/II, DGS [11]
+    paper_table: str | None = None  # "I" (2D) or "II" (3D)
+    code_mm: IterTable | None = None  # NOTES §7, authors' C++ MM
+    code_amm_paper_rule: IterTable | None = None  # NOTES §7, C++ AMM with Algorithm 2's test
+    code_amm_adaptive: IterTable | None = None  # NOTES §7, C++ AMM with its adaptive restart
+    code_ms_per_iter_mm: float | None = None  # NOTES §7, ms per outer iteration
+    code_ms_per_iter_amm: float | None = None
+    code_iters_to_1e_3: int | None = None  # NOTES §7, adaptive AMM iterations to rel. gap 1e-3
+    availability: str = "shipped"  # "shipped" | "public" (obtainable, not shipped) | "unavailable"
+    notes: str = ""
+    aliases: tuple[str, ...] = field(default=(), compare=False)
+
+    def __hash__(self) -> int:  # the dict-valued fields are not hashable
+        return hash((self.name, self.file))
+
+    @property
+    def fstar(self) -> float | None:
+        """Best known optimum: the certified SE-Sync value, else the paper's printed f*."""
+        return self.sesync_fstar if self.sesync_fstar is not None else self.paper_fstar
+
+    def path(self, data: str | os.PathLike | None = None) -> Path:
+        """Location of this benchmark's file (raises :class:`DatasetNotFoundError`)."""
+        return find_benchmark(self.file, data)
+
+
+class DatasetNotFoundError(FileNotFoundError):
+    """A benchmark file could not be found (the message says where to look and how to get it)."""
+
+
+def _iter_table(d) -> IterTable | None:
+    if d is None:
+        return None
+    return MappingProxyType({int(k): float(v) for k, v in d.items()})
+
+
+def _load_registry() -> dict[str, BenchmarkInfo]:
+    text = resources.files("mmpgo_jax").joinpath("benchmarks.json").read_text(encoding="utf-8")
+    doc = json.loads(text)
+    out: dict[str, BenchmarkInfo] = {}
+    tables = ("paper_mm", "paper_amm", "paper_dgs", "code_mm", "code_amm_paper_rule",
+              "code_amm_adaptive")
+    for row in doc["benchmarks"]:
+        row = dict(row)
+        for key in tables:
+            row[key] = _iter_table(row.get(key))
+        stem = row["file"].rsplit(".", 1)[0]
+        row["aliases"] = tuple(dict.fromkeys(a.lower() for a in (row["name"], row["file"], stem)))
+        info = BenchmarkInfo(**row)
+        if info.name in out:
+            raise ValueError(f"duplicate benchmark name {info.name!r} in benchmarks.json")
+        out[info.name] = info
+    return out
+
+
+BENCHMARKS: Mapping[str, BenchmarkInfo] = MappingProxyType(_load_registry())
+
+_ALIASES: dict[str, BenchmarkInfo] = {}
+for _info in BENCHMARKS.values():
+    for _a in _info.aliases:
+        if _a in _ALIASES and _ALIASES[_a] is not _info:
+            raise ValueError(f"benchmark alias {_a!r} is ambiguous")
+        _ALIASES[_a] = _info
+del _info, _a
+
+
+def benchmark_info(name_or_file: str) -> BenchmarkInfo | None:
+    """Registry entry for a paper name, file name or file stem (case-insensitive), else None.
+
+    ``"MITb"``, ``"MIT"``, ``"mit.g2o"`` all give the MITb entry; a path's directory is ignored.
+    """
+    key = os.path.basename(str(name_or_file).strip()).lower()
+    return _ALIASES.get(key)
+
+
+def data_dir(explicit: str | os.PathLike | None = None) -> Path | None:
+    """The benchmark data folder: ``explicit`` > ``$MMPGO_DATA`` > ``<repo>/../shared/datasets``.
+
+    The first two are returned as given (expanded, not checked); the default only when it
+    exists.  ``None`` when nothing is configured.
+    """
+    if explicit is not None and str(explicit) != "":
+        return Path(explicit).expanduser()
+    env = os.environ.get(ENV_VAR, "").strip()
+    if env:
+        return Path(env).expanduser()
+    if _DEFAULT_DIR.is_dir():
+        return _DEFAULT_DIR
+    return None
+
+
+def _lookup_in(directory: Path, filename: str) -> Path | None:
+    """``directory / filename``, matching the file name case-insensitively."""
+    cand = directory / filename
+    if cand.is_file():
+        return cand
+    if not directory.is_dir():
+        return None
+    low = filename.lower()
+    for p in sorted(directory.iterdir()):
+        if p.name.lower() == low and p.is_file():
+            return p
+    return None
+
+
+def _where(directory: Path | None, explicit) -> str:
+    if directory is None:
+        return (f"no data directory is configured ({ENV_VAR} is unset and the default "
+                f"{_DEFAULT_DIR} does not exist)")
+    if explicit is not None and str(explicit) != "":
+        how = "given explicitly"
+    elif os.environ.get(ENV_VAR, "").strip():
+        how = f"from ${ENV_VAR}"
+    else:
+        how = "the default <repo>/../shared/datasets"
+    state = "" if directory.is_dir() else ", which does not exist"
+    return f"searched {directory} ({how}{state})"
+
+
+def find_benchmark(name_or_file: str | os.PathLike, data: str | os.PathLike | None = None) -> Path:
+    """Path of a benchmark file.
+
+    Accepts the paper's name, the file name or its stem, case-insensitively ("MITb", "MIT",
+    "mit.g2o"), any other file name present in the data folder, or a path to an existing file.
+    The data folder is :func:`data_dir(data) <data_dir>`.  Raises :class:`DatasetNotFoundError`
+    with the folder searched, how to configure it and where the file can be obtained.
+    """
+    query = str(name_or_file).strip()
+    qpath = Path(query).expanduser()
+    if (os.sep in query or "/" in query) and qpath.is_file():
+        return qpath
+    directory = data_dir(data)
+    info = benchmark_info(query)
+    names = [info.file] if info is not None else [query, query + ".g2o"]
+    if directory is not None:
+        for fname in names:
+            hit = _lookup_in(directory, os.path.basename(fname))
+            if hit is not None:
+                return hit
+    if info is None and qpath.is_file():
+        return qpath
+
+    configure = (f"Set the environment variable {ENV_VAR}=/path/to/folder, or pass --data "
+                 f"/path/to/folder on the command line (data=... in Python), pointing at a folder "
+                 f"that holds the .g2o files.")
+    if info is not None:
+        label = info.file if info.name == info.file.rsplit(".", 1)[0] else f"{info.file} (\"{info.name}\")"
+        msg = [f"Benchmark file {label} not found: {_where(directory, data)}.", configure,
+               f"Where to obtain it: {info.source}."]
+        if info.availability == "unavailable":
+            msg.append("Note: this file is not available in this workplace's snapshots; "
+                       "see datasets/README.md.")
+        if info.notes:
+            msg.append(info.notes)
+    else:
+        known = ", ".join(sorted(BENCHMARKS, key=str.lower))
+        msg = [f"Unknown benchmark {query!r} and no such file: {_where(directory, data)}.", configure,
+               f"Registered benchmarks: {known}. Sources are listed in datasets/README.md."]
+    raise DatasetNotFoundError(" ".join(msg))
+
+
+def available_benchmarks(data: str | os.PathLike | None = None) -> list[BenchmarkInfo]:
+    """Registry entries whose file is present in the data folder (registry order)."""
+    directory = data_dir(data)
+    if directory is None or not directory.is_dir():
+        return []
+    return [info for info in BENCHMARKS.values() if _lookup_in(directory, info.file) is not None]

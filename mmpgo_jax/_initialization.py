@@ -1,0 +1,402 @@
+"""Initial estimates for pose-graph optimization.
+
+* :func:`chordal_initialization` -- the centralized chordal initialization used for the paper's
+  Tables I/II (NOTES §5): relax SO(d)^n to R^{d x dn}, minimise the relaxed rotation objective
+  (Eq. (22)) with R_0 = I by one sparse linear solve, project each block to SO(d) (SVD, det
+  fixed), then solve the translation least-squares problem (Eq. (25)) with t_0 = 0.
+* :func:`odometry_initialization` -- compose the measurements along a spanning tree (the
+  odometry chain (i, i+1) when it exists).
+* :func:`initialize` -- one entry point for every kind of start (method name, ``Poses``, file).
+
+Everything here except the distributed variant runs on the host (numpy / scipy.sparse) in
+float64; the returned :class:`Poses` use the graph's float dtype.
+
+Anchoring. The relaxed problems are invariant to a common left-multiplication of all
+rotations (and a common translation offset), so one pose per connected component of the
+measurement graph is fixed: the first pose (smallest index) of each component, at R = I,
+t = 0. For a connected graph that is pose 0 exactly as in the paper. Poses in different
+components are unrelated; this just makes the linear systems non-singular.
+
+Cost conventions follow :mod:`._pose_graph`: "cost" is the sum without the 1/2 (the f = 2F
+convention of the paper's tables); ``relaxed_rotation_cost`` = 2 F_R of Eq. (23).
+"""
+
+from __future__ import annotations
+
+import os
+from collections import deque
+from pathlib import Path
+
+import jax.numpy as jnp
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from ._geometry import project_to_so
+from ._pose_graph import PoseGraph, Poses, connected_components
+
+__all__ = [
+    "INITIALIZATION_METHODS",
+    "anchor_poses",
+    "chordal_initialization",
+    "chordal_relaxed_rotations",
+    "initialize",
+    "odometry_initialization",
+    "poses_from_arrays",
+    "relaxed_rotation_cost",
+    "relaxed_translation_cost",
+    "rotation_connection_laplacian",
+    "translation_laplacian",
+    "translation_rhs",
+    "translations_given_rotations",
+]
+
+INITIALIZATION_METHODS = ("chordal", "distributed-chordal", "odometry", "vertices")
+
+
+# --------------------------------------------------------------------------------------------
+# host-side helpers
+# --------------------------------------------------------------------------------------------
+
+
+def _edges_np(graph: PoseGraph):
+    """Edge arrays of ``graph`` as float64/int64 numpy arrays."""
+    return (
+        np.asarray(graph.i, dtype=np.int64),
+        np.asarray(graph.j, dtype=np.int64),
+        np.asarray(graph.R, dtype=np.float64),
+        np.asarray(graph.t, dtype=np.float64),
+        np.asarray(graph.kappa, dtype=np.float64),
+        np.asarray(graph.tau, dtype=np.float64),
+    )
+
+
+def _float_dtype(graph: PoseGraph):
+    return jnp.asarray(graph.R).dtype
+
+
+def anchor_poses(graph: PoseGraph) -> np.ndarray:
+    """Poses held fixed by the initializations: the first pose of every connected component.
+
+    Sorted ascending; ``[0]`` for a connected graph.
+    """
+    comps = connected_components(graph.num_poses, np.asarray(graph.i), np.asarray(graph.j))
+    return np.sort(np.array([c[0] for c in comps], dtype=np.int64))
+
+
+def rotation_connection_laplacian(graph: PoseGraph) -> sp.csr_matrix:
+    """The (dn x dn) matrix L with 2 F_R(R) = tr(R L R^T), R = [R_1 .. R_n] in R^{d x dn}.
+
+    Row/column ``d*i + a`` belongs to pose i. Blocks per edge e = (i, j):
+    (i, i) += kappa Rt Rt^T, (j, j) += kappa I, (i, j) -= kappa Rt, (j, i) -= kappa Rt^T.
+    """
+    I_, J_, Rm, _, kap, _ = _edges_np(graph)
+    n, d = graph.num_poses, graph.dim
+    ar = np.arange(d)
+    ri = d * I_[:, None] + ar  # (m, d)
+    rj = d * J_[:, None] + ar
+    eye = np.broadcast_to(np.eye(d), Rm.shape)
+    k = kap[:, None, None]
+    blocks = [
+        (ri, ri, k * (Rm @ np.swapaxes(Rm, 1, 2))),
+        (rj, rj, k * eye),
+        (ri, rj, -k * Rm),
+        (rj, ri, -k * np.swapaxes(Rm, 1, 2)),
+    ]
+    rows = np.concatenate([np.broadcast_to(r[:, :, None], v.shape).ravel() for r, _, v in blocks])
+    cols = np.concatenate([np.broadcast_to(c[:, None, :], v.shape).ravel() for _, c, v in blocks])
+    vals = np.concatenate([v.ravel() for _, _, v in blocks])
+    return sp.csr_matrix((vals, (rows, cols)), shape=(d * n, d * n))
+
+
+def translation_laplacian(graph: PoseGraph) -> sp.csr_matrix:
+    """The (n x n) tau-weighted graph Laplacian of the measurement graph."""
+    I_, J_, _, _, _, tau = _edges_np(graph)
+    n = graph.num_poses
+    rows = np.concatenate([I_, J_, I_, J_])
+    cols = np.concatenate([I_, J_, J_, I_])
+    vals = np.concatenate([tau, tau, -tau, -tau])
+    return sp.csr_matrix((vals, (rows, cols)), shape=(n, n))
+
+
+def translation_rhs(graph: PoseGraph, R) -> np.ndarray:
+    """b (n, d) such that the translation problem (25) is  min 1/2 t^T L_tau t - <b, t> + const.
+
+    With v_e = R_i tt_e: b_i = -sum_{e: tail i} tau_e v_e + sum_{e: head i} tau_e v_e.
+    """
+    I_, J_, _, tm, _, tau = _edges_np(graph)
+    R = np.asarray(R, dtype=np.float64)
+    n, d = graph.num_poses, graph.dim
+    v = tau[:, None] * np.einsum("mab,mb->ma", R[I_], tm)
+    b = np.zeros((n, d))
+    np.add.at(b, I_, -v)
+    np.add.at(b, J_, v)
+    return b
+
+
+def _solve_spd(A: sp.spmatrix, B: np.ndarray) -> np.ndarray:
+    """Solve A X = B for a sparse symmetric positive-definite A (SuperLU, symmetric ordering)."""
+    if A.shape[0] == 0:
+        return np.zeros_like(B)
+    lu = spla.splu(A.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                   options={"SymmetricMode": True})
+    return lu.solve(np.ascontiguousarray(B))
+
+
+def _free_mask(n: int, anchors: np.ndarray) -> np.ndarray:
+    free = np.ones(n, dtype=bool)
+    free[anchors] = False
+    return free
+
+
+# --------------------------------------------------------------------------------------------
+# centralized chordal initialization
+# --------------------------------------------------------------------------------------------
+
+
+def chordal_relaxed_rotations(graph: PoseGraph) -> np.ndarray:
+    """Minimiser of the relaxed rotation problem (22) with the anchor poses at I: (n, d, d).
+
+    The blocks are general d x d matrices (not yet projected to SO(d)). float64 numpy.
+    """
+    n, d = graph.num_poses, graph.dim
+    anchors = anchor_poses(graph)
+    free = _free_mask(n, anchors)
+    # V = R^T stacked pose-major ((dn) x d): 2 F_R = tr(V^T L V). Fix V_a = I for anchors:
+    # L_ff V_f = -L_fa V_a.
+    L = rotation_connection_laplacian(graph).tocsr()
+    fdof = np.repeat(free, d)
+    L_ff = L[fdof][:, fdof]
+    L_fa = L[fdof][:, ~fdof]
+    Va = np.tile(np.eye(d), (len(anchors), 1))  # (d*|anchors|, d)
+    Vf = _solve_spd(L_ff, -(L_fa @ Va))
+    V = np.zeros((d * n, d))
+    V[fdof] = Vf
+    V[~fdof] = Va
+    return np.swapaxes(V.reshape(n, d, d), 1, 2)
+
+
+def relaxed_rotation_cost(graph: PoseGraph, R) -> float:
+    """2 F_R(R) = sum_e kappa_e ||R_i Rt_e - R_j||^2 for arbitrary d x d blocks ``R`` (n, d, d)."""
+    I_, J_, Rm, _, kap, _ = _edges_np(graph)
+    R = np.asarray(R, dtype=np.float64)
+    res = R[I_] @ Rm - R[J_]
+    return float(np.sum(kap * np.sum(res**2, axis=(1, 2))))
+
+
+def relaxed_translation_cost(graph: PoseGraph, R, t) -> float:
+    """2 F_t(t) = sum_e tau_e ||R_i tt_e + t_i - t_j||^2 for given rotations ``R`` (Eq. (26))."""
+    I_, J_, _, tm, _, tau = _edges_np(graph)
+    R = np.asarray(R, dtype=np.float64)
+    t = np.asarray(t, dtype=np.float64)
+    res = np.einsum("mab,mb->ma", R[I_], tm) + t[I_] - t[J_]
+    return float(np.sum(tau * np.sum(res**2, axis=1)))
+
+
+def translations_given_rotations(graph: PoseGraph, R) -> np.ndarray:
+    """Minimiser of the translation problem (25) for rotations ``R`` with anchor translations 0.
+
+    Returns (n, d) float64.
+    """
+    n, d = graph.num_poses, graph.dim
+    anchors = anchor_poses(graph)
+    free = _free_mask(n, anchors)
+    L = translation_laplacian(graph).tocsr()
+    b = translation_rhs(graph, R)
+    t = np.zeros((n, d))
+    t[free] = _solve_spd(L[free][:, free], b[free])
+    return t
+
+
+def _project_np(R: np.ndarray) -> np.ndarray:
+    return np.asarray(project_to_so(jnp.asarray(R, dtype=jnp.float64)), dtype=np.float64)
+
+
+def chordal_initialization(graph: PoseGraph) -> Poses:
+    """Centralized chordal initialization (NOTES §5): relaxed rotations, SO(d) projection,
+    translations by linear least squares. Anchor poses (pose 0 when connected) at identity."""
+    R = _project_np(chordal_relaxed_rotations(graph))
+    t = translations_given_rotations(graph, R)
+    dt = _float_dtype(graph)
+    return Poses(jnp.asarray(R, dt), jnp.asarray(t, dt))
+
+
+# --------------------------------------------------------------------------------------------
+# odometry initialization
+# --------------------------------------------------------------------------------------------
+
+
+def _spanning_tree(graph: PoseGraph):
+    """Parent edge of every pose in a spanning forest rooted at the anchor poses.
+
+    0-1 BFS where odometry edges (|i - j| = 1) cost 0 and loop closures cost 1: poses reachable
+    from the root along the odometry chain are reached through it, the rest through as few loop
+    closures as possible. Returns (order, parent_edge) with ``order`` a topological order of the
+    poses (roots first) and ``parent_edge[p]`` the index of the edge linking p to its parent
+    (-1 for roots).
+    """
+    I_ = np.asarray(graph.i, dtype=np.int64)
+    J_ = np.asarray(graph.j, dtype=np.int64)
+    n = graph.num_poses
+    m = len(I_)
+    # adjacency lists (CSR)
+    ends = np.concatenate([I_, J_])
+    other = np.concatenate([J_, I_])
+    eid = np.concatenate([np.arange(m), np.arange(m)])
+    order_adj = np.argsort(ends, kind="stable")
+    ptr = np.concatenate([[0], np.cumsum(np.bincount(ends, minlength=n))])
+    nbr = other[order_adj].tolist()
+    nbe = eid[order_adj].tolist()
+    odo = (np.abs(I_ - J_) == 1).tolist()
+    ptr = ptr.tolist()
+
+    INF = 1 << 60
+    dist = [INF] * n
+    parent_edge = [-1] * n
+    done = [False] * n
+    order: list[int] = []
+    for root in anchor_poses(graph).tolist():
+        dist[root] = 0
+        dq = deque([root])
+        while dq:
+            u = dq.popleft()
+            if done[u]:
+                continue
+            done[u] = True
+            order.append(u)
+            du = dist[u]
+            for k in range(ptr[u], ptr[u + 1]):
+                v, e = nbr[k], nbe[k]
+                if done[v]:
+                    continue
+                w = 0 if odo[e] else 1
+                if du + w < dist[v]:
+                    dist[v] = du + w
+                    parent_edge[v] = e
+                    if w == 0:
+                        dq.appendleft(v)
+                    else:
+                        dq.append(v)
+    return np.asarray(order, dtype=np.int64), np.asarray(parent_edge, dtype=np.int64)
+
+
+def odometry_initialization(graph: PoseGraph) -> Poses:
+    """Compose the measurements from the anchor (pose 0 at identity) along a spanning tree.
+
+    When every consecutive pair (i, i+1) is measured this is the odometry chain; otherwise the
+    tree prefers odometry edges and uses as few loop closures as possible (0-1 BFS). Each
+    component of a disconnected graph starts from its first pose at identity.
+    """
+    I_, J_, Rm, tm, _, _ = _edges_np(graph)
+    n, d = graph.num_poses, graph.dim
+    order, parent_edge = _spanning_tree(graph)
+    R = np.zeros((n, d, d))
+    t = np.zeros((n, d))
+    for p in order.tolist():
+        e = parent_edge[p]
+        if e < 0:
+            R[p] = np.eye(d)
+            continue
+        if J_[e] == p:  # parent is the tail: g_j = g_i * (Rt, tt)
+            q = I_[e]
+            R[p] = R[q] @ Rm[e]
+            t[p] = t[q] + R[q] @ tm[e]
+        else:  # parent is the head: g_i = g_j * (Rt, tt)^{-1}
+            q = J_[e]
+            R[p] = R[q] @ Rm[e].T
+            t[p] = t[q] - R[p] @ tm[e]
+    R = _project_np(R)  # remove round-off drift along long chains
+    dt = _float_dtype(graph)
+    return Poses(jnp.asarray(R, dt), jnp.asarray(t, dt))
+
+
+# --------------------------------------------------------------------------------------------
+# dispatcher
+# --------------------------------------------------------------------------------------------
+
+
+def poses_from_arrays(graph: PoseGraph, R, t, *, what: str = "initial poses") -> Poses:
+    """Validate (n, d, d) rotations / (n, d) translations for ``graph``, project to SO(d)."""
+    n, d = graph.num_poses, graph.dim
+    R = np.asarray(R, dtype=np.float64)
+    t = np.asarray(t, dtype=np.float64)
+    if R.shape != (n, d, d):
+        raise ValueError(f"{what}: rotations must have shape ({n}, {d}, {d}), got {R.shape}")
+    if t.shape != (n, d):
+        raise ValueError(f"{what}: translations must have shape ({n}, {d}), got {t.shape}")
+    if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
+        raise ValueError(f"{what}: contain non-finite values")
+    dt = _float_dtype(graph)
+    return Poses(jnp.asarray(_project_np(R), dt), jnp.asarray(t, dt))
+
+
+def _load_file(graph: PoseGraph, path: Path) -> Poses:
+    suffix = path.suffix.lower()
+    if not path.is_file():
+        raise ValueError(f"initial-pose file {str(path)!r} does not exist")
+    if suffix == ".npz":
+        with np.load(path) as z:
+            missing = [k for k in ("R", "t") if k not in z.files]
+            if missing:
+                raise ValueError(f"{path}: .npz initial poses need arrays 'R' (n,d,d) and 't' (n,d); missing {missing}")
+            return poses_from_arrays(graph, z["R"], z["t"], what=str(path))
+    if suffix == ".g2o":
+        from ._g2o import read_g2o
+
+        f = read_g2o(path)
+        if f.initial is None:
+            raise ValueError(f"{path}: the file has no VERTEX estimate for every pose")
+        return poses_from_arrays(graph, f.initial.R, f.initial.t, what=str(path))
+    raise ValueError(f"initial-pose file {str(path)!r}: expected a .g2o or .npz file")
+
+
+def initialize(
+    graph: PoseGraph,
+    method="chordal",
+    *,
+    initial: Poses | None = None,
+    robots=None,
+    **distributed_options,
+) -> Poses:
+    """Initial poses for ``graph``.
+
+    ``method`` is one of
+
+    * ``"chordal"`` -- :func:`chordal_initialization` (the paper's start, NOTES §5);
+    * ``"distributed-chordal"`` -- :func:`~mmpgo_jax._distributed_chordal.distributed_chordal_initialization`
+      with ``robots`` (a count, an (n,) robot-of-pose array or a ``Partition``; default
+      min(10, n) contiguous robots) and ``distributed_options`` passed through;
+    * ``"odometry"`` -- :func:`odometry_initialization`;
+    * ``"vertices"`` -- the file's VERTEX estimates, given as ``initial``;
+    * a :class:`Poses` -- used as given (shapes checked, rotations projected to SO(d));
+    * a path (``str`` or ``os.PathLike``) to a ``.g2o`` file (its VERTEX lines) or an ``.npz``
+      file with arrays ``R`` (n, d, d) and ``t`` (n, d).
+    """
+    if isinstance(method, Poses):
+        return poses_from_arrays(graph, method.R, method.t)
+    if isinstance(method, str) and method in INITIALIZATION_METHODS:
+        if distributed_options and method != "distributed-chordal":
+            raise ValueError(f"options {sorted(distributed_options)} only apply to 'distributed-chordal'")
+        if method == "chordal":
+            return chordal_initialization(graph)
+        if method == "odometry":
+            return odometry_initialization(graph)
+        if method == "vertices":
+            if initial is None:
+                raise ValueError("method 'vertices' needs the file's VERTEX estimates (initial=...), but none were given")
+            return poses_from_arrays(graph, initial.R, initial.t, what="VERTEX estimates")
+        from ._distributed_chordal import distributed_chordal_initialization
+
+        if robots is None:
+            robots = min(10, graph.num_poses)
+        poses, _ = distributed_chordal_initialization(graph, robots, **distributed_options)
+        return poses
+    if isinstance(method, (str, os.PathLike)):
+        p = Path(method)
+        if p.suffix.lower() in (".g2o", ".npz") or p.exists():
+            return _load_file(graph, p)
+        raise ValueError(
+            f"unknown initialization {method!r}: expected one of {', '.join(INITIALIZATION_METHODS)}, "
+            "a Poses, or a path to a .g2o / .npz file"
+        )
+    raise ValueError(f"initialization must be a method name, a Poses or a path, got {type(method).__name__}")

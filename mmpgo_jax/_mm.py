@@ -1,0 +1,178 @@
+"""MM-PGO (Algorithm 1) and AMM-PGO (Algorithm 2), all robots at once.
+
+One outer iteration = one ``vmap`` over robots of the subproblem solver, then one ``vmap`` of the
+gradient/objective-share evaluation (which gathers neighbour poses). Outer iterations run in
+``lax.scan``; per-robot momentum s, gamma and restarts live in the scan carry. ``run`` is jitted
+with a static chunk length, so running 1000 iterations as 10 chunks of 100 compiles once.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from ._majorization import gradient_and_share, majorizer_decrease
+from ._partition import Partition
+from ._pose_graph import Poses
+from ._subproblem import SubproblemConfig, block_preconditioner, project_rotations, solve_subproblem, tangent_projection
+
+
+class MMConfig(eqx.Module):
+    """Outer-loop settings.
+
+    method: "mm" (Algorithm 1) or "amm" (Algorithm 2).
+    restart: "paper" is exactly the test of Algorithm 2 line 15 (G^alpha(Z|X^k) > Gbar^alpha(k)),
+      which keeps F non-increasing (Proposition 3). "adaptive" is the same test with a vanishing
+      per-robot slack: a robot keeps its momentum step Z unless G^alpha(Z|X^k) - Gbar^alpha(k)
+      exceeds slack^alpha_k = slack_scale * (robot's initial local cost) * (1 - slack_decay)^k.
+      Since the slacks are summable, F(X^k) stays below F(X^0) + sum_k slack_k (bounded), and
+      the rule turns into Algorithm 2's test as k grows. The robot's shares move between robots
+      through inter-robot edges, so a test against the robot's own share history (NOTES §7) would
+      keep restarting robots whose share legitimately grows; the slack avoids that.
+    xi: the proximal term of Eq. (13).
+    """
+
+    method: Literal["mm", "amm"] = eqx.field(static=True, default="amm")
+    restart: Literal["paper", "adaptive"] = eqx.field(static=True, default="adaptive")
+    xi: float = eqx.field(static=True, default=1e-3)
+    subproblem: SubproblemConfig = SubproblemConfig()
+    slack_scale: float = eqx.field(static=True, default=1.0)
+    slack_decay: float = eqx.field(static=True, default=5e-4)
+
+
+class MMProblem(eqx.Module):
+    """Constant data of a run: the partition and what is precomputed from Gamma."""
+
+    partition: Partition
+    block_inverse: jax.Array  # (A, n_max, d+1, d+1)
+    xi: float = eqx.field(static=True)
+
+    @staticmethod
+    def build(partition: Partition, xi: float = 1e-3) -> "MMProblem":
+        n_max = partition.max_poses
+        binv = jax.jit(jax.vmap(lambda e: block_preconditioner(e, xi, n_max)))(partition.edges)
+        return MMProblem(partition, binv, xi)
+
+
+class MMState(eqx.Module):
+    X: Poses  # (A, n_max, ...) current iterate X^k
+    grad: Poses  # grad F(X^k), per robot block
+    share: jax.Array  # (A,) Gbar^alpha(k)
+    X_prev: Poses  # X^{k-1}
+    grad_prev: Poses
+    s: jax.Array  # (A,) Nesterov sequence
+    slack: jax.Array  # (A,) allowed increase of G^alpha over Gbar^alpha (adaptive restart)
+    iteration: jax.Array
+
+
+class IterationRecord(eqx.Module):
+    f: jax.Array  # 2F(X^{k+1}) (the tables' convention)
+    grad_norm: jax.Array  # ||grad F(X^{k+1})|| (Riemannian, of F)
+    restarted: jax.Array  # (A,) bool: robot took the MM fallback this iteration
+
+
+def _gradients(problem: MMProblem, X: Poses):
+    part = problem.partition
+    return jax.vmap(lambda e: gradient_and_share(e, X, part.max_poses))(part.edges)
+
+
+def _riemannian_grad_norm(X: Poses, grad: Poses):
+    rg = tangent_projection(X.R, grad)
+    return jnp.sqrt(jnp.sum(rg.R**2) + jnp.sum(rg.t**2))
+
+
+def init_state(problem: MMProblem, X0: Poses, config: "MMConfig" = None) -> MMState:
+    """State at X^0 (padded per-robot poses); Algorithm 2 lines 3-8."""
+    config = config or MMConfig()
+    grad, share, local = _gradients(problem, X0)
+    A = share.shape[0]
+    return MMState(
+        X=X0,
+        grad=grad,
+        share=share,
+        X_prev=X0,
+        grad_prev=grad,
+        s=jnp.ones(A, share.dtype),
+        slack=config.slack_scale * local,
+        iteration=jnp.asarray(0),
+    )
+
+
+def _mm_update(problem: MMProblem, config: MMConfig, X: Poses, grad: Poses) -> Poses:
+    """X^{alpha,k+1} = argmin G^alpha(. | X^k) for every robot (Algorithm 1 line 6)."""
+    solve = lambda e, B, x, g: solve_subproblem(e, problem.xi, B, x, x, g, config.subproblem)[0]
+    return jax.vmap(solve)(problem.partition.edges, problem.block_inverse, X, grad)
+
+
+def _select(mask, a: Poses, b: Poses) -> Poses:
+    """Per robot: a where mask else b."""
+    return Poses(
+        jnp.where(mask[:, None, None, None], a.R, b.R),
+        jnp.where(mask[:, None, None], a.t, b.t),
+    )
+
+
+def _amm_update(problem: MMProblem, config: MMConfig, st: MMState):
+    """Algorithm 2 lines 11-20 (per robot) with the configured restart test."""
+    s_next = 0.5 * (jnp.sqrt(4.0 * st.s**2 + 1.0) + 1.0)
+    gamma = (st.s - 1.0) / s_next
+    gm = gamma[:, None, None]
+    Y = Poses(st.X.R + gm[..., None] * (st.X.R - st.X_prev.R), st.X.t + gm * (st.X.t - st.X_prev.t))
+    gY = Poses(
+        st.grad.R + gm[..., None] * (st.grad.R - st.grad_prev.R),
+        st.grad.t + gm * (st.grad.t - st.grad_prev.t),
+    )
+    start = Poses(project_rotations(Y.R), Y.t)
+    solve = lambda e, B, x0, c, g: solve_subproblem(e, problem.xi, B, x0, c, g, config.subproblem)[0]
+    edges = problem.partition.edges
+    Z = jax.vmap(solve)(edges, problem.block_inverse, start, Y, gY)
+    # G^alpha(Z | X^k) - Gbar^alpha(k): no objective evaluation needed (NOTES §3).
+    decrease = jax.vmap(lambda e, z, x, g: majorizer_decrease(e, problem.xi, z - x, g))(edges, Z, st.X, st.grad)
+    if config.restart == "paper":
+        restart = decrease > 0
+    else:
+        # Algorithm 2's test with a vanishing slack: G^alpha(Z|X^k) may exceed Gbar^alpha(k) by at
+        # most slack^alpha_k = slack^alpha_0 (1 - slack_decay)^k, which is summable over k.
+        restart = decrease > st.slack
+    # The MM fallback is computed only in iterations where some robot needs it.
+    X_new = jax.lax.cond(
+        jnp.any(restart),
+        lambda: _select(restart, _mm_update(problem, config, st.X, st.grad), Z),
+        lambda: Z,
+    )
+    s_new = jnp.where(restart, jnp.maximum(0.5 * s_next, 1.0), s_next)
+    return X_new, s_new, restart
+
+
+def step(problem: MMProblem, config: MMConfig, st: MMState):
+    """One outer iteration; returns (new state, record)."""
+    if config.method == "mm":
+        X_new = _mm_update(problem, config, st.X, st.grad)
+        s_new = st.s
+        restart = jnp.zeros_like(st.s, dtype=bool)
+    elif config.method == "amm":
+        X_new, s_new, restart = _amm_update(problem, config, st)
+    else:
+        raise ValueError(f"unknown method {config.method!r}: use 'mm' or 'amm'")
+    grad, share, local = _gradients(problem, X_new)
+    new = MMState(
+        X=X_new,
+        grad=grad,
+        share=share,
+        X_prev=st.X,
+        grad_prev=st.grad,
+        s=s_new,
+        slack=(1.0 - config.slack_decay) * st.slack,
+        iteration=st.iteration + 1,
+    )
+    rec = IterationRecord(f=2.0 * jnp.sum(share), grad_norm=_riemannian_grad_norm(X_new, grad), restarted=restart)
+    return new, rec
+
+
+@eqx.filter_jit
+def run(problem: MMProblem, config: MMConfig, state: MMState, num_iterations: int):
+    """``num_iterations`` outer iterations in one ``lax.scan``. Returns (state, records)."""
+    return jax.lax.scan(lambda st, _: step(problem, config, st), state, None, length=num_iterations)

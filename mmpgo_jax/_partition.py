@@ -1,0 +1,225 @@
+"""Splitting a pose graph among robots, in a padded layout (robot axis first).
+
+Every robot alpha owns a set of poses, stored in ``n_max`` local slots (``pose_mask`` marks the
+real ones). Each robot also holds the list of edges *incident* to its poses, padded to ``e_max``:
+its own edges (both ends local) and the inter-robot edges with one end local. An edge endpoint is
+addressed globally by (robot, slot); ``is_local`` says which endpoints belong to the robot.
+Padding edges have zero weights and padding slots have no edges, so padding never changes a
+result. Everything a robot computes per iteration (its gradient block, its majorizer) only
+touches these incident edges, and only reads the poses of neighbours at their remote endpoints.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._pose_graph import PoseGraph, Poses
+
+
+def contiguous_robots(num_poses: int, num_robots: int) -> np.ndarray:
+    """Robot of each pose for contiguous blocks in file order (NOTES §4).
+
+    With n poses and A robots the first n mod A robots get floor(n/A)+1 poses, the rest floor(n/A).
+    """
+    if not 1 <= num_robots <= num_poses:
+        raise ValueError(f"number of robots must be between 1 and the number of poses ({num_poses}), got {num_robots}")
+    base, extra = divmod(num_poses, num_robots)
+    sizes = np.full(num_robots, base)
+    sizes[:extra] += 1
+    return np.repeat(np.arange(num_robots), sizes)
+
+
+class RobotEdges(eqx.Module):
+    """Per-robot padded incident edges, arrays of shape (A, e_max, ...)."""
+
+    robot_i: jax.Array  # robot owning the tail pose
+    slot_i: jax.Array  # local slot of the tail pose in its robot
+    robot_j: jax.Array
+    slot_j: jax.Array
+    local_i: jax.Array  # bool: tail belongs to this robot
+    local_j: jax.Array  # bool: head belongs to this robot
+    R: jax.Array  # (A, e_max, d, d)
+    t: jax.Array  # (A, e_max, d)
+    kappa: jax.Array  # 0 on padding
+    tau: jax.Array
+
+    @property
+    def is_inter(self):
+        return jnp.logical_xor(self.local_i, self.local_j)
+
+
+class Partition(eqx.Module):
+    """A pose graph split among ``num_robots`` robots, padded (see module docstring)."""
+
+    pose_index: jax.Array  # (A, n_max) global pose index of each slot (0 on padding)
+    pose_mask: jax.Array  # (A, n_max) bool
+    edges: RobotEdges
+    robot_of_pose: jax.Array  # (n,)
+    slot_of_pose: jax.Array  # (n,)
+    num_poses: int = eqx.field(static=True)
+
+    @property
+    def num_robots(self) -> int:
+        return self.pose_mask.shape[0]
+
+    @property
+    def max_poses(self) -> int:
+        return self.pose_mask.shape[1]
+
+    @property
+    def max_edges(self) -> int:
+        return self.edges.kappa.shape[1]
+
+    def scatter(self, poses: Poses) -> Poses:
+        """Global poses (n, ...) -> padded per-robot poses (A, n_max, ...); padding gets R = I, t = 0."""
+        d = poses.R.shape[-1]
+        eye = jnp.eye(d, dtype=poses.R.dtype)
+        m = self.pose_mask
+        R = jnp.where(m[..., None, None], poses.R[self.pose_index], eye)
+        t = jnp.where(m[..., None], poses.t[self.pose_index], 0.0)
+        return Poses(R, t)
+
+    def gather(self, padded: Poses) -> Poses:
+        """Padded per-robot poses (A, n_max, ...) -> global poses (n, ...)."""
+        return Poses(
+            padded.R[self.robot_of_pose, self.slot_of_pose],
+            padded.t[self.robot_of_pose, self.slot_of_pose],
+        )
+
+
+@dataclass(frozen=True)
+class PartitionStats:
+    """Host-side description of a partition (for reports and the CLI)."""
+
+    poses: np.ndarray  # (A,) poses per robot
+    own_edges: np.ndarray  # (A,) edges with both ends in the robot
+    inter_edges: np.ndarray  # (A,) inter-robot edges incident to the robot
+    neighbours: list[np.ndarray]  # robots sharing an edge with each robot
+    received_poses: np.ndarray  # (A,) distinct remote poses each robot must receive per iteration
+
+    @property
+    def total_inter_edges(self) -> int:
+        return int(self.inter_edges.sum() // 2)
+
+
+def partition(
+    graph: PoseGraph,
+    robots: int | np.ndarray,
+    *,
+    min_max_poses: int = 0,
+    min_max_edges: int = 0,
+    num_robots: int | None = None,
+) -> Partition:
+    """Split ``graph`` among robots.
+
+    ``robots`` is either a robot count (contiguous blocks, NOTES §4) or an (n,) array giving the
+    robot of each pose. ``min_max_poses`` / ``min_max_edges`` / ``num_robots`` pad to larger common
+    shapes (e.g. to batch several partitions); padding never changes a result.
+    """
+    n = graph.num_poses
+    if np.ndim(robots) == 0:
+        robot_of_pose = contiguous_robots(n, int(robots))
+    else:
+        robot_of_pose = np.asarray(robots, dtype=np.int64)
+        if robot_of_pose.shape != (n,):
+            raise ValueError(f"robot-of-pose array must have shape ({n},), got {robot_of_pose.shape}")
+        if robot_of_pose.min() < 0:
+            raise ValueError("robot indices must be non-negative")
+    A = int(robot_of_pose.max()) + 1
+    if num_robots is not None:
+        if num_robots < A:
+            raise ValueError(f"num_robots={num_robots} is smaller than the {A} robots used")
+        A = num_robots
+    counts = np.bincount(robot_of_pose, minlength=A)
+    if np.any(counts[: int(robot_of_pose.max()) + 1] == 0):
+        empty = np.flatnonzero(counts == 0)
+        raise ValueError(f"robots {empty.tolist()} own no pose; robot indices must be 0..A-1 without gaps")
+    n_max = max(int(counts.max()), min_max_poses, 1)
+    # Local slot = rank of the pose among its robot's poses (in global index order).
+    order = np.argsort(robot_of_pose, kind="stable")
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    slot_of_pose = np.empty(n, dtype=np.int64)
+    slot_of_pose[order] = np.arange(n) - np.repeat(starts, counts)
+    pose_index = np.zeros((A, n_max), dtype=np.int64)
+    pose_mask = np.zeros((A, n_max), dtype=bool)
+    pose_index[robot_of_pose, slot_of_pose] = np.arange(n)
+    pose_mask[robot_of_pose, slot_of_pose] = True
+
+    gi, gj = np.asarray(graph.i), np.asarray(graph.j)
+    ri, rj = robot_of_pose[gi], robot_of_pose[gj]
+    # Incident edge list: each edge appears for the tail's robot, and again for the head's robot
+    # when that is a different robot.
+    inter = ri != rj
+    owner = np.concatenate([ri, rj[inter]])
+    edge_id = np.concatenate([np.arange(len(gi)), np.flatnonzero(inter)])
+    e_counts = np.bincount(owner, minlength=A)
+    e_max = max(int(e_counts.max(initial=0)), min_max_edges, 1)
+    order_e = np.argsort(owner, kind="stable")
+    owner, edge_id = owner[order_e], edge_id[order_e]
+    e_starts = np.concatenate([[0], np.cumsum(e_counts)[:-1]])
+    e_slot = np.arange(len(owner)) - np.repeat(e_starts, e_counts)
+
+    def padded(values, fill, dtype):
+        out = np.full((A, e_max) + values.shape[1:], fill, dtype=dtype)
+        out[owner, e_slot] = values
+        return out
+
+    d = graph.dim
+    fdt = np.asarray(graph.kappa).dtype
+    Rm = np.asarray(graph.R)[edge_id]
+    tm = np.asarray(graph.t)[edge_id]
+    eye_pad = np.full((A, e_max, d, d), 0.0, dtype=fdt)
+    eye_pad[...] = np.eye(d)
+    Rpad = eye_pad
+    Rpad[owner, e_slot] = Rm
+    edges = RobotEdges(
+        robot_i=jnp.asarray(padded(ri[edge_id], 0, np.int32)),
+        slot_i=jnp.asarray(padded(slot_of_pose[gi[edge_id]], 0, np.int32)),
+        robot_j=jnp.asarray(padded(rj[edge_id], 0, np.int32)),
+        slot_j=jnp.asarray(padded(slot_of_pose[gj[edge_id]], 0, np.int32)),
+        local_i=jnp.asarray(padded(ri[edge_id] == owner, False, bool)),
+        local_j=jnp.asarray(padded(rj[edge_id] == owner, False, bool)),
+        R=jnp.asarray(Rpad),
+        t=jnp.asarray(padded(tm, 0.0, fdt)),
+        kappa=jnp.asarray(padded(np.asarray(graph.kappa)[edge_id], 0.0, fdt)),
+        tau=jnp.asarray(padded(np.asarray(graph.tau)[edge_id], 0.0, fdt)),
+    )
+    return Partition(
+        pose_index=jnp.asarray(pose_index, jnp.int32),
+        pose_mask=jnp.asarray(pose_mask),
+        edges=edges,
+        robot_of_pose=jnp.asarray(robot_of_pose, jnp.int32),
+        slot_of_pose=jnp.asarray(slot_of_pose, jnp.int32),
+        num_poses=n,
+    )
+
+
+def partition_stats(graph: PoseGraph, robot_of_pose: np.ndarray) -> PartitionStats:
+    """Poses, own/inter edges, neighbours and poses to receive per robot (host-side)."""
+    robot_of_pose = np.asarray(robot_of_pose)
+    A = int(robot_of_pose.max()) + 1
+    gi, gj = np.asarray(graph.i), np.asarray(graph.j)
+    ri, rj = robot_of_pose[gi], robot_of_pose[gj]
+    inter = ri != rj
+    own = np.bincount(ri[~inter], minlength=A)
+    inter_count = np.bincount(ri[inter], minlength=A) + np.bincount(rj[inter], minlength=A)
+    neighbours = []
+    received = np.zeros(A, dtype=np.int64)
+    for a in range(A):
+        out_e = inter & (ri == a)
+        in_e = inter & (rj == a)
+        nb = np.union1d(rj[out_e], ri[in_e])
+        neighbours.append(nb.astype(np.int64))
+        received[a] = len(np.union1d(gj[out_e], gi[in_e]))
+    return PartitionStats(
+        poses=np.bincount(robot_of_pose, minlength=A),
+        own_edges=own,
+        inter_edges=inter_count,
+        neighbours=neighbours,
+        received_poses=received,
+    )

@@ -1,0 +1,520 @@
+"""Seeded synthetic pose-graph datasets with ground truth (the paper's "Cube" datasets, Fig. 1).
+
+Generative model (SE-Sync's, Rosen et al. 2016, Eq. (10); the paper's Section VIII.A)
+-------------------------------------------------------------------------------------
+For every edge (i, j) with ground-truth poses (R_i, t_i), (R_j, t_j)::
+
+    R~_ij = R_i^T R_j  R^eps,      R^eps ~ Langevin(I_d, kappa)
+    t~_ij = R_i^T (t_j - t_i) + t^eps,   t^eps ~ N(0, tau^{-1} I_d)
+
+``Langevin(M, kappa)`` is the isotropic Langevin (matrix von Mises-Fisher) distribution on SO(d)
+with density ``p(R) = exp(kappa tr(M^T R)) / c_d(kappa)`` with respect to the Haar (uniform)
+probability measure.  With this convention the negative log-likelihood of a measurement is
+``kappa/2 ||R_i R~ - R_j||_F^2 + tau/2 ||R_i t~ + t_i - t_j||^2 + const``, i.e. exactly half of the
+per-edge term of ``f = 2F`` (:func:`mmpgo_jax.cost`), and the graph's weights are the ``kappa``,
+``tau`` used to generate the noise.
+
+Samplers (exact, no approximations):
+
+* d = 2: ``R = Rot(theta)``, ``tr R = 2 cos(theta)``, Haar = uniform angle, so ``theta`` is von
+  Mises with concentration ``2 kappa`` (numpy's Best-Fisher sampler).
+* d = 3: with a unit quaternion ``q = (v, w)``, ``tr R = 4 w^2 - 1`` and Haar on SO(3) is the
+  uniform measure on S^3 (double cover), so ``q`` is Bingham with density
+  ``exp(-4 kappa |v|^2)``; sampled by rejection from an angular central Gaussian envelope (Kent,
+  Ganeiber & Mardia 2013), whose acceptance rate stays above ~0.5 for every kappa.  Equivalently
+  the rotation angle has density proportional to ``(1 - cos theta) exp(2 kappa cos theta)`` on
+  [0, pi] and the axis is uniform.
+
+Noise level -> weights (:func:`kappa_tau_from_rmse`)
+----------------------------------------------------
+"Expected translational RMSE sigma_t" is ``sqrt(E ||t^eps||^2)``; since ``E ||t^eps||^2 = d / tau``,
+``tau = d / sigma_t^2``.  "Expected angular RMSE sigma_R" is ``sqrt(E theta^2)`` with ``theta`` the
+geodesic angle of ``R^eps``; ``E theta^2`` is computed by quadrature from the angle densities above
+and inverted for kappa by root finding (it decreases monotonically in kappa; for small noise
+``E theta^2 ~ d(d-1)/2 / (2 kappa)``, i.e. ``kappa ~ d(d-1) / (4 sigma_R^2)``).  The achievable
+RMSE is bounded by the uniform (kappa = 0) value: ``pi/sqrt(3)`` (d = 2), ``sqrt(pi^2/3 + 2)``
+(d = 3).  For sigma_t = 0.02 m and sigma_R = 0.02 pi rad:
+
+* d = 3: tau = 7500, kappa = 380.288 (small-noise approximation 3 / (2 sigma_R^2) = 379.954);
+* d = 2: tau = 5000, kappa = 126.902 (small-noise approximation 1 / (2 sigma_R^2) = 126.651).
+
+Expected cost at the ground truth: per edge
+``E[kappa ||R^eps - I||^2 + tau ||t^eps||^2] = 2 kappa (d - E tr R^eps) + d`` with
+``E tr R^eps = 2 I1(2k)/I0(2k)`` (d = 2) and ``-1 + I1(2k) / (k (I0(2k) - I1(2k)))`` (d = 3),
+which tends to ``d(d-1)/2 + d`` (3 in 2D, 6 in 3D) for small noise
+(:func:`expected_edge_cost`).
+
+Path model (documented choice; the paper only says "a path of 3600 poses along the rectilinear
+edges of the cube grid")
+-------------------------------------------------------------------------------------------------
+* Lattice: ``grid`` cells of side ``side`` per axis, i.e. vertices ``side * {0, ..., grid}^d``
+  ((grid + 1)^d vertices; the cube spans ``grid * side`` metres).
+* The walk starts at the origin corner.  Each step moves to a neighbouring lattice vertex
+  (+-1 cell along one axis) chosen uniformly among those inside the lattice, excluding the
+  immediate reversal of the previous step (there is always another option when d >= 2).
+* Orientation = heading of travel: the first axis of ``R_k`` points along the step leaving pose
+  k (the last pose keeps the heading of the step arriving at it).  The remaining axes are carried
+  along by parallel transport: on a turn the frame is rotated by the 90-degree rotation in the
+  plane of the old and new headings (a vehicle turning), and the initial frame is the minimal
+  rotation taking e_1 to the first heading (a pi rotation in the e_1-e_2 plane if it is -e_1).
+  Every ``R_k`` is a proper rotation; odometry then reads "forward ``side`` metres, then turn".
+* Odometry edges (k, k+1) for every k.  Loop-closure candidates are all pairs i < j, j != i + 1,
+  whose ground-truth positions are at most ``loop_closure_radius`` cells apart (default 1: the
+  same vertex or an adjacent one); each candidate is kept independently with probability
+  ``loop_closure_prob``.
+* Edge order: odometry edges first (edge k is (k, k+1)), then loop closures in lexicographic
+  (i, j) order.
+* All randomness comes from ``numpy.random.default_rng(seed)`` in a fixed order (walk, loop-closure
+  draws, rotation noise, translation noise), so a seed determines the dataset bit for bit.
+
+``sigma_t = 0`` / ``sigma_R = 0`` give noise-free translations / rotations; the SE-Sync weight would
+be infinite, so a unit weight is used instead (useful for exact-recovery tests).
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from dataclasses import dataclass
+
+import jax.numpy as jnp
+import numpy as np
+from scipy import integrate, optimize, special
+
+from ._pose_graph import PoseGraph, Poses
+
+__all__ = [
+    "SyntheticDataset",
+    "cube_dataset",
+    "grid_2d_dataset",
+    "lattice_dataset",
+    "kappa_tau_from_rmse",
+    "langevin_expected_sq_angle",
+    "langevin_expected_trace",
+    "expected_edge_cost",
+    "sample_langevin",
+    "rotation_angle",
+]
+
+
+# --------------------------------------------------------------------------------------------
+# Langevin distribution on SO(d), d in {2, 3}
+# --------------------------------------------------------------------------------------------
+
+
+def _check_dim(dim: int) -> int:
+    dim = int(dim)
+    if dim not in (2, 3):
+        raise ValueError(f"dim must be 2 or 3, got {dim}")
+    return dim
+
+
+def max_angular_rmse(dim: int) -> float:
+    """sqrt(E theta^2) under the uniform (Haar) distribution: the largest reachable sigma_R."""
+    return math.pi / math.sqrt(3.0) if _check_dim(dim) == 2 else math.sqrt(math.pi**2 / 3 + 2)
+
+
+@functools.lru_cache(maxsize=512)
+def langevin_expected_sq_angle(kappa: float, dim: int) -> float:
+    """E[theta^2] for R ~ Langevin(I, kappa) on SO(dim), theta the geodesic (rotation) angle.
+
+    Angle densities on [0, pi] (Haar measure included):
+      d = 2: exp(2 kappa cos theta);  d = 3: (1 - cos theta) exp(2 kappa cos theta).
+    Integrated in the scaled variable u = theta sqrt(2 kappa) so that the quadrature sees an O(1)
+    bump for any kappa; the exponent is written as -4 kappa sin^2(theta/2) to avoid cancellation.
+    """
+    dim = _check_dim(dim)
+    kappa = float(kappa)
+    if kappa < 0:
+        raise ValueError("kappa must be >= 0")
+    if math.isinf(kappa):
+        return 0.0
+    if kappa == 0.0:
+        return max_angular_rmse(dim) ** 2
+    s = math.sqrt(2.0 * kappa)
+    upper = min(math.pi * s, 60.0)  # beyond u = 60 the integrand is below exp(-700)
+
+    def weight(u):
+        th = u / s
+        w = math.exp(-4.0 * kappa * math.sin(0.5 * th) ** 2)
+        if dim == 3:
+            w *= math.sin(0.5 * th) ** 2
+        return w
+
+    pts = [p for p in (1.0, 3.0, 10.0, 30.0) if p < upper]
+    num = integrate.quad(lambda u: (u / s) ** 2 * weight(u), 0.0, upper, points=pts, limit=200,
+                         epsabs=0.0, epsrel=1e-12)[0]
+    den = integrate.quad(weight, 0.0, upper, points=pts, limit=200, epsabs=0.0, epsrel=1e-12)[0]
+    return num / den
+
+
+def langevin_expected_trace(kappa: float, dim: int) -> float:
+    """E[tr R] for R ~ Langevin(I, kappa) on SO(dim) (closed forms with modified Bessel functions).
+
+    d = 2: 2 I1(2k)/I0(2k).   d = 3: the normaliser is e^k (I0(2k) - I1(2k)), so
+    E tr R = d/dk log c = -1 + I1(2k) / (k (I0(2k) - I1(2k))).
+    """
+    dim = _check_dim(dim)
+    kappa = float(kappa)
+    if math.isinf(kappa):
+        return float(dim)
+    x = 2.0 * kappa
+    if dim == 2:
+        return 2.0 * special.ive(1, x) / special.ive(0, x)
+    if kappa < 1e-6:  # series: E tr R = kappa + O(kappa^2) (Haar mean of tr R is 0, variance 1)
+        return kappa
+    i0, i1 = special.ive(0, x), special.ive(1, x)
+    return -1.0 + i1 / (kappa * (i0 - i1))
+
+
+def expected_edge_cost(kappa, tau, dim: int):
+    """E[kappa ||R^eps - I||_F^2 + tau ||t^eps||^2] for one edge at the ground truth (f = 2F).
+
+    = 2 kappa (d - E tr R^eps) + d.  Vectorised over array-like kappa/tau (numpy result).
+    Edges generated noise-free (unit weights from sigma = 0) are not covered by this formula.
+    """
+    dim = _check_dim(dim)
+    kap = np.atleast_1d(np.asarray(kappa, dtype=np.float64))
+    uniq, inv = np.unique(kap, return_inverse=True)
+    rot = np.array([2.0 * k * (dim - langevin_expected_trace(k, dim)) for k in uniq])[inv]
+    out = rot.reshape(kap.shape) + dim * np.ones_like(np.asarray(tau, dtype=np.float64))
+    return out if np.ndim(kappa) or np.ndim(tau) else float(out.reshape(()))
+
+
+def _quat_to_rot(q: np.ndarray) -> np.ndarray:
+    """(..., 4) unit quaternions (x, y, z, w) -> (..., 3, 3) rotations (host-side float64)."""
+    x, y, z, w = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
+            np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
+            np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        -2,
+    )
+
+
+def _sample_langevin_quaternions(rng: np.random.Generator, kappa: float, size: int) -> np.ndarray:
+    """Bingham density exp(-4 kappa |v|^2) on S^3 (q = (v, w)), by ACG rejection (Kent et al. 2013).
+
+    A = diag(4k, 4k, 4k, 0); envelope ACG(Omega), Omega = I + 2A/b with b solving
+    sum_i 1/(b + 2 lambda_i) = 1, i.e. 1/b + 3/(b + 8k) = 1  <=>  b^2 + (8k - 4) b - 8k = 0.
+    Accept x when u < exp(-x'Ax) (x'Omega x)^{q/2} / M*,  M* = exp(-(q - b)/2) (q/b)^{q/2}, q = 4.
+    """
+    q = 4.0
+    c = 8.0 * kappa - 4.0
+    disc = math.sqrt(c * c + 32.0 * kappa)
+    b = 16.0 * kappa / (c + disc) if c > 0 else 0.5 * (-c + disc)  # stable root
+    log_mstar = -(q - b) / 2.0 + (q / 2.0) * math.log(q / b)
+    sd = math.sqrt(b / (b + 8.0 * kappa))  # Omega^{-1/2} on the vector part; 1 on w
+    out = np.empty((size, 4))
+    filled = 0
+    while filled < size:
+        batch = max(64, int(1.3 * (size - filled)) + 16)
+        z = rng.standard_normal((batch, 4))
+        z[:, :3] *= sd
+        x = z / np.linalg.norm(z, axis=1, keepdims=True)
+        v2 = np.sum(x[:, :3] ** 2, axis=1)
+        log_ratio = -4.0 * kappa * v2 + (q / 2.0) * np.log1p(8.0 * kappa * v2 / b) - log_mstar
+        u = rng.random(batch)
+        acc = x[np.log(u) < log_ratio]
+        take = min(len(acc), size - filled)
+        out[filled : filled + take] = acc[:take]
+        filled += take
+    return out
+
+
+def sample_langevin(rng: np.random.Generator, kappa: float, size: int, dim: int) -> np.ndarray:
+    """``size`` i.i.d. samples of Langevin(I, kappa) on SO(dim), density exp(kappa tr R) w.r.t. Haar.
+
+    Returns a float64 numpy array (size, dim, dim).  ``kappa = inf`` gives identities.
+    """
+    dim = _check_dim(dim)
+    size = int(size)
+    kappa = float(kappa)
+    if kappa < 0:
+        raise ValueError("kappa must be >= 0")
+    if math.isinf(kappa):
+        return np.broadcast_to(np.eye(dim), (size, dim, dim)).copy()
+    if dim == 2:
+        th = rng.vonmises(0.0, 2.0 * kappa, size)
+        c, s = np.cos(th), np.sin(th)
+        return np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
+    return _quat_to_rot(_sample_langevin_quaternions(rng, kappa, size))
+
+
+def rotation_angle(R) -> np.ndarray:
+    """Geodesic angle in [0, pi] of rotations (..., d, d), d in {2, 3} (accurate near 0)."""
+    R = np.asarray(R, dtype=np.float64)
+    if R.shape[-1] == 2:
+        return np.abs(np.arctan2(R[..., 1, 0] - R[..., 0, 1], R[..., 0, 0] + R[..., 1, 1]))
+    w = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0],
+                  R[..., 1, 0] - R[..., 0, 1]], -1)
+    sin = 0.5 * np.linalg.norm(w, axis=-1)
+    cos = 0.5 * (np.trace(R, axis1=-2, axis2=-1) - 1.0)
+    return np.arctan2(sin, cos)
+
+
+@functools.lru_cache(maxsize=256)
+def _kappa_from_sigma_R(sigma_R: float, dim: int) -> float:
+    if sigma_R == 0.0:
+        return math.inf
+    smax = max_angular_rmse(dim)
+    if not 0.0 < sigma_R < smax:
+        raise ValueError(
+            f"sigma_R must lie in (0, {smax:.6g}) for d = {dim} (the RMSE of a uniformly random "
+            f"rotation), got {sigma_R}"
+        )
+    target = sigma_R * sigma_R
+    k0 = dim * (dim - 1) / (4.0 * target)  # small-noise approximation
+
+    def g(logk):
+        return math.log(langevin_expected_sq_angle(math.exp(logk), dim)) - math.log(target)
+
+    lo, hi = math.log(k0) - 1.0, math.log(k0) + 1.0
+    while g(lo) < 0:
+        lo -= 2.0
+        if lo < -60:
+            return 0.0
+    while g(hi) > 0:
+        hi += 2.0
+    return math.exp(optimize.brentq(g, lo, hi, xtol=1e-14, rtol=1e-13))
+
+
+def kappa_tau_from_rmse(sigma_t: float, sigma_R: float, dim: int) -> tuple[float, float]:
+    """(kappa, tau) giving expected translational RMSE ``sigma_t`` and angular RMSE ``sigma_R``.
+
+    tau = d / sigma_t^2 (E ||t^eps||^2 = d / tau); kappa solves E theta^2 = sigma_R^2 under
+    Langevin(I, kappa) (see the module docstring).  A zero sigma gives an infinite weight.
+    """
+    dim = _check_dim(dim)
+    sigma_t, sigma_R = float(sigma_t), float(sigma_R)
+    if sigma_t < 0 or sigma_R < 0:
+        raise ValueError("noise levels must be >= 0")
+    tau = math.inf if sigma_t == 0.0 else dim / sigma_t**2
+    return _kappa_from_sigma_R(sigma_R, dim), tau
+
+
+# --------------------------------------------------------------------------------------------
+# Datasets
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class SyntheticDataset:
+    """A generated pose graph with its ground truth and the noise levels that produced it."""
+
+    name: str
+    graph: PoseGraph
+    ground_truth: Poses
+    sigma_t: float
+    sigma_R: float
+    seed: int
+
+    @property
+    def dim(self) -> int:
+        return self.graph.dim
+
+    @property
+    def num_poses(self) -> int:
+        return self.graph.num_poses
+
+    @property
+    def num_edges(self) -> int:
+        return self.graph.num_edges
+
+    @property
+    def num_odometry_edges(self) -> int:
+        """Edges 0 .. n-2 are the odometry edges (k, k+1); the rest are loop closures."""
+        return self.graph.num_poses - 1
+
+    @property
+    def kappa(self) -> float:
+        return float(self.graph.kappa[0])
+
+    @property
+    def tau(self) -> float:
+        return float(self.graph.tau[0])
+
+    def expected_ground_truth_cost(self) -> float:
+        """E[f(ground truth)] (f = 2F) under the generative model; 0 for noise-free data."""
+        if self.sigma_t == 0.0 and self.sigma_R == 0.0:
+            return 0.0
+        kap, tau = kappa_tau_from_rmse(self.sigma_t, self.sigma_R, self.dim)
+        per_edge = (0.0 if self.sigma_R == 0.0 else expected_edge_cost(kap, 1.0, self.dim) - self.dim)
+        per_edge += 0.0 if self.sigma_t == 0.0 else self.dim
+        return float(self.num_edges * per_edge)
+
+
+def _plane_rotation(h_from: np.ndarray, h_to: np.ndarray) -> np.ndarray:
+    """The rotation taking unit vector h_from to h_to (orthogonal or opposite), fixing the rest.
+
+    Orthogonal: the 90-degree rotation in span{h_from, h_to}:
+        Q = I - a a' - b b' + b a' - a b'.
+    Opposite: a pi rotation in the plane of h_from and the first coordinate axis orthogonal to it.
+    """
+    d = h_from.shape[0]
+    a, b = h_from, h_to
+    if np.dot(a, b) < -0.5:
+        k = int(np.argmax(np.abs(a) < 0.5))
+        c = np.zeros(d)
+        c[k] = 1.0
+        return np.eye(d) - 2.0 * np.outer(a, a) - 2.0 * np.outer(c, c)
+    if np.dot(a, b) > 0.5:
+        return np.eye(d)
+    return np.eye(d) - np.outer(a, a) - np.outer(b, b) + np.outer(b, a) - np.outer(a, b)
+
+
+def _lattice_walk(rng: np.random.Generator, dim: int, grid: int, num_poses: int) -> np.ndarray:
+    """Integer vertex coordinates (num_poses, dim) of the non-reversing random walk."""
+    steps = np.concatenate([np.eye(dim, dtype=np.int64), -np.eye(dim, dtype=np.int64)])
+    pos = np.zeros((num_poses, dim), dtype=np.int64)
+    prev = -1  # index into steps of the previous move
+    for k in range(1, num_poses):
+        cur = pos[k - 1]
+        nxt = cur + steps
+        ok = np.all((nxt >= 0) & (nxt <= grid), axis=1)
+        if prev >= 0:
+            rev = (prev + dim) % (2 * dim)
+            ok_nr = ok.copy()
+            ok_nr[rev] = False
+            if ok_nr.any():
+                ok = ok_nr
+        choices = np.flatnonzero(ok)
+        prev = int(choices[rng.integers(len(choices))])
+        pos[k] = nxt[prev]
+    return pos
+
+
+def _heading_frames(pos: np.ndarray) -> np.ndarray:
+    """Rotations whose first axis is the heading of travel, carried by parallel transport."""
+    n, d = pos.shape
+    R = np.empty((n, d, d))
+    if n == 1:
+        R[0] = np.eye(d)
+        return R
+    heads = np.diff(pos, axis=0).astype(np.float64)  # (n-1, d) unit axis vectors
+    heads = np.concatenate([heads, heads[-1:]], 0)  # last pose keeps its arrival heading
+    e1 = np.zeros(d)
+    e1[0] = 1.0
+    R[0] = _plane_rotation(e1, heads[0])
+    for k in range(1, n):
+        R[k] = _plane_rotation(heads[k - 1], heads[k]) @ R[k - 1]
+    return R
+
+
+def _loop_closure_candidates(pos: np.ndarray, radius: float) -> np.ndarray:
+    """All pairs (i, j), i < j, j != i+1, with |pos_i - pos_j| <= radius (lattice units), sorted."""
+    from scipy.spatial import cKDTree
+
+    if len(pos) < 3 or radius < 0:
+        return np.zeros((0, 2), dtype=np.int64)
+    pairs = cKDTree(pos.astype(np.float64)).query_pairs(r=radius + 1e-9, output_type="ndarray")
+    pairs = np.sort(pairs.astype(np.int64), axis=1)
+    pairs = pairs[pairs[:, 1] != pairs[:, 0] + 1]
+    order = np.lexsort((pairs[:, 1], pairs[:, 0]))
+    return pairs[order]
+
+
+def lattice_dataset(
+    seed: int = 0,
+    *,
+    dim: int,
+    grid: int,
+    side: float = 1.0,
+    num_poses: int,
+    loop_closure_prob: float = 0.1,
+    loop_closure_radius: float = 1.0,
+    sigma_t: float = 0.02,
+    sigma_R: float = 0.02 * np.pi,
+    dtype=None,
+    name: str | None = None,
+) -> SyntheticDataset:
+    """A random walk on a ``grid``^dim lattice with noisy odometry and loop closures.
+
+    See the module docstring for the path and noise model.  :func:`cube_dataset` and
+    :func:`grid_2d_dataset` are the 3D and 2D presets.
+    """
+    dim = _check_dim(dim)
+    grid, num_poses, seed = int(grid), int(num_poses), int(seed)
+    if grid < 1:
+        raise ValueError("grid must be >= 1")
+    if num_poses < 2:
+        raise ValueError("num_poses must be >= 2")
+    if not 0.0 <= loop_closure_prob <= 1.0:
+        raise ValueError("loop_closure_prob must lie in [0, 1]")
+    kappa, tau = kappa_tau_from_rmse(sigma_t, sigma_R, dim)
+    rng = np.random.default_rng(seed)
+
+    pos = _lattice_walk(rng, dim, grid, num_poses)
+    Rgt = _heading_frames(pos)
+    tgt = side * pos.astype(np.float64)
+
+    cand = _loop_closure_candidates(pos, loop_closure_radius)
+    keep = rng.random(len(cand)) < loop_closure_prob
+    odo = np.stack([np.arange(num_poses - 1), np.arange(1, num_poses)], 1)
+    edges = np.concatenate([odo, cand[keep]], 0)
+    I, J = edges[:, 0], edges[:, 1]
+    m = len(I)
+
+    Rrel = np.swapaxes(Rgt[I], 1, 2) @ Rgt[J]
+    trel = np.einsum("mba,mb->ma", Rgt[I], tgt[J] - tgt[I])
+    Rn = sample_langevin(rng, kappa, m, dim)  # identities when sigma_R = 0
+    if math.isinf(tau):
+        tn = np.zeros((m, dim))
+    else:
+        tn = rng.standard_normal((m, dim)) / math.sqrt(tau)
+    Rmeas = Rrel @ Rn
+    tmeas = trel + tn
+
+    kap_w = 1.0 if math.isinf(kappa) else kappa
+    tau_w = 1.0 if math.isinf(tau) else tau
+    graph = PoseGraph.from_arrays(
+        I, J, Rmeas, tmeas, np.full(m, kap_w), np.full(m, tau_w), num_poses=num_poses, dtype=dtype
+    )
+    fdt = dtype or jnp.asarray(0.0).dtype
+    gt = Poses(jnp.asarray(Rgt, fdt), jnp.asarray(tgt, fdt))
+    if name is None:
+        name = f"{'cube' if dim == 3 else 'grid2d'}_seed{seed}"
+    return SyntheticDataset(name=name, graph=graph, ground_truth=gt, sigma_t=float(sigma_t),
+                            sigma_R=float(sigma_R), seed=seed)
+
+
+def cube_dataset(
+    seed: int = 0,
+    *,
+    grid: int = 12,
+    side: float = 1.0,
+    num_poses: int = 3600,
+    loop_closure_prob: float = 0.1,
+    sigma_t: float = 0.02,
+    sigma_R: float = 0.02 * np.pi,
+    dtype=None,
+    loop_closure_radius: float = 1.0,
+) -> SyntheticDataset:
+    """The paper's Cube dataset (Fig. 1, NOTES §8): 12x12x12 cells of 1 m, 3600 poses,
+    loop-closure probability 0.1, sigma_t = 0.02 m, sigma_R = 0.02 pi rad.  Deterministic in seed.
+    """
+    return lattice_dataset(seed, dim=3, grid=grid, side=side, num_poses=num_poses,
+                           loop_closure_prob=loop_closure_prob,
+                           loop_closure_radius=loop_closure_radius, sigma_t=sigma_t,
+                           sigma_R=sigma_R, dtype=dtype, name=f"cube_seed{int(seed)}")
+
+
+def grid_2d_dataset(
+    seed: int = 0,
+    *,
+    grid: int = 20,
+    side: float = 1.0,
+    num_poses: int = 1000,
+    loop_closure_prob: float = 0.1,
+    sigma_t: float = 0.02,
+    sigma_R: float = 0.02 * np.pi,
+    dtype=None,
+    loop_closure_radius: float = 1.0,
+) -> SyntheticDataset:
+    """Planar counterpart of :func:`cube_dataset` on a ``grid`` x ``grid`` lattice."""
+    return lattice_dataset(seed, dim=2, grid=grid, side=side, num_poses=num_poses,
+                           loop_closure_prob=loop_closure_prob,
+                           loop_closure_radius=loop_closure_radius, sigma_t=sigma_t,
+                           sigma_R=sigma_R, dtype=dtype, name=f"grid2d_seed{int(seed)}")
