@@ -99,3 +99,20 @@ def random_rotations(rng: np.random.Generator, shape, dim: int) -> np.ndarray:
     det = np.linalg.det(Q)
     Q[..., :, 0] *= det[..., None]
     return Q
+
+
+def bmm(a, b):
+    """Batched product of small matrices, unrolled over the inner dimension.
+
+    XLA's CPU dot for batches of 2x2..4x4 matrices is several times slower than this fused
+    elementwise form (measured); semantics are exactly ``a @ b`` with broadcasting.
+    """
+    out = a[..., :, 0, None] * b[..., None, 0, :]
+    for k in range(1, a.shape[-1]):
+        out = out + a[..., :, k, None] * b[..., None, k, :]
+    return out
+
+
+def mT(a):
+    """Transpose of the last two axes."""
+    return jnp.swapaxes(a, -1, -2)

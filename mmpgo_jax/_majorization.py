@@ -16,22 +16,25 @@ For a robot alpha with local poses Y (slots 0..n_max-1):
 
 from __future__ import annotations
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
+from ._geometry import bmm, mT
 from ._partition import RobotEdges
 from ._pose_graph import Poses
 
 
 def _edge_residuals(edges: RobotEdges, Ri, ti, Rj, tj):
-    rot = Ri @ edges.R - Rj
-    trans = jnp.einsum("eab,eb->ea", Ri, edges.t) + ti - tj
+    rot = bmm(Ri, edges.R) - Rj
+    trans = jnp.sum(Ri * edges.t[:, None, :], axis=-1) + ti - tj
     return rot, trans
 
 
 def _adjoint_to_slots(edges: RobotEdges, wrot, wtrans, mask_i, mask_j, n_max: int) -> Poses:
     """Scatter weighted residuals back to the local endpoint slots (adjoint of the residual map)."""
-    gRi = wrot @ jnp.swapaxes(edges.R, -1, -2) + wtrans[:, :, None] * edges.t[:, None, :]
+    gRi = bmm(wrot, mT(edges.R)) + wtrans[:, :, None] * edges.t[:, None, :]
     mi = mask_i[:, None, None]
     mj = mask_j[:, None, None]
     gR = jax.ops.segment_sum(jnp.where(mi, gRi, 0.0), edges.slot_i, n_max)
@@ -103,3 +106,110 @@ def inner(a: Poses, b: Poses):
 def majorizer_decrease(edges: RobotEdges, xi, D: Poses, grad: Poses):
     """G^alpha(X^alpha + D | X) - Gbar^alpha(X) = 1/2 <Gamma D, D> + <grad_alpha F(X), D>."""
     return 0.5 * inner(apply_gamma(edges, xi, D), D) + inner(grad, D)
+
+
+# ----------------------------------------------------------------------------------------------
+# Gamma^alpha as a block-sparse operator (built once on the host, applied every inner iteration).
+#
+# In the stacked layout Y_i = [t_i | R_i] (d x (d+1)) an edge e = (i, j) contributes
+# F_e = 1/2 tr([Y_i Y_j] H_e [Y_i Y_j]^T) with, for a = [1; tt_e], e0 = [1; 0], S = diag(0, I_d):
+#   H_ii = tau a a^T + kappa S,  H_jj = tau e0 e0^T + kappa S,  H_ij = -tau a e0^T - kappa [0 0; 0 Rt_e].
+# Gamma^alpha keeps own edges whole and folds each inter-robot edge into twice its local diagonal
+# block (Eq. (5)), so its off-diagonal part only has own edges. Pose graphs are mostly chains, so
+# couplings between consecutive slots (odometry) are stored as a band (shifted dense products, no
+# gather/scatter) and only the remaining own edges (loop closures) as a sorted coordinate list.
+# ----------------------------------------------------------------------------------------------
+
+
+class GammaOperator(eqx.Module):
+    """Per-robot block-sparse Gamma^alpha, arrays with a leading robot axis when batched."""
+
+    diag: jax.Array  # (n_max, d+1, d+1) diagonal blocks, xi I included
+    band: jax.Array  # (n_max, d+1, d+1): band[s] = block coupling slot s to slot s+1 (H_{s,s+1})
+    src: jax.Array  # (k,) int: loop-closure couplings out[dst] += Y[src] @ blocks
+    dst: jax.Array  # (k,) int, sorted
+    blocks: jax.Array  # (k, d+1, d+1)
+
+    def __call__(self, Y):
+        """Gamma Y for Y (n_max, d, d+1) in the stacked layout (Gamma acts from the right)."""
+        out = bmm(Y, self.diag)
+        up = bmm(Y[1:], mT(self.band[:-1]))  # from slot s+1 into slot s
+        down = bmm(Y[:-1], self.band[:-1])  # from slot s into slot s+1
+        out = out.at[:-1].add(up).at[1:].add(down)
+        coo = jax.ops.segment_sum(bmm(Y[self.src], self.blocks), self.dst, Y.shape[0], indices_are_sorted=True)
+        return out + coo
+
+
+def _edge_hessian_blocks(R, t, kappa, tau):
+    """(H_ii, H_jj, H_ij) per edge, numpy, shapes (m, d+1, d+1)."""
+    m, d = t.shape
+    a = np.concatenate([np.ones((m, 1)), t], 1)
+    S = np.diag(np.r_[0.0, np.ones(d)])
+    e0 = np.zeros(d + 1)
+    e0[0] = 1.0
+    Hii = tau[:, None, None] * a[:, :, None] * a[:, None, :] + kappa[:, None, None] * S
+    Hjj = tau[:, None, None] * np.outer(e0, e0) + kappa[:, None, None] * S
+    Rblock = np.zeros((m, d + 1, d + 1))
+    Rblock[:, 1:, 1:] = R
+    Hij = -tau[:, None, None] * a[:, :, None] * e0[None, None, :] - kappa[:, None, None] * Rblock
+    return Hii, Hjj, Hij
+
+
+def build_gamma_operator(edges: RobotEdges, xi: float, n_max: int) -> GammaOperator:
+    """Assemble the batched block-sparse Gamma^alpha of every robot from its incident edges (host)."""
+    A, e_max = np.asarray(edges.kappa).shape
+    d = np.asarray(edges.t).shape[-1]
+    kappa = np.asarray(edges.kappa, np.float64).reshape(-1)
+    tau = np.asarray(edges.tau, np.float64).reshape(-1)
+    Hii, Hjj, Hij = _edge_hessian_blocks(
+        np.asarray(edges.R, np.float64).reshape(-1, d, d), np.asarray(edges.t, np.float64).reshape(-1, d), kappa, tau
+    )
+    robot = np.repeat(np.arange(A), e_max)
+    si = np.asarray(edges.slot_i).reshape(-1).astype(np.int64)
+    sj = np.asarray(edges.slot_j).reshape(-1).astype(np.int64)
+    li = np.asarray(edges.local_i).reshape(-1)
+    lj = np.asarray(edges.local_j).reshape(-1)
+    own = li & lj
+    inter = li ^ lj
+    w = np.where(inter, 2.0, 1.0)[:, None, None]
+    diag = np.zeros((A, n_max, d + 1, d + 1))
+    np.add.at(diag, (robot[li], si[li]), (w * Hii)[li])
+    np.add.at(diag, (robot[lj], sj[lj]), (w * Hjj)[lj])
+    diag += xi * np.eye(d + 1)
+    band = np.zeros((A, n_max, d + 1, d + 1))
+    fwd = own & (sj == si + 1)  # edge from slot s to s+1: H_{s,s+1} = H_ij
+    bwd = own & (si == sj + 1)  # edge from slot s+1 to s: H_{s,s+1} = H_ji = H_ij^T
+    np.add.at(band, (robot[fwd], si[fwd]), Hij[fwd])
+    np.add.at(band, (robot[bwd], sj[bwd]), np.swapaxes(Hij[bwd], -1, -2))
+    rest = own & ~fwd & ~bwd
+    # Directed couplings: out[i] += Y[j] @ H_ji (= H_ij^T), out[j] += Y[i] @ H_ij.
+    r_rob = np.concatenate([robot[rest], robot[rest]])
+    r_src = np.concatenate([sj[rest], si[rest]])
+    r_dst = np.concatenate([si[rest], sj[rest]])
+    r_blk = np.concatenate([np.swapaxes(Hij[rest], -1, -2), Hij[rest]])
+    counts = np.bincount(r_rob, minlength=A)
+    k = max(int(counts.max(initial=0)), 1)
+    src = np.zeros((A, k), np.int64)
+    dst = np.full((A, k), n_max - 1, np.int64)  # padding: zero blocks added to the last slot
+    blk = np.zeros((A, k, d + 1, d + 1))
+    order = np.lexsort((r_dst, r_rob))
+    r_rob, r_src, r_dst, r_blk = r_rob[order], r_src[order], r_dst[order], r_blk[order]
+    pos = np.arange(len(r_rob)) - np.repeat(np.concatenate([[0], np.cumsum(counts)[:-1]]), counts)
+    src[r_rob, pos], dst[r_rob, pos], blk[r_rob, pos] = r_src, r_dst, r_blk
+    fdt = np.asarray(edges.kappa).dtype
+    return GammaOperator(
+        diag=jnp.asarray(diag, fdt),
+        band=jnp.asarray(band, fdt),
+        src=jnp.asarray(src, jnp.int32),
+        dst=jnp.asarray(dst, jnp.int32),
+        blocks=jnp.asarray(blk, fdt),
+    )
+
+
+def stack(P: Poses):
+    """Poses (..., n, d, d) + (..., n, d) -> stacked Y (..., n, d, d+1) = [t | R]."""
+    return jnp.concatenate([P.t[..., None], P.R], axis=-1)
+
+
+def unstack(Y) -> Poses:
+    return Poses(Y[..., 1:], Y[..., 0])

@@ -8,16 +8,17 @@ with a static chunk length, so running 1000 iterations as 10 chunks of 100 compi
 
 from __future__ import annotations
 
+from functools import partial
 from typing import Literal
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ._majorization import gradient_and_share, majorizer_decrease
+from ._majorization import GammaOperator, build_gamma_operator, gradient_and_share, stack, unstack
 from ._partition import Partition
 from ._pose_graph import Poses
-from ._subproblem import SubproblemConfig, block_preconditioner, project_rotations, solve_subproblem, tangent_projection
+from ._subproblem import SubproblemConfig, majorizer_value, project_rotations, solve_subproblem, tangent_projection
 
 
 class MMConfig(eqx.Module):
@@ -44,25 +45,27 @@ class MMConfig(eqx.Module):
 
 
 class MMProblem(eqx.Module):
-    """Constant data of a run: the partition and what is precomputed from Gamma."""
+    """Constant data of a run: the partition and Gamma^alpha of every robot (built once)."""
 
     partition: Partition
-    block_inverse: jax.Array  # (A, n_max, d+1, d+1)
+    gamma: GammaOperator  # batched over robots
+    diag_inverse: jax.Array  # (A, n_max, d+1, d+1) inverses of Gamma's diagonal blocks
     xi: float = eqx.field(static=True)
 
     @staticmethod
     def build(partition: Partition, xi: float = 1e-3) -> "MMProblem":
-        n_max = partition.max_poses
-        binv = jax.jit(jax.vmap(lambda e: block_preconditioner(e, xi, n_max)))(partition.edges)
-        return MMProblem(partition, binv, xi)
+        gamma = build_gamma_operator(partition.edges, xi, partition.max_poses)
+        return MMProblem(partition, gamma, jnp.linalg.inv(gamma.diag), xi)
 
 
 class MMState(eqx.Module):
-    X: Poses  # (A, n_max, ...) current iterate X^k
-    grad: Poses  # grad F(X^k), per robot block
+    """Outer-loop state; poses in the stacked layout (A, n_max, d, d+1) = [t | R] per slot."""
+
+    X: jax.Array  # current iterate X^k
+    grad: jax.Array  # grad F(X^k), per robot block
     share: jax.Array  # (A,) Gbar^alpha(k)
-    X_prev: Poses  # X^{k-1}
-    grad_prev: Poses
+    X_prev: jax.Array  # X^{k-1}
+    grad_prev: jax.Array
     s: jax.Array  # (A,) Nesterov sequence
     slack: jax.Array  # (A,) allowed increase of G^alpha over Gbar^alpha (adaptive restart)
     iteration: jax.Array
@@ -74,19 +77,22 @@ class IterationRecord(eqx.Module):
     restarted: jax.Array  # (A,) bool: robot took the MM fallback this iteration
 
 
-def _gradients(problem: MMProblem, X: Poses):
+def _gradients(problem: MMProblem, X):
+    """(grad F(X) blocks (stacked), shares, local costs) for stacked padded poses X."""
     part = problem.partition
-    return jax.vmap(lambda e: gradient_and_share(e, X, part.max_poses))(part.edges)
+    Xp = unstack(X)
+    grad, share, local = jax.vmap(lambda e: gradient_and_share(e, Xp, part.max_poses))(part.edges)
+    return stack(grad), share, local
 
 
-def _riemannian_grad_norm(X: Poses, grad: Poses):
-    rg = tangent_projection(X.R, grad)
-    return jnp.sqrt(jnp.sum(rg.R**2) + jnp.sum(rg.t**2))
+def _riemannian_grad_norm(X, grad):
+    return jnp.sqrt(jnp.sum(tangent_projection(X, grad) ** 2))
 
 
 def init_state(problem: MMProblem, X0: Poses, config: "MMConfig" = None) -> MMState:
-    """State at X^0 (padded per-robot poses); Algorithm 2 lines 3-8."""
+    """State at X^0 (padded per-robot poses, e.g. ``partition.scatter(poses)``); Alg. 2 lines 3-8."""
     config = config or MMConfig()
+    X0 = stack(X0)
     grad, share, local = _gradients(problem, X0)
     A = share.shape[0]
     return MMState(
@@ -101,36 +107,23 @@ def init_state(problem: MMProblem, X0: Poses, config: "MMConfig" = None) -> MMSt
     )
 
 
-def _mm_update(problem: MMProblem, config: MMConfig, X: Poses, grad: Poses) -> Poses:
+def _mm_update(problem: MMProblem, config: MMConfig, X, grad):
     """X^{alpha,k+1} = argmin G^alpha(. | X^k) for every robot (Algorithm 1 line 6)."""
-    solve = lambda e, B, x, g: solve_subproblem(e, problem.xi, B, x, x, g, config.subproblem)[0]
-    return jax.vmap(solve)(problem.partition.edges, problem.block_inverse, X, grad)
-
-
-def _select(mask, a: Poses, b: Poses) -> Poses:
-    """Per robot: a where mask else b."""
-    return Poses(
-        jnp.where(mask[:, None, None, None], a.R, b.R),
-        jnp.where(mask[:, None, None], a.t, b.t),
-    )
+    solve = lambda G, Dinv, x, g: solve_subproblem(G, Dinv, x, x, g, config.subproblem)[0]
+    return jax.vmap(solve)(problem.gamma, problem.diag_inverse, X, grad)
 
 
 def _amm_update(problem: MMProblem, config: MMConfig, st: MMState):
     """Algorithm 2 lines 11-20 (per robot) with the configured restart test."""
     s_next = 0.5 * (jnp.sqrt(4.0 * st.s**2 + 1.0) + 1.0)
-    gamma = (st.s - 1.0) / s_next
-    gm = gamma[:, None, None]
-    Y = Poses(st.X.R + gm[..., None] * (st.X.R - st.X_prev.R), st.X.t + gm * (st.X.t - st.X_prev.t))
-    gY = Poses(
-        st.grad.R + gm[..., None] * (st.grad.R - st.grad_prev.R),
-        st.grad.t + gm * (st.grad.t - st.grad_prev.t),
-    )
-    start = Poses(project_rotations(Y.R), Y.t)
-    solve = lambda e, B, x0, c, g: solve_subproblem(e, problem.xi, B, x0, c, g, config.subproblem)[0]
-    edges = problem.partition.edges
-    Z = jax.vmap(solve)(edges, problem.block_inverse, start, Y, gY)
+    gamma = ((st.s - 1.0) / s_next)[:, None, None, None]
+    Y = st.X + gamma * (st.X - st.X_prev)
+    gY = st.grad + gamma * (st.grad - st.grad_prev)
+    start = Y.at[..., 1:].set(project_rotations(Y[..., 1:]))
+    solve = lambda G, Dinv, x0, c, g: solve_subproblem(G, Dinv, x0, c, g, config.subproblem)[0]
+    Z = jax.vmap(solve)(problem.gamma, problem.diag_inverse, start, Y, gY)
     # G^alpha(Z | X^k) - Gbar^alpha(k): no objective evaluation needed (NOTES §3).
-    decrease = jax.vmap(lambda e, z, x, g: majorizer_decrease(e, problem.xi, z - x, g))(edges, Z, st.X, st.grad)
+    decrease = jax.vmap(majorizer_value)(problem.gamma, Z, st.X, st.grad)
     if config.restart == "paper":
         restart = decrease > 0
     else:
@@ -138,9 +131,10 @@ def _amm_update(problem: MMProblem, config: MMConfig, st: MMState):
         # most slack^alpha_k = slack^alpha_0 (1 - slack_decay)^k, which is summable over k.
         restart = decrease > st.slack
     # The MM fallback is computed only in iterations where some robot needs it.
+    r = restart[:, None, None, None]
     X_new = jax.lax.cond(
         jnp.any(restart),
-        lambda: _select(restart, _mm_update(problem, config, st.X, st.grad), Z),
+        lambda: jnp.where(r, _mm_update(problem, config, st.X, st.grad), Z),
         lambda: Z,
     )
     s_new = jnp.where(restart, jnp.maximum(0.5 * s_next, 1.0), s_next)
@@ -172,7 +166,33 @@ def step(problem: MMProblem, config: MMConfig, st: MMState):
     return new, rec
 
 
-@eqx.filter_jit
-def run(problem: MMProblem, config: MMConfig, state: MMState, num_iterations: int):
-    """``num_iterations`` outer iterations in one ``lax.scan``. Returns (state, records)."""
-    return jax.lax.scan(lambda st, _: step(problem, config, st), state, None, length=num_iterations)
+@partial(jax.jit, static_argnames=("length",))
+def run(problem: MMProblem, config: MMConfig, state: MMState, length: int, limit=None):
+    """``length`` outer iterations in one ``lax.scan``; returns (state, records).
+
+    Iterations at or beyond ``limit`` (a traced count of total iterations, e.g. the user's budget
+    when it is not a multiple of the chunk length) leave the state unchanged and record NaN, so
+    every chunk of a run uses the same compiled code.
+    """
+
+    def body(st, _):
+        if limit is None:
+            return step(problem, config, st)
+        skip = st.iteration >= limit
+        return jax.lax.cond(skip, lambda s: (s, _skipped_record(s)), lambda s: step(problem, config, s), st)
+
+    return jax.lax.scan(body, state, None, length=length)
+
+
+def _skipped_record(st: MMState) -> IterationRecord:
+    nan = jnp.full((), jnp.nan, st.share.dtype)
+    return IterationRecord(f=nan, grad_norm=nan, restarted=jnp.zeros_like(st.s, dtype=bool))
+
+
+def evaluate(problem: MMProblem, state: MMState) -> IterationRecord:
+    """The record (f, gradient norm) of the state itself, e.g. at X^0."""
+    return IterationRecord(
+        f=2.0 * jnp.sum(state.share),
+        grad_norm=_riemannian_grad_norm(state.X, state.grad),
+        restarted=jnp.zeros_like(state.s, dtype=bool),
+    )
