@@ -522,11 +522,12 @@ def distributed_chordal_initialization(
     translation_iterations = _check_iters("translation_iterations", translation_iterations)
     n = graph.num_poses
     st = _setup(graph, robots)
-    outR = _run_rotations(st, st.gamma_inverse(xi, True), _initial_rotations(st, initial_rotations, n),
-                          rotation_iterations, tol, restart)
+    R0 = _initial_rotations(st, initial_rotations, n)
+    t0 = _initial_translations(st, initial_translations, n)
+    _tol_value(tol, st.dtype)
+    outR = _run_rotations(st, st.gamma_inverse(xi, True), R0, rotation_iterations, tol, restart)
     # each robot projects its own blocks; padding slots hold I, anchors stay I
     Rpad = project_to_so(outR.X)
-    t0 = _initial_translations(st, initial_translations, n)
     outt = _run_translations(st, st.gamma_inverse(xi, False), Rpad, t0, translation_iterations, tol, restart)
     kR, kt = int(outR.k), int(outt.k)
     info = DistributedChordalInfo(

@@ -15,7 +15,16 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ._majorization import GammaOperator, build_gamma_operator, gradient_and_share, stack, unstack
+from ._majorization import (
+    BlockJacobi,
+    ChainPreconditioner,
+    GammaOperator,
+    build_chain_preconditioner,
+    build_gamma_operator,
+    gradient_and_share,
+    stack,
+    unstack,
+)
 from ._partition import Partition
 from ._pose_graph import Poses
 from ._subproblem import SubproblemConfig, majorizer_value, project_rotations, solve_subproblem, tangent_projection
@@ -49,13 +58,24 @@ class MMProblem(eqx.Module):
 
     partition: Partition
     gamma: GammaOperator  # batched over robots
-    diag_inverse: jax.Array  # (A, n_max, d+1, d+1) inverses of Gamma's diagonal blocks
+    chain: ChainPreconditioner  # exact inverse of Gamma's chain part, batched
+    block_jacobi: BlockJacobi  # inverses of Gamma's diagonal blocks, batched
     xi: float = eqx.field(static=True)
 
+    def preconditioner(self, config: "MMConfig"):
+        kind = config.subproblem.preconditioner
+        if kind == "chain":
+            return self.chain
+        if kind == "block-jacobi":
+            return self.block_jacobi
+        raise ValueError(f"unknown preconditioner {kind!r}: use 'chain' or 'block-jacobi'")
+
     @staticmethod
-    def build(partition: Partition, xi: float = 1e-3) -> "MMProblem":
-        gamma = build_gamma_operator(partition.edges, xi, partition.max_poses)
-        return MMProblem(partition, gamma, jnp.linalg.inv(gamma.diag), xi)
+    def build(partition: Partition, xi: float = 1e-3, *, min_couplings: int = 0) -> "MMProblem":
+        """``min_couplings`` pads Gamma's loop-closure list (to batch problems of one shape)."""
+        gamma = build_gamma_operator(partition.edges, xi, partition.max_poses, min_couplings=min_couplings)
+        chain = build_chain_preconditioner(gamma)
+        return MMProblem(partition, gamma, chain, BlockJacobi(jnp.linalg.inv(gamma.diag)), xi)
 
 
 class MMState(eqx.Module):
@@ -77,16 +97,39 @@ class IterationRecord(eqx.Module):
     restarted: jax.Array  # (A,) bool: robot took the MM fallback this iteration
 
 
-def _gradients(problem: MMProblem, X):
-    """(grad F(X) blocks (stacked), shares, local costs) for stacked padded poses X."""
+class Collectives(eqx.Module):
+    """How robots exchange data in one iteration.
+
+    The default is a single device holding every robot. A sharded run (robots split over devices,
+    see ``mmpgo_jax.sharding``) replaces these with collectives over its mesh axis.
+    """
+
+    def gather_poses(self, X):
+        """All robots' poses (A, n_max, d, d+1) from this device's block of robots."""
+        return X
+
+    def sum(self, x):
+        """Sum over all robots of a per-robot quantity (A_local,) -> scalar."""
+        return jnp.sum(x)
+
+
+LOCAL = Collectives()
+
+
+def _gradients(problem: MMProblem, X, comm: Collectives = LOCAL):
+    """(grad F(X) blocks (stacked), shares, local costs) for stacked padded poses X.
+
+    Endpoint poses are gathered from all robots' poses: this is the neighbour exchange.
+    """
     part = problem.partition
-    Xp = unstack(X)
+    Xp = unstack(comm.gather_poses(X))
     grad, share, local = jax.vmap(lambda e: gradient_and_share(e, Xp, part.max_poses))(part.edges)
     return stack(grad), share, local
 
 
-def _riemannian_grad_norm(X, grad):
-    return jnp.sqrt(jnp.sum(tangent_projection(X, grad) ** 2))
+def _riemannian_grad_norm(X, grad, comm: Collectives = LOCAL):
+    per_robot = jnp.sum(tangent_projection(X, grad) ** 2, axis=(1, 2, 3))
+    return jnp.sqrt(comm.sum(per_robot))
 
 
 def init_state(problem: MMProblem, X0: Poses, config: "MMConfig" = None) -> MMState:
@@ -109,8 +152,8 @@ def init_state(problem: MMProblem, X0: Poses, config: "MMConfig" = None) -> MMSt
 
 def _mm_update(problem: MMProblem, config: MMConfig, X, grad):
     """X^{alpha,k+1} = argmin G^alpha(. | X^k) for every robot (Algorithm 1 line 6)."""
-    solve = lambda G, Dinv, x, g: solve_subproblem(G, Dinv, x, x, g, config.subproblem)[0]
-    return jax.vmap(solve)(problem.gamma, problem.diag_inverse, X, grad)
+    solve = lambda G, P, x, g: solve_subproblem(G, P, x, x, g, config.subproblem)[0]
+    return jax.vmap(solve)(problem.gamma, problem.preconditioner(config), X, grad)
 
 
 def _amm_update(problem: MMProblem, config: MMConfig, st: MMState):
@@ -120,8 +163,8 @@ def _amm_update(problem: MMProblem, config: MMConfig, st: MMState):
     Y = st.X + gamma * (st.X - st.X_prev)
     gY = st.grad + gamma * (st.grad - st.grad_prev)
     start = Y.at[..., 1:].set(project_rotations(Y[..., 1:]))
-    solve = lambda G, Dinv, x0, c, g: solve_subproblem(G, Dinv, x0, c, g, config.subproblem)[0]
-    Z = jax.vmap(solve)(problem.gamma, problem.diag_inverse, start, Y, gY)
+    solve = lambda G, P, x0, c, g: solve_subproblem(G, P, x0, c, g, config.subproblem)[0]
+    Z = jax.vmap(solve)(problem.gamma, problem.preconditioner(config), start, Y, gY)
     # G^alpha(Z | X^k) - Gbar^alpha(k): no objective evaluation needed (NOTES §3).
     decrease = jax.vmap(majorizer_value)(problem.gamma, Z, st.X, st.grad)
     if config.restart == "paper":
@@ -141,7 +184,7 @@ def _amm_update(problem: MMProblem, config: MMConfig, st: MMState):
     return X_new, s_new, restart
 
 
-def step(problem: MMProblem, config: MMConfig, st: MMState):
+def step(problem: MMProblem, config: MMConfig, st: MMState, comm: Collectives = LOCAL):
     """One outer iteration; returns (new state, record)."""
     if config.method == "mm":
         X_new = _mm_update(problem, config, st.X, st.grad)
@@ -151,7 +194,7 @@ def step(problem: MMProblem, config: MMConfig, st: MMState):
         X_new, s_new, restart = _amm_update(problem, config, st)
     else:
         raise ValueError(f"unknown method {config.method!r}: use 'mm' or 'amm'")
-    grad, share, local = _gradients(problem, X_new)
+    grad, share, local = _gradients(problem, X_new, comm)
     new = MMState(
         X=X_new,
         grad=grad,
@@ -162,7 +205,9 @@ def step(problem: MMProblem, config: MMConfig, st: MMState):
         slack=(1.0 - config.slack_decay) * st.slack,
         iteration=st.iteration + 1,
     )
-    rec = IterationRecord(f=2.0 * jnp.sum(share), grad_norm=_riemannian_grad_norm(X_new, grad), restarted=restart)
+    rec = IterationRecord(
+        f=2.0 * comm.sum(share), grad_norm=_riemannian_grad_norm(X_new, grad, comm), restarted=restart
+    )
     return new, rec
 
 

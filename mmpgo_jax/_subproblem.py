@@ -8,8 +8,9 @@ truncated-Newton method:
   1. at the current Y, the Riemannian gradient and the Riemannian Hessian of G^alpha
      (Gamma projected to the tangent space, plus the Weingarten term of SO(d));
   2. the Newton system is solved by truncated preconditioned CG (Steihaug-Toint: it stops at
-     negative curvature or at a relative residual ``cg_tolerance``), preconditioned by the inverse
-     of Gamma's per-pose (d+1)x(d+1) diagonal blocks (computed once: Gamma is constant);
+     negative curvature or at a relative residual ``cg_tolerance``), preconditioned by the exact
+     inverse of Gamma's block-tridiagonal (chain) part, or by its diagonal blocks alone
+     (``preconditioner="block-jacobi"``); both are factored once, since Gamma is constant;
   3. the step is retracted (rotations projected back to SO(d)) and accepted only if G^alpha
      decreases, else halved (``max_backtracks`` times) and finally rejected.
 
@@ -36,6 +37,7 @@ class SubproblemConfig(eqx.Module):
     """Inner-solver budget, per robot and outer iteration."""
 
     newton_steps: int = eqx.field(static=True, default=1)
+    preconditioner: str = eqx.field(static=True, default="block-jacobi")
     cg_iterations: int = eqx.field(static=True, default=20)
     cg_tolerance: float = eqx.field(static=True, default=1e-2)
     max_backtracks: int = eqx.field(static=True, default=4)
@@ -131,11 +133,12 @@ def _truncated_cg(hess, precond, grad, config: SubproblemConfig):
     return jax.lax.while_loop(cond, body, state)[1]
 
 
-def solve_subproblem(gamma: GammaOperator, diag_inverse, start, center, g, config: SubproblemConfig):
+def solve_subproblem(gamma: GammaOperator, preconditioner, start, center, g, config: SubproblemConfig):
     """Decrease G^alpha(. | center) from ``start`` (on the manifold). Returns (Y, G(Y) - const).
 
     All pose arrays are stacked (n, d, d+1); ``g`` is the (possibly extrapolated) Euclidean
-    gradient of F at ``center``; ``diag_inverse`` the inverses of Gamma's diagonal blocks. The
+    gradient of F at ``center``; ``preconditioner`` approximates Gamma^{-1} (``ChainPreconditioner``
+    or ``BlockJacobi``). The
     returned value never exceeds the value at ``start``.
     """
 
@@ -150,7 +153,7 @@ def solve_subproblem(gamma: GammaOperator, diag_inverse, start, center, g, confi
             return tangent_projection(Y, HV.at[..., 1:].add(-bmm(V[..., 1:], weingarten)))
 
         def precond(V):
-            return tangent_projection(Y, bmm(V, diag_inverse))
+            return tangent_projection(Y, preconditioner(V))
 
         V = _truncated_cg(hess, precond, rgrad, config)
 

@@ -1,0 +1,348 @@
+"""Figures for the CLI (``solve --plot``, ``demo``, ``bench``): trajectories and convergence.
+
+Everything is drawn on :class:`matplotlib.figure.Figure` objects with an explicit Agg canvas, so
+importing this module neither imports :mod:`matplotlib.pyplot` nor switches the process-wide
+backend (a Jupyter session keeps its own).  PNG files are rendered into memory and written with
+:func:`~mmpgo_jax._atomic.atomic_write`, so a reader never sees a half-written image.
+
+Objective values are f = 2F (the paper's Tables I/II, NOTES §2).  Relative suboptimality is
+(f - f*)/f*; values <= 0 (an iterate at or below the reference f*, which happens when f* is itself
+only a tolerance-converged estimate) cannot be drawn on a log axis and are shown at a floor,
+which the axis label says.
+"""
+
+from __future__ import annotations
+
+import io
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.collections import LineCollection
+from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
+
+from ._atomic import atomic_write
+
+__all__ = [
+    "plot_trajectory",
+    "plot_convergence",
+    "save_solve_figure",
+    "save_convergence_figure",
+    "robot_colors",
+    "RELATIVE_FLOOR",
+]
+
+RELATIVE_FLOOR = 1e-12  # where (f - f*)/f* <= 0 is drawn on the log axis
+MAX_LEGEND_ROBOTS = 10
+_TOLERANCES = (1e-2, 1e-3, 1e-4)
+
+
+# --------------------------------------------------------------------------------------------
+# helpers
+# --------------------------------------------------------------------------------------------
+
+
+def _new_figure(figsize) -> Figure:
+    fig = Figure(figsize=figsize, layout="constrained")
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def _save_png(fig: Figure, path, dpi: int = 120) -> None:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=dpi)
+    with atomic_write(path, "wb") as fh:
+        fh.write(buf.getvalue())
+
+
+def robot_colors(num_robots: int) -> np.ndarray:
+    """(A, 4) RGBA colours: tab10 up to 10 robots, tab20 up to 20, else samples of turbo."""
+    from matplotlib import colormaps
+
+    if num_robots <= 10:
+        return np.asarray(colormaps["tab10"].colors)[:num_robots]
+    if num_robots <= 20:
+        return np.asarray(colormaps["tab20"].colors)[:num_robots]
+    return colormaps["turbo"](np.linspace(0.05, 0.95, num_robots))
+
+
+def _f_array(h: Any) -> np.ndarray:
+    """f values from a History (``.f``), a SolveResult (``.history.f``) or an array."""
+    if hasattr(h, "history"):
+        h = h.history
+    f = getattr(h, "f", h)
+    return np.asarray(f, dtype=np.float64).reshape(-1)
+
+
+def _runs(idx: np.ndarray) -> list[np.ndarray]:
+    """Split sorted pose indices into runs of consecutive indices (one polyline each)."""
+    if len(idx) == 0:
+        return []
+    breaks = np.flatnonzero(np.diff(idx) != 1) + 1
+    return np.split(idx, breaks)
+
+
+def _is_3d(ax) -> bool:
+    return getattr(ax, "name", "") == "3d"
+
+
+# --------------------------------------------------------------------------------------------
+# trajectory
+# --------------------------------------------------------------------------------------------
+
+
+def plot_trajectory(ax, graph, poses, robot_of_pose, *, inter_robot_edges: bool = True, legend: bool = True):
+    """Draw the positions of ``poses`` as one polyline per robot, coloured by robot.
+
+    ``ax`` is a 2D axes for d = 2 and a 3D axes (``projection="3d"``) for d = 3 (a 2D axes with 3D
+    poses shows the x-y top view).  Consecutive pose indices owned by the same robot are joined;
+    inter-robot edges (measurements between poses of different robots) are drawn as thin dashed
+    black lines.  The legend lists at most 10 robots (then "…").  Axis units are metres.
+    """
+    t = np.asarray(poses.t, dtype=np.float64)
+    n, d = t.shape
+    rop = np.asarray(robot_of_pose).reshape(-1)
+    if rop.shape != (n,):
+        raise ValueError(f"robot_of_pose must have shape ({n},), got {rop.shape}")
+    three_d = _is_3d(ax) and d >= 3
+    robots = np.unique(rop)
+    colors = robot_colors(int(robots.max()) + 1 if len(robots) else 0)
+    lw = 1.2 if n < 2000 else 0.8
+
+    handles = []
+    for a in robots:
+        idx = np.flatnonzero(rop == a)
+        for run in _runs(idx):
+            if len(run) == 1:
+                pts = t[run]
+                if three_d:
+                    ax.plot(pts[:, 0], pts[:, 1], pts[:, 2], ".", color=colors[a], ms=3)
+                else:
+                    ax.plot(pts[:, 0], pts[:, 1], ".", color=colors[a], ms=3)
+            elif three_d:
+                ax.plot(t[run, 0], t[run, 1], t[run, 2], "-", color=colors[a], lw=lw)
+            else:
+                ax.plot(t[run, 0], t[run, 1], "-", color=colors[a], lw=lw)
+        handles.append(Line2D([], [], color=colors[a], lw=2, label=f"robot {a} ({len(idx)} poses)"))
+
+    # start pose
+    if three_d:
+        ax.scatter(t[:1, 0], t[:1, 1], t[:1, 2], marker="o", s=30, color="k", zorder=5)
+    else:
+        ax.plot(t[:1, 0], t[:1, 1], "o", color="k", ms=5, zorder=5)
+    start = Line2D([], [], marker="o", color="k", ls="", ms=5, label="pose 0")
+
+    inter_handle = None
+    if inter_robot_edges and graph is not None:
+        i = np.asarray(graph.i)
+        j = np.asarray(graph.j)
+        inter = rop[i] != rop[j]
+        k = int(inter.sum())
+        if k:
+            segs = np.stack([t[i[inter]], t[j[inter]]], axis=1)
+            alpha = 0.6 if k < 500 else 0.35
+            if three_d:
+                from mpl_toolkits.mplot3d.art3d import Line3DCollection
+
+                coll = Line3DCollection(segs[..., :3], colors="k", linestyles="--", linewidths=0.5, alpha=alpha)
+                ax.add_collection3d(coll)
+            else:
+                coll = LineCollection(segs[..., :2], colors="k", linestyles="--", linewidths=0.5, alpha=alpha)
+                ax.add_collection(coll)
+            inter_handle = Line2D([], [], color="k", ls="--", lw=0.8, label=f"inter-robot edges ({k})")
+
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    if three_d:
+        ax.set_zlabel("z [m]")
+        lo, hi = t.min(0), t.max(0)
+        span = np.maximum(hi - lo, 1e-9 + 0.05 * (hi - lo).max())
+        ax.set_box_aspect(tuple(span[:3]))
+    else:
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.grid(True, lw=0.3, alpha=0.5)
+
+    if legend:
+        shown = handles
+        if len(handles) > MAX_LEGEND_ROBOTS:
+            rest = len(handles) - (MAX_LEGEND_ROBOTS - 1)
+            shown = handles[: MAX_LEGEND_ROBOTS - 1] + [Line2D([], [], ls="", label=f"… (+{rest} more robots)")]
+        extra = [start] + ([inter_handle] if inter_handle is not None else [])
+        items = shown + extra
+        # below the axes, so that it never hides the trajectory
+        ax.legend(handles=items, fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.06 if three_d else -0.1),
+                  ncol=min(4, len(items)), framealpha=0.85)
+    return ax
+
+
+# --------------------------------------------------------------------------------------------
+# convergence
+# --------------------------------------------------------------------------------------------
+
+
+def _gap(f: np.ndarray, fstar: float, relative: bool) -> tuple[np.ndarray, bool]:
+    """(f - f*)/f* (or f - f*) clipped to the floor; also whether anything was clipped."""
+    g = f - fstar
+    floor = RELATIVE_FLOOR * max(abs(fstar), np.finfo(float).tiny)
+    if relative:
+        g = g / abs(fstar)
+        floor = RELATIVE_FLOOR
+    clipped = bool(np.any(g <= floor))
+    return np.maximum(g, floor), clipped
+
+
+def plot_convergence(
+    ax,
+    histories: Mapping[str, Any],
+    fstar: float | None,
+    relative: bool = True,
+    *,
+    references: Mapping[str, Mapping[int, float]] | None = None,
+    tolerances: bool = True,
+):
+    """Plot convergence curves on ``ax``, one per ``label -> History`` (or f array) in ``histories``.
+
+    * ``fstar`` given, ``relative=True``: (f - f*)/f* on a log axis, with the 1e-2/1e-3/1e-4 levels;
+    * ``fstar`` given, ``relative=False``: f - f* on a log axis;
+    * ``fstar`` None: f itself (log axis when all values are positive).
+
+    Values <= 0 are drawn at a floor (:data:`RELATIVE_FLOOR`, times |f*| for the absolute gap).
+    ``references`` maps a label to ``{iteration: f}`` points (e.g. the paper's table), drawn as
+    markers in the colour of the curve whose label is the longest prefix of the reference's label
+    (e.g. "MM (paper)" takes the colour of "MM"), else black.
+    """
+    clipped_any = False
+    colors = {}
+    for label, h in histories.items():
+        f = _f_array(h)
+        x = np.arange(len(f))
+        if fstar is None:
+            y = f
+        else:
+            y, clipped = _gap(f, float(fstar), relative)
+            clipped_any |= clipped
+        (line,) = ax.plot(x, y, lw=1.5, label=label)
+        colors[label] = line.get_color()
+
+    if references:
+        markers = "osD^v"
+        for n_ref, (label, pts) in enumerate(references.items()):
+            if not pts:
+                continue
+            ks = np.array(sorted(pts), dtype=float)
+            fs = np.array([pts[k] for k in sorted(pts)], dtype=np.float64)
+            if fstar is None:
+                y = fs
+            else:
+                y, clipped = _gap(fs, float(fstar), relative)
+                clipped_any |= clipped
+            color = max(((len(lab), c) for lab, c in colors.items() if label.startswith(lab)), default=(0, "k"))[1]
+            ax.plot(ks, y, markers[n_ref % len(markers)], ls="", ms=6, mfc="none", mew=1.5,
+                    color=color, label=label)
+
+    ax.set_xlabel("iteration")
+    floor_note = ""
+    if fstar is None:
+        ax.set_ylabel("f = 2F")
+        if all(np.all(_f_array(h) > 0) for h in histories.values()):
+            ax.set_yscale("log")
+    else:
+        ax.set_yscale("log")
+        if clipped_any:
+            floor_note = f"\n(values ≤ 0 shown at {RELATIVE_FLOOR:.0e}" + ("" if relative else "·|f*|") + ")"
+        if relative:
+            ax.set_ylabel("relative suboptimality (f − f*) / f*" + floor_note)
+            if tolerances:
+                for tol in _TOLERANCES:
+                    ax.axhline(tol, color="0.6", lw=0.6, ls=":", zorder=0)
+        else:
+            ax.set_ylabel("suboptimality f − f*" + floor_note)
+    ax.grid(True, which="major", lw=0.3, alpha=0.5)
+    if histories or references:
+        ax.legend(fontsize=8, loc="best", framealpha=0.85)
+    return ax
+
+
+def save_convergence_figure(
+    path,
+    curves: Mapping[str, Any],
+    fstar: float | None,
+    title: str = "",
+    *,
+    references: Mapping[str, Mapping[int, float]] | None = None,
+    fstar_label: str = "f*",
+) -> None:
+    """PNG comparing convergence curves (e.g. MM vs AMM): f − f* and (f − f*)/f*, log scale.
+
+    Without ``fstar`` a single panel shows f.  ``references``: see :func:`plot_convergence`.
+    ``fstar_label`` describes the reference in the title (e.g. "f* = 61.1541 (ours)").
+    """
+    if fstar is None:
+        fig = _new_figure((6.5, 4.5))
+        ax = fig.add_subplot(1, 1, 1)
+        plot_convergence(ax, curves, None, references=references)
+        ax.set_title("objective f")
+    else:
+        fig = _new_figure((12, 4.6))
+        ax1 = fig.add_subplot(1, 2, 1)
+        ax2 = fig.add_subplot(1, 2, 2)
+        plot_convergence(ax1, curves, fstar, relative=False, references=references)
+        plot_convergence(ax2, curves, fstar, relative=True, references=references)
+        ax1.set_title("suboptimality gap f − f*")
+        ax2.set_title("relative suboptimality gap (f − f*) / f*")
+    sup = title
+    if fstar is not None:
+        sup = f"{title}  —  {fstar_label}" if title else fstar_label
+    if sup:
+        fig.suptitle(sup)
+    _save_png(fig, path)
+
+
+def save_solve_figure(path, graph, result, *, fstar: float | None = None, title: str = "") -> None:
+    """One PNG for a :class:`~mmpgo_jax._solve.SolveResult`: trajectory (left), convergence (right).
+
+    Left: the estimate's positions coloured by robot (top view for 2D, 3D axes for 3D) with the
+    inter-robot edges.  Right: f vs iteration and, when ``fstar`` is given, (f − f*)/f* below it.
+    """
+    d = int(np.asarray(result.poses.t).shape[-1])
+    rop = np.asarray(result.partition.robot_of_pose)
+    fig = _new_figure((13, 6.2))
+    gs = fig.add_gridspec(2, 2, width_ratios=(1.25, 1.0))
+    if d >= 3:
+        import mpl_toolkits.mplot3d  # noqa: F401  (registers the 3d projection)
+
+        ax_t = fig.add_subplot(gs[:, 0], projection="3d")
+    else:
+        ax_t = fig.add_subplot(gs[:, 0])
+    plot_trajectory(ax_t, graph, result.poses, rop)
+    cfg = getattr(result, "config", None)
+    method = f"{cfg.method.upper()}-PGO" if cfg is not None else "estimate"
+    A = getattr(result.partition, "num_robots", len(np.unique(rop)))
+    ax_t.set_title(f"{method} estimate, {A} robots, {result.poses.t.shape[0]} poses")
+
+    label = method if cfg is None or cfg.method != "amm" else f"{method} (restart={cfg.restart})"
+    f = _f_array(result)
+    if fstar is None:
+        ax_f = fig.add_subplot(gs[:, 1])
+    else:
+        ax_f = fig.add_subplot(gs[0, 1])
+    plot_convergence(ax_f, {label: f}, None)
+    ax_f.set_yscale("linear")
+    if fstar is not None:
+        ax_f.axhline(fstar, color="k", ls="--", lw=0.8, label=f"f* = {fstar:.6g}")
+        ax_f.legend(fontsize=8, loc="best")
+        lo = min(float(fstar), float(f.min()))
+        hi = float(f.max())
+        pad = 0.05 * (hi - lo if hi > lo else max(abs(hi), 1.0))
+        ax_f.set_ylim(lo - pad, hi + pad)
+    ax_f.set_title(f"objective f = 2F: {f[0]:.6g} → {f[-1]:.6g} in {len(f) - 1} iterations")
+    if fstar is not None:
+        ax_g = fig.add_subplot(gs[1, 1], sharex=ax_f)
+        plot_convergence(ax_g, {label: f}, fstar, relative=True)
+        gap = (f[-1] - fstar) / abs(fstar)
+        ax_g.set_title(f"relative gap after {len(f) - 1} iterations: {gap:.3e}")
+    if title:
+        fig.suptitle(title)
+    _save_png(fig, path)

@@ -1,0 +1,225 @@
+"""Distributed chordal initialization (paper §VII, Algorithm 3) against the centralized solution."""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import mmpgo_jax._distributed_chordal as dc
+from mmpgo_jax import PoseGraph, cost
+from mmpgo_jax._distributed_chordal import (
+    distributed_chordal_initialization,
+    distributed_relaxed_rotations,
+    distributed_translations,
+)
+from mmpgo_jax._initialization import (
+    chordal_initialization,
+    chordal_relaxed_rotations,
+    relaxed_rotation_cost,
+    relaxed_translation_cost,
+    translations_given_rotations,
+)
+from mmpgo_jax._partition import partition
+
+from test_initialization import dense_relaxed_rotations, random_graph
+
+# One budget per stage everywhere, so that the jitted loops compile once per graph shape.
+ROT_IT = 400
+TRANS_IT = 1500
+N, EXTRA, ROBOTS = 36, 30, 4
+
+
+@pytest.fixture(scope="module", params=[2, 3], ids=["2d", "3d"])
+def graph(request):
+    d = request.param
+    g, _, _ = random_graph(N, d, EXTRA, seed=100 + d)
+    return g
+
+
+def _rel(a, b):
+    return abs(a - b) / abs(b)
+
+
+def test_rotations_reach_centralized_relaxed_solution(graph):
+    Rc = chordal_relaxed_rotations(graph)
+    fc = relaxed_rotation_cost(graph, Rc)
+    R, hist, k, conv = distributed_relaxed_rotations(graph, ROBOTS, iterations=ROT_IT, tol=None)
+    assert k == ROT_IT and not conv and hist.shape == (ROT_IT + 1,)
+    assert _rel(relaxed_rotation_cost(graph, R), fc) <= 1e-9
+    assert _rel(hist[-1], fc) <= 1e-9  # the history is the relaxed objective (2F convention)
+    np.testing.assert_allclose(np.asarray(R), Rc, atol=1e-6)
+    np.testing.assert_array_equal(np.asarray(R[0]), np.eye(graph.dim))  # anchor never moves
+    # history[0] is the objective at the start (all I)
+    R0 = np.broadcast_to(np.eye(graph.dim), Rc.shape)
+    assert hist[0] == pytest.approx(relaxed_rotation_cost(graph, R0), rel=1e-12)
+
+
+def test_translations_reach_centralized_solution(graph):
+    R = np.asarray(chordal_initialization(graph).R)
+    tc = translations_given_rotations(graph, R)
+    fc = relaxed_translation_cost(graph, R, tc)
+    t, hist, k, _ = distributed_translations(graph, R, ROBOTS, iterations=TRANS_IT, tol=None)
+    assert _rel(relaxed_translation_cost(graph, R, np.asarray(t)), fc) <= 1e-9
+    assert _rel(hist[-1], fc) <= 1e-9
+    np.testing.assert_allclose(np.asarray(t), tc, atol=1e-5)
+    np.testing.assert_array_equal(np.asarray(t[0]), np.zeros(graph.dim))
+
+
+def test_full_initialization_matches_centralized_and_is_in_SOd(graph):
+    p, info = distributed_chordal_initialization(
+        graph, ROBOTS, rotation_iterations=ROT_IT, translation_iterations=TRANS_IT, tol=None
+    )
+    c = chordal_initialization(graph)
+    R = np.asarray(p.R)
+    d = graph.dim
+    np.testing.assert_allclose(np.swapaxes(R, 1, 2) @ R, np.broadcast_to(np.eye(d), R.shape), atol=1e-10)
+    np.testing.assert_allclose(np.linalg.det(R), 1.0, atol=1e-10)
+    np.testing.assert_allclose(R, np.asarray(c.R), atol=1e-6)
+    np.testing.assert_allclose(np.asarray(p.t), np.asarray(c.t), atol=1e-5)
+    assert _rel(float(cost(graph, p)), float(cost(graph, c))) <= 1e-9
+    assert info.rotation_iterations == ROT_IT and info.translation_iterations == TRANS_IT
+    assert info.rotation_history.shape == (ROT_IT + 1,) and info.translation_history.shape == (TRANS_IT + 1,)
+    assert info.num_robots == ROBOTS and info.restart
+    assert p.R.dtype == graph.R.dtype
+
+
+def test_padding_invariance():
+    graph, _, _ = random_graph(N, 2, EXTRA, seed=102)
+    base = partition(graph, ROBOTS)
+    padded = partition(graph, ROBOTS, min_max_poses=base.max_poses + 7, min_max_edges=base.max_edges + 5)
+    assert padded.max_poses > base.max_poses
+    kw = dict(rotation_iterations=40, translation_iterations=40, tol=None)
+    p1, i1 = distributed_chordal_initialization(graph, base, **kw)
+    p2, i2 = distributed_chordal_initialization(graph, padded, **kw)
+    np.testing.assert_allclose(np.asarray(p1.R), np.asarray(p2.R), atol=1e-12, rtol=0)
+    np.testing.assert_allclose(np.asarray(p1.t), np.asarray(p2.t), atol=1e-11, rtol=0)
+    np.testing.assert_allclose(i1.rotation_history, i2.rotation_history, rtol=1e-12)
+    np.testing.assert_allclose(i1.translation_history, i2.translation_history, rtol=1e-12)
+
+
+def test_first_two_iterations_minimise_the_majorizer_of_eq24():
+    """R^1 = argmin G_R(. | R^0) and R^2 = argmin G_R(. | Y^1), Y^1 = R^1 + gamma_1 (R^1 - R^0),
+    with G_R of Eq. (24) built explicitly (midpoints P, proximal term) and minimised by lstsq."""
+    g, _, _ = random_graph(14, 2, 10, seed=7)
+    robots = 3
+    xi = 0.3  # large enough to matter
+    st = dc._setup(g, robots)
+    Ginv = st.gamma_inverse(xi, True)
+    R0 = np.asarray(random_graph(14, 2, 0, seed=8)[1])  # arbitrary rotations as R^0
+    R0[0] = np.eye(2)
+    R0pad = dc._initial_rotations(st, R0, 14)
+    iters = [
+        np.asarray(dc._unpad(st, dc._run_rotations(st, Ginv, R0pad, k, None, False, history_length=4).X))
+        for k in (1, 2)
+    ]
+    rob = np.asarray(st.part.robot_of_pose)
+
+    def argmin_majorizer(Y):
+        # unknowns: vec(R_1..R_{n-1}) row-major; every term is a weighted linear residual
+        n, d = 14, 2
+        q = d * d
+        rows, rhs = [], []
+
+        def term(w, coeffs, const):
+            # residual = sum_p M_p vec(R_p) + const   (R_0 = I folded into const)
+            A = np.zeros((q, (n - 1) * q))
+            c = np.array(const, dtype=float).ravel()
+            for p, M in coeffs:
+                if p == 0:
+                    c = c + M @ np.eye(d).ravel()
+                else:
+                    A[:, (p - 1) * q : p * q] += M
+            rows.append(np.sqrt(w) * A)
+            rhs.append(-np.sqrt(w) * c)
+
+        for e in range(g.num_edges):
+            i, j = int(g.i[e]), int(g.j[e])
+            Rt, k = np.asarray(g.R[e]), float(g.kappa[e])
+            right = np.kron(np.eye(d), Rt.T)  # vec(R Rt) = right vec(R)
+            if rob[i] == rob[j]:
+                term(0.5 * k, [(i, right), (j, -np.eye(q))], np.zeros(q))
+            else:
+                P = 0.5 * (Y[i] @ Rt + Y[j])
+                term(k, [(i, right)], -P)
+                term(k, [(j, np.eye(q))], -P)
+        for p in range(1, n):
+            term(0.5 * xi, [(p, np.eye(q))], -Y[p])
+        x = np.linalg.lstsq(np.concatenate(rows), np.concatenate(rhs), rcond=None)[0]
+        return np.concatenate([np.eye(d)[None], x.reshape(n - 1, d, d)])
+
+    np.testing.assert_allclose(iters[0], argmin_majorizer(R0), atol=1e-10)
+    s1 = 0.5 * (np.sqrt(5.0) + 1.0)
+    gamma1 = (s1 - 1.0) / (0.5 * (np.sqrt(4 * s1**2 + 1) + 1))
+    Y1 = iters[0] + gamma1 * (iters[0] - R0)
+    np.testing.assert_allclose(iters[1], argmin_majorizer(Y1), atol=1e-10)
+
+
+def test_algorithm3_without_restart_converges():
+    graph, _, _ = random_graph(N, 2, EXTRA, seed=102)
+    Rc = chordal_relaxed_rotations(graph)
+    R, _, _, _ = distributed_relaxed_rotations(graph, ROBOTS, iterations=ROT_IT, tol=None, restart=False)
+    assert _rel(relaxed_rotation_cost(graph, R), relaxed_rotation_cost(graph, Rc)) <= 1e-9
+
+
+def test_arbitrary_robot_assignment_and_disconnected_graph():
+    g1, _, _ = random_graph(20, 2, 12, seed=11)
+    g2, _, _ = random_graph(12, 2, 8, seed=12)
+    g = PoseGraph.from_arrays(
+        np.concatenate([g1.i, g2.i + 20]), np.concatenate([g1.j, g2.j + 20]),
+        np.concatenate([g1.R, g2.R]), np.concatenate([g1.t, g2.t]),
+        np.concatenate([g1.kappa, g2.kappa]), np.concatenate([g1.tau, g2.tau]), 32,
+    )  # fmt: skip
+    robots = np.random.default_rng(0).permutation(np.arange(32) % 3)
+    p, _ = distributed_chordal_initialization(
+        g, robots, rotation_iterations=ROT_IT, translation_iterations=TRANS_IT, tol=None
+    )
+    c = chordal_initialization(g)
+    np.testing.assert_allclose(np.asarray(p.R), np.asarray(c.R), atol=1e-6)
+    np.testing.assert_allclose(np.asarray(p.t), np.asarray(c.t), atol=1e-5)
+    np.testing.assert_array_equal(np.asarray(p.R[20]), np.eye(2))  # second component's anchor
+
+
+def test_tolerance_stop_without_recompiling(monkeypatch):
+    graph, _, _ = random_graph(N, 3, EXTRA, seed=103)
+    traces = []
+    real = dc._amm_run
+
+    def counting(*args, **kwargs):
+        traces.append(1)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(dc, "_amm_run", counting)
+    Rc = chordal_relaxed_rotations(graph)
+    fc = relaxed_rotation_cost(graph, Rc)
+    out = {}
+    for tol in (1e-6, 1e-12, 1e-13):
+        R, hist, k, conv = distributed_relaxed_rotations(graph, ROBOTS, iterations=ROT_IT, tol=tol)
+        assert conv and 10 <= k < ROT_IT and hist.shape == (k + 1,)
+        assert abs(hist[-10] - hist[-1]) <= tol * hist[-1]
+        out[tol] = (k, _rel(relaxed_rotation_cost(graph, R), fc))
+    assert len(traces) <= 1  # the same compiled loop served every tolerance (and the budget)
+    assert out[1e-6][0] < out[1e-12][0] <= out[1e-13][0]
+    assert out[1e-12][1] <= 1e-9
+
+
+def test_errors():
+    graph, _, _ = random_graph(N, 2, EXTRA, seed=102)
+    with pytest.raises(ValueError, match="non-negative integer"):
+        distributed_chordal_initialization(graph, ROBOTS, rotation_iterations=-1)
+    with pytest.raises(ValueError, match="tol"):
+        distributed_chordal_initialization(graph, ROBOTS, tol=-1.0)
+    with pytest.raises(ValueError, match="initial rotations"):
+        distributed_chordal_initialization(graph, ROBOTS, initial_rotations=jnp.zeros((3, 2, 2)))
+    with pytest.raises(ValueError, match="initial translations"):
+        distributed_chordal_initialization(graph, ROBOTS, initial_translations=jnp.zeros((3, 2)))
+    with pytest.raises(ValueError, match="rotations must have shape"):
+        distributed_translations(graph, jnp.zeros((3, 2, 2)), ROBOTS)
+    other, _, _ = random_graph(N + 1, graph.dim, 3, seed=1)
+    with pytest.raises(ValueError, match="partition is for"):
+        distributed_chordal_initialization(other, partition(graph, ROBOTS))
+
+
+def test_dense_reference_is_consistent():
+    g, _, _ = random_graph(10, 3, 6, seed=9)
+    np.testing.assert_allclose(chordal_relaxed_rotations(g), dense_relaxed_rotations(g), atol=1e-10)
