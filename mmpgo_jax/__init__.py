@@ -1,6 +1,24 @@
-"""mmpgo-jax: distributed pose graph optimization by majorization minimization, in JAX."""
+"""mmpgo-jax: distributed pose graph optimization by majorization minimization, in JAX.
 
+Public API (the private modules are implementation details):
+
+* data: :class:`PoseGraph`, :class:`Poses`, :func:`read_g2o`, :func:`write_g2o`, :func:`write_tum`,
+  :func:`find_benchmark`, :data:`BENCHMARKS`, :func:`cube_dataset`, :func:`grid_2d_dataset`
+* objective: :func:`cost` (f = 2F), :func:`objective` (F), gradients, :func:`data_matrix`
+* robots: :func:`partition`, :func:`contiguous_robots`, :func:`partition_stats`
+* starts: :func:`initialize`, :func:`chordal_initialization`, :func:`distributed_chordal_initialization`
+* solvers: :func:`solve`, :func:`centralized_optimum`, and the jittable core :class:`MMConfig`,
+  :class:`MMProblem`, :func:`init_state`, :func:`run`, :func:`step`, :class:`SubproblemConfig`
+* precision: :func:`enable_float64`
+"""
+
+from ._datasets import BENCHMARKS, DatasetNotFoundError, available_benchmarks, data_dir, find_benchmark
+from ._distributed_chordal import distributed_chordal_initialization
+from ._g2o import G2OFile, G2OFormatError, read_g2o, write_g2o, write_tum
 from ._geometry import project_to_so, quaternion_to_rotation, rotation_2d
+from ._initialization import chordal_initialization, initialize, odometry_initialization
+from ._mm import MMConfig, MMProblem, MMState, init_state, run, step
+from ._partition import Partition, contiguous_robots, partition, partition_stats
 from ._pose_graph import (
     PoseGraph,
     Poses,
@@ -16,5 +34,8 @@ from ._pose_graph import (
     riemannian_gradient_norm,
 )
 from ._precision import default_float_dtype, enable_float64, float64_enabled
+from ._solve import History, SolveResult, centralized_optimum, solve
+from ._subproblem import SubproblemConfig
+from ._synthetic import SyntheticDataset, cube_dataset, grid_2d_dataset
 
 __version__ = "0.1.0"
