@@ -176,6 +176,10 @@ def build_gamma_operator(edges: RobotEdges, xi: float, n_max: int, *, min_coupli
     np.add.at(diag, (robot[li], si[li]), (w * Hii)[li])
     np.add.at(diag, (robot[lj], sj[lj]), (w * Hjj)[lj])
     diag += xi * np.eye(d + 1)
+    # Slots without edges (padding) would have a zero block when xi = 0: give them I instead.
+    # Their gradient is zero, so they never move and no result changes.
+    empty = ~np.any(diag != 0.0, axis=(-1, -2))
+    diag[empty] = np.eye(d + 1)
     band = np.zeros((A, n_max, d + 1, d + 1))
     fwd = own & (sj == si + 1)  # edge from slot s to s+1: H_{s,s+1} = H_ij
     bwd = own & (si == sj + 1)  # edge from slot s+1 to s: H_{s,s+1} = H_ji = H_ij^T

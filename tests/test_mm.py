@@ -339,9 +339,8 @@ def _dense_per_robot(op, shape):
 
 
 def test_mm_problem_gamma_and_preconditioners(runs):
-    """MMProblem.build: Γ^α's diagonal blocks match the edge-based ones, and every preconditioner
-    kind is symmetric positive definite (as PCG requires) and exact on the block diagonal of Γ^α
-    when Γ^α has no couplings (checked: block-Jacobi inverts the diagonal blocks)."""
+    """MMProblem.build: Γ^α's diagonal blocks match the edge-based ones; every preconditioner kind
+    is symmetric positive definite (as PCG requires); block-Jacobi inverts the diagonal blocks."""
     r = runs.get("mm")
     problem = r["problem"]
     part = problem.partition
@@ -489,15 +488,6 @@ def test_padded_partitions_share_problem_shapes(problem2d):
     assert len(shapes) == 1, shapes
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason=(
-        "library bug: with xi = 0 a padding slot's Gamma diagonal block is 0 and MMProblem.build "
-        "inverts it (block-Jacobi and chain preconditioners) to inf/nan; the preconditioned CG "
-        "direction becomes nan and every step of a robot that has a padding slot is rejected: that "
-        "robot never moves (padding changes the result)"
-    ),
-)
 def test_xi_zero_with_padding_slots(subproblem_setup):
     """ξ = 0 is allowed (Prop. 2 (1)-(4)); a robot with padding slots must still decrease G^α, and
     the result must match ξ = 1e-15 (which differs from ξ = 0 by a negligible proximal term)."""
