@@ -280,3 +280,87 @@ class BlockJacobi(eqx.Module):
 
     def __call__(self, V):
         return bmm(V, self.diag_inverse)
+
+
+# ----------------------------------------------------------------------------------------------
+# Structure-of-arrays forms used inside the solver: poses as (d, d+1, n_max) and blocks as
+# (d+1, d+1, n_max), so that every small-matrix product is an elementwise expression along the
+# long pose axis (vectorizes on CPU; measured 2x faster than the (n, d, d+1) layout).
+# ----------------------------------------------------------------------------------------------
+
+
+def to_soa(Y):
+    """(..., n, p, q) -> (..., p, q, n)."""
+    return jnp.moveaxis(Y, -3, -1)
+
+
+def from_soa(Y):
+    """(..., p, q, n) -> (..., n, p, q)."""
+    return jnp.moveaxis(Y, -1, -3)
+
+
+def soa_bmm(a, b):
+    """Product of small matrices stored along the last axis: (p, q, n) x (q, r, n) -> (p, r, n)."""
+    out = a[:, 0, None] * b[None, 0]
+    for k in range(1, a.shape[1]):
+        out = out + a[:, k, None] * b[None, k]
+    return out
+
+
+def soa_T(a):
+    return jnp.swapaxes(a, 0, 1)
+
+
+class GammaSoA(eqx.Module):
+    """:class:`GammaOperator` in the structure-of-arrays layout (one robot, or batched in front)."""
+
+    diag: jax.Array  # (d+1, d+1, n_max)
+    band: jax.Array  # (d+1, d+1, n_max)
+    band_T: jax.Array  # (d+1, d+1, n_max)
+    src: jax.Array  # (k,)
+    dst: jax.Array  # (k,)
+    blocks: jax.Array  # (d+1, d+1, k)
+
+    def __call__(self, Y):
+        """Gamma Y for Y (d, d+1, n_max)."""
+        out = soa_bmm(Y, self.diag)
+        out = out.at[..., :-1].add(soa_bmm(Y[..., 1:], self.band_T[..., :-1]))
+        out = out.at[..., 1:].add(soa_bmm(Y[..., :-1], self.band[..., :-1]))
+        contrib = soa_bmm(Y[..., self.src], self.blocks)
+        return out.at[..., self.dst].add(contrib, indices_are_sorted=True)
+
+
+def gamma_to_soa(gamma: GammaOperator) -> GammaSoA:
+    """Convert (batched or not) block arrays; works under vmap as well."""
+    return GammaSoA(
+        diag=to_soa(gamma.diag),
+        band=to_soa(gamma.band),
+        band_T=to_soa(mT(gamma.band)),
+        src=gamma.src,
+        dst=gamma.dst,
+        blocks=to_soa(gamma.blocks),
+    )
+
+
+class BlockJacobiSoA(eqx.Module):
+    diag_inverse: jax.Array  # (d+1, d+1, n_max)
+
+    def __call__(self, V):
+        return soa_bmm(V, self.diag_inverse)
+
+
+class AoSPreconditioner(eqx.Module):
+    """Adapter: apply a stacked-layout preconditioner to structure-of-arrays poses."""
+
+    inner: eqx.Module
+
+    def __call__(self, V):
+        return to_soa(self.inner(from_soa(V)))
+
+
+def preconditioner_to_soa(pre):
+    if isinstance(pre, BlockJacobi):
+        return BlockJacobiSoA(to_soa(pre.diag_inverse))
+    if isinstance(pre, (BlockJacobiSoA, AoSPreconditioner)):
+        return pre
+    return AoSPreconditioner(pre)

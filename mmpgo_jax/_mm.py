@@ -17,7 +17,11 @@ import jax.numpy as jnp
 
 from ._majorization import (
     BlockJacobi,
+    BlockJacobiSoA,
     ChainPreconditioner,
+    GammaSoA,
+    gamma_to_soa,
+    preconditioner_to_soa,
     GammaOperator,
     build_chain_preconditioner,
     build_gamma_operator,
@@ -60,9 +64,12 @@ class MMProblem(eqx.Module):
     gamma: GammaOperator  # batched over robots
     chain: ChainPreconditioner  # exact inverse of Gamma's chain part, batched
     block_jacobi: BlockJacobi  # inverses of Gamma's diagonal blocks, batched
+    gamma_soa: GammaSoA  # the solver's (structure-of-arrays) copies of gamma and block_jacobi
+    block_jacobi_soa: BlockJacobiSoA
     xi: float = eqx.field(static=True)
 
     def preconditioner(self, config: "MMConfig"):
+        """The configured preconditioner, acting on stacked poses (n_max, d, d+1) per robot."""
         kind = config.subproblem.preconditioner
         if kind == "chain":
             return self.chain
@@ -70,12 +77,18 @@ class MMProblem(eqx.Module):
             return self.block_jacobi
         raise ValueError(f"unknown preconditioner {kind!r}: use 'chain' or 'block-jacobi'")
 
+    def _solver_preconditioner(self, config: "MMConfig"):
+        pre = self.preconditioner(config)
+        return self.block_jacobi_soa if pre is self.block_jacobi else pre
+
     @staticmethod
     def build(partition: Partition, xi: float = 1e-3, *, min_couplings: int = 0) -> "MMProblem":
         """``min_couplings`` pads Gamma's loop-closure list (to batch problems of one shape)."""
         gamma = build_gamma_operator(partition.edges, xi, partition.max_poses, min_couplings=min_couplings)
         chain = build_chain_preconditioner(gamma)
-        return MMProblem(partition, gamma, chain, BlockJacobi(jnp.linalg.inv(gamma.diag)), xi)
+        block_jacobi = BlockJacobi(jnp.linalg.inv(gamma.diag))
+        soa = jax.vmap(gamma_to_soa)(gamma)
+        return MMProblem(partition, gamma, chain, block_jacobi, soa, jax.vmap(preconditioner_to_soa)(block_jacobi), xi)
 
 
 class MMState(eqx.Module):
@@ -153,7 +166,7 @@ def init_state(problem: MMProblem, X0: Poses, config: "MMConfig" = None) -> MMSt
 def _mm_update(problem: MMProblem, config: MMConfig, X, grad):
     """X^{alpha,k+1} = argmin G^alpha(. | X^k) for every robot (Algorithm 1 line 6)."""
     solve = lambda G, P, x, g: solve_subproblem(G, P, x, x, g, config.subproblem)[0]
-    return jax.vmap(solve)(problem.gamma, problem.preconditioner(config), X, grad)
+    return jax.vmap(solve)(problem.gamma_soa, problem._solver_preconditioner(config), X, grad)
 
 
 def _amm_update(problem: MMProblem, config: MMConfig, st: MMState):
@@ -164,9 +177,9 @@ def _amm_update(problem: MMProblem, config: MMConfig, st: MMState):
     gY = st.grad + gamma * (st.grad - st.grad_prev)
     start = Y.at[..., 1:].set(project_rotations(Y[..., 1:]))
     solve = lambda G, P, x0, c, g: solve_subproblem(G, P, x0, c, g, config.subproblem)[0]
-    Z = jax.vmap(solve)(problem.gamma, problem.preconditioner(config), start, Y, gY)
+    Z = jax.vmap(solve)(problem.gamma_soa, problem._solver_preconditioner(config), start, Y, gY)
     # G^alpha(Z | X^k) - Gbar^alpha(k): no objective evaluation needed (NOTES §3).
-    decrease = jax.vmap(majorizer_value)(problem.gamma, Z, st.X, st.grad)
+    decrease = jax.vmap(majorizer_value)(problem.gamma_soa, Z, st.X, st.grad)
     if config.restart == "paper":
         restart = decrease > 0
     else:

@@ -30,7 +30,16 @@ import jax
 import jax.numpy as jnp
 
 from ._geometry import bmm, mT, project_to_so, sym
-from ._majorization import GammaOperator
+from ._majorization import (
+    GammaOperator,
+    GammaSoA,
+    from_soa,
+    gamma_to_soa,
+    preconditioner_to_soa,
+    soa_bmm,
+    soa_T,
+    to_soa,
+)
 
 
 class SubproblemConfig(eqx.Module):
@@ -85,22 +94,67 @@ def project_rotations(M):
 
 
 def tangent_projection(Y, V):
-    """Orthogonal projection of an ambient direction V onto T_Y (stacked layout)."""
+    """Orthogonal projection of an ambient direction V onto T_Y (stacked layout (..., n, d, d+1))."""
     R, VR = Y[..., 1:], V[..., 1:]
     return V.at[..., 1:].add(-bmm(R, sym(bmm(mT(R), VR))))
 
 
-def retract(Y, V):
-    return jnp.concatenate([Y[..., :1] + V[..., :1], project_rotations(Y[..., 1:] + V[..., 1:])], axis=-1)
+# --- the solver works in the structure-of-arrays layout: Y (d, d+1, n_max) -------------------
+
+
+def _sym0(M):
+    return 0.5 * (M + soa_T(M))
+
+
+def _tangent_soa(Y, V):
+    R = Y[:, 1:]
+    return V.at[:, 1:].add(-soa_bmm(R, _sym0(soa_bmm(soa_T(R), V[:, 1:]))))
+
+
+def _project_soa(M):
+    """Nearest rotations for blocks stored as (d, d, n)."""
+    d = M.shape[0]
+    if d == 2:
+        a = M[0, 0] + M[1, 1]
+        b = M[1, 0] - M[0, 1]
+        r = jnp.sqrt(a * a + b * b)
+        safe = r > 0
+        c = jnp.where(safe, a / jnp.where(safe, r, 1.0), 1.0)
+        s = jnp.where(safe, b / jnp.where(safe, r, 1.0), 0.0)
+        return jnp.stack([jnp.stack([c, -s]), jnp.stack([s, c])])
+    if d == 3:
+        X = M
+        for _ in range(6):
+            c0, c1, c2 = jnp.cross(X[1], X[2], axis=0), jnp.cross(X[2], X[0], axis=0), jnp.cross(X[0], X[1], axis=0)
+            det = jnp.sum(X[0] * c0, axis=0)
+            invT = jnp.stack([c0, c1, c2]) / det
+            scale = jnp.sqrt(jnp.sqrt(jnp.sum(invT**2, axis=(0, 1)) / jnp.sum(X**2, axis=(0, 1))))
+            scale = jnp.where(jnp.isfinite(scale) & (scale > 0), scale, 1.0)
+            X = 0.5 * (scale * X + invT / scale)
+        det = jnp.sum(X[0] * jnp.cross(X[1], X[2], axis=0), axis=0)
+        return X.at[2].multiply(jnp.where(det < 0, -1.0, 1.0))
+    return to_soa(project_to_so(from_soa(M)))
+
+
+def _retract_soa(Y, V):
+    return jnp.concatenate([Y[:, :1] + V[:, :1], _project_soa(Y[:, 1:] + V[:, 1:])], axis=1)
 
 
 def _inner(a, b):
     return jnp.sum(a * b)
 
 
-def majorizer_value(gamma: GammaOperator, Y, center, g):
-    """G^alpha(Y | center) minus its constant term."""
+def _value_soa(gamma: GammaSoA, Y, center, g):
     D = Y - center
+    return 0.5 * _inner(gamma(D), D) + _inner(g, D)
+
+
+def majorizer_value(gamma, Y, center, g):
+    """G^alpha(Y | center) minus its constant term (stacked layout)."""
+    D = Y - center
+    if isinstance(gamma, GammaSoA):
+        Dsoa = to_soa(D)
+        return 0.5 * _inner(gamma(Dsoa), Dsoa) + _inner(g, D)
     return 0.5 * _inner(gamma(D), D) + _inner(g, D)
 
 
@@ -133,27 +187,32 @@ def _truncated_cg(hess, precond, grad, config: SubproblemConfig):
     return jax.lax.while_loop(cond, body, state)[1]
 
 
-def solve_subproblem(gamma: GammaOperator, preconditioner, start, center, g, config: SubproblemConfig):
+def solve_subproblem(gamma, preconditioner, start, center, g, config: SubproblemConfig):
     """Decrease G^alpha(. | center) from ``start`` (on the manifold). Returns (Y, G(Y) - const).
 
-    All pose arrays are stacked (n, d, d+1); ``g`` is the (possibly extrapolated) Euclidean
-    gradient of F at ``center``; ``preconditioner`` approximates Gamma^{-1} (``ChainPreconditioner``
-    or ``BlockJacobi``). The
-    returned value never exceeds the value at ``start``.
+    Pose arrays are stacked (n, d, d+1); ``g`` is the (possibly extrapolated) Euclidean gradient
+    of F at ``center``; ``gamma`` is Gamma^alpha (``GammaOperator`` or its ``GammaSoA`` form) and
+    ``preconditioner`` approximates its inverse (``BlockJacobi``, ``ChainPreconditioner`` or their
+    structure-of-arrays forms). The returned value never exceeds the value at ``start``.
+    Internally everything runs in the structure-of-arrays layout (d, d+1, n).
     """
+    if isinstance(gamma, GammaOperator):
+        gamma = gamma_to_soa(gamma)
+    precond_soa = preconditioner_to_soa(preconditioner)
+    center, g = to_soa(center), to_soa(g)
 
     def newton_step(_, carry):
         Y, G_Y = carry
         egrad = gamma(Y - center) + g
-        rgrad = tangent_projection(Y, egrad)
-        weingarten = sym(bmm(mT(Y[..., 1:]), egrad[..., 1:]))
+        rgrad = _tangent_soa(Y, egrad)
+        weingarten = _sym0(soa_bmm(soa_T(Y[:, 1:]), egrad[:, 1:]))
 
         def hess(V):
             HV = gamma(V)
-            return tangent_projection(Y, HV.at[..., 1:].add(-bmm(V[..., 1:], weingarten)))
+            return _tangent_soa(Y, HV.at[:, 1:].add(-soa_bmm(V[:, 1:], weingarten)))
 
         def precond(V):
-            return tangent_projection(Y, preconditioner(V))
+            return _tangent_soa(Y, precond_soa(V))
 
         V = _truncated_cg(hess, precond, rgrad, config)
 
@@ -163,8 +222,8 @@ def solve_subproblem(gamma: GammaOperator, preconditioner, start, center, g, con
 
         def bt_body(state):
             k, Ybest, Gbest, _ = state
-            Yc = retract(Y, (0.5**k) * V)
-            Gc = majorizer_value(gamma, Yc, center, g)
+            Yc = _retract_soa(Y, (0.5**k) * V)
+            Gc = _value_soa(gamma, Yc, center, g)
             ok = Gc <= G_Y
             return k + 1, jnp.where(ok, Yc, Ybest), jnp.where(ok, Gc, Gbest), ok
 
@@ -172,5 +231,7 @@ def solve_subproblem(gamma: GammaOperator, preconditioner, start, center, g, con
         _, Y_new, G_new, _ = jax.lax.while_loop(bt_cond, bt_body, init)
         return Y_new, G_new
 
-    G0 = majorizer_value(gamma, start, center, g)
-    return jax.lax.fori_loop(0, config.newton_steps, newton_step, (start, G0))
+    start = to_soa(start)
+    G0 = _value_soa(gamma, start, center, g)
+    Y, G = jax.lax.fori_loop(0, config.newton_steps, newton_step, (start, G0))
+    return from_soa(Y), G

@@ -1,0 +1,866 @@
+"""Robots sharded over devices (one host or several): ``solve_sharded``, traffic reports, launchers.
+
+The robot axis of :class:`~mmpgo_jax.MMProblem` and :class:`~mmpgo_jax.MMState` is split over a
+1-D device mesh with axis name ``"robots"``: device k holds a contiguous block of A / D robots.
+The outer loop (``lax.scan`` over :func:`mmpgo_jax.step`) runs inside ``jax.shard_map``, so every
+device runs the ``vmap``-ped subproblems of its own robots only, and the only communication of an
+iteration is in :class:`MeshCollectives`:
+
+* ``gather_poses``: ``all_gather`` of the robots' poses (every device receives ALL poses, padded
+  slots included; a neighbour-only exchange would send far less, see :func:`communication_report`);
+* ``sum``: ``psum`` of the robots' objective shares and gradient norms (two scalars);
+* the per-robot restart flags of a chunk are ``all_gather``-ed once at its end (booleans).
+
+Restart decisions of AMM (and the ``lax.cond`` that skips the MM fallback when no robot needs it)
+stay per device. Per-robot arithmetic is unchanged, so a sharded run reproduces :func:`solve` up
+to the order of floating-point sums across devices.
+
+Robots are assigned to devices in contiguous blocks of the robot index. For contiguous blocks of
+poses (``robots=<count>``) the natural order already keeps neighbours together; for a user
+robot-of-pose array the robots are renumbered (reverse Cuthill-McKee on the robot adjacency graph,
+kept only if it lowers the cross-device edge count) and the result is mapped back. The robot
+count is padded with empty robots to a multiple of the device count.
+
+Several processes (one host or several): call :func:`initialize_distributed` first in every
+process, then :func:`solve_sharded` with the same arguments everywhere: the mesh spans all
+processes' devices, each process materializes only its own robots' arrays, and every process gets
+the gathered result (write files from process 0 only). :func:`run_multiprocess` launches P local
+CPU processes on a loopback coordinator; ``python -m mmpgo_jax.sharding <mmpgo solve arguments>
+--coordinator HOST:PORT --num-processes P --process-id I`` is one process of such a run on any host.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import socket
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from typing import Callable, Literal, Sequence
+
+import numpy as np
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
+
+from ._majorization import unstack
+from ._mm import Collectives, IterationRecord, MMConfig, MMProblem, MMState, evaluate, init_state, step
+from ._partition import Partition, contiguous_robots, partition, partition_stats
+from ._pose_graph import PoseGraph, Poses
+from ._solve import History, SolveResult, _stop_reason
+from ._subproblem import SubproblemConfig
+
+AXIS = "robots"
+
+try:  # JAX >= 0.6 exposes shard_map at the top level; older versions in jax.experimental.
+    _shard_map = jax.shard_map
+    _SHARD_MAP_NO_CHECK = {"check_vma": False}
+except AttributeError:  # pragma: no cover - depends on the installed JAX
+    from jax.experimental.shard_map import shard_map as _shard_map
+
+    _SHARD_MAP_NO_CHECK = {"check_rep": False}
+
+
+class MeshCollectives(Collectives):
+    """Collectives over the mesh axis ``axis_name`` (use inside ``shard_map``)."""
+
+    axis_name: str = eqx.field(static=True, default=AXIS)
+
+    def gather_poses(self, X):
+        return jax.lax.all_gather(X, self.axis_name, tiled=True)
+
+    def sum(self, x):
+        return jax.lax.psum(jnp.sum(x), self.axis_name)
+
+
+# ------------------------------------------------------------------------------------------------
+# Meshes and robot-to-device plans
+# ------------------------------------------------------------------------------------------------
+
+
+def make_mesh(devices: int | Sequence | None = None) -> Mesh:
+    """1-D mesh with axis ``"robots"`` over ``devices``: a list of devices, a count (the first k of
+    ``jax.devices()``, i.e. of all processes) or None (all devices)."""
+    all_devices = jax.devices()
+    if devices is None:
+        devs = all_devices
+    elif isinstance(devices, (int, np.integer)):
+        if not 1 <= int(devices) <= len(all_devices):
+            raise ValueError(f"devices must be between 1 and {len(all_devices)} (available), got {devices}")
+        devs = all_devices[: int(devices)]
+    else:
+        devs = list(devices)
+        if not devs:
+            raise ValueError("empty device list")
+    return Mesh(np.asarray(devs, dtype=object), (AXIS,))
+
+
+def _robot_adjacency(graph: PoseGraph, robot_of_pose: np.ndarray, num_robots: int):
+    """Symmetric (A, A) sparse matrix of inter-robot edge counts."""
+    import scipy.sparse as sp
+
+    ri = robot_of_pose[np.asarray(graph.i)]
+    rj = robot_of_pose[np.asarray(graph.j)]
+    inter = ri != rj
+    a, b = ri[inter], rj[inter]
+    W = sp.coo_matrix((np.ones(len(a)), (a, b)), shape=(num_robots, num_robots)).tocsr()
+    return (W + W.T).tocsr()
+
+
+def _cross_device_edges(graph: PoseGraph, device_of_pose: np.ndarray) -> int:
+    return int(np.count_nonzero(device_of_pose[np.asarray(graph.i)] != device_of_pose[np.asarray(graph.j)]))
+
+
+@dataclass(frozen=True)
+class ShardPlan:
+    """How robots are renumbered, padded and split over ``num_devices`` devices.
+
+    ``order[p]`` is the user robot placed at sharded index p (p < num_robots); sharded indices
+    num_robots .. padded_robots-1 are empty padding robots. Device k holds sharded robots
+    k * per_device .. (k+1) * per_device - 1.
+    """
+
+    robot_of_pose: np.ndarray  # (n,) user robot of each pose
+    order: np.ndarray  # (A,) user robot at each sharded index
+    num_devices: int
+    padded_robots: int
+    reordered: bool
+
+    @property
+    def num_robots(self) -> int:
+        return len(self.order)
+
+    @property
+    def per_device(self) -> int:
+        return self.padded_robots // self.num_devices
+
+    @property
+    def sharded_of_user(self) -> np.ndarray:
+        inv = np.empty_like(self.order)
+        inv[self.order] = np.arange(len(self.order))
+        return inv
+
+    @property
+    def sharded_robot_of_pose(self) -> np.ndarray:
+        return self.sharded_of_user[self.robot_of_pose]
+
+    @property
+    def device_of_user_robot(self) -> np.ndarray:
+        return self.sharded_of_user // self.per_device
+
+    def device_of_pose(self) -> np.ndarray:
+        return self.device_of_user_robot[self.robot_of_pose]
+
+
+def _robot_of_pose(graph: PoseGraph, robots) -> np.ndarray:
+    if isinstance(robots, Partition):
+        return np.asarray(robots.robot_of_pose, np.int64)
+    if np.ndim(robots) == 0:
+        return contiguous_robots(graph.num_poses, int(robots))
+    rop = np.asarray(robots, np.int64)
+    if rop.shape != (graph.num_poses,):
+        raise ValueError(f"robot-of-pose array must have shape ({graph.num_poses},), got {rop.shape}")
+    return rop
+
+
+def plan_shards(graph: PoseGraph, robots, num_devices: int, *, reorder: bool | None = None) -> ShardPlan:
+    """Robot-to-device plan for ``robots`` (count, robot-of-pose array or Partition).
+
+    ``reorder``: None (default) renumbers robots given as an array/Partition when that lowers the
+    number of edges between devices, True always renumbers (reverse Cuthill-McKee), False never.
+    """
+    rop = _robot_of_pose(graph, robots)
+    A = int(rop.max()) + 1
+    if num_devices < 1:
+        raise ValueError(f"num_devices must be >= 1, got {num_devices}")
+    padded = -(-A // num_devices) * num_devices
+    identity = np.arange(A)
+    if reorder is None:
+        reorder = np.ndim(robots) != 0 and num_devices > 1
+    if not reorder or A == 1:
+        return ShardPlan(rop, identity, num_devices, padded, False)
+    from scipy.sparse.csgraph import reverse_cuthill_mckee
+
+    W = _robot_adjacency(graph, rop, A)
+    order = np.asarray(reverse_cuthill_mckee(W, symmetric_mode=True), np.int64)
+    natural = ShardPlan(rop, identity, num_devices, padded, False)
+    rcm = ShardPlan(rop, order, num_devices, padded, True)
+    if _cross_device_edges(graph, rcm.device_of_pose()) < _cross_device_edges(graph, natural.device_of_pose()):
+        return rcm
+    return natural
+
+
+# ------------------------------------------------------------------------------------------------
+# Sharded arrays
+# ------------------------------------------------------------------------------------------------
+
+
+def _specs(tree, num_robots: int):
+    """PartitionSpec per leaf: the robot axis (leading, of length num_robots) is sharded."""
+
+    def spec(x):
+        return P(AXIS) if getattr(x, "ndim", 0) >= 1 and x.shape[0] == num_robots else P()
+
+    return jax.tree.map(spec, tree)
+
+
+def _problem_specs(problem: MMProblem):
+    specs = _specs(problem, problem.partition.num_robots)
+    # Global (n,) pose arrays of the partition are not per robot: replicate them.
+    return eqx.tree_at(lambda p: (p.partition.robot_of_pose, p.partition.slot_of_pose), specs, (P(), P()))
+
+
+def _shard(tree, specs, mesh: Mesh):
+    """Global arrays from host values; each process materializes only its addressable shards."""
+
+    def put(x, spec):
+        host = np.asarray(x)
+        sharding = NamedSharding(mesh, spec)
+        return jax.make_array_from_callback(host.shape, sharding, lambda index: host[index])
+
+    return jax.tree.map(put, tree, specs)
+
+
+def _to_host(x) -> np.ndarray:
+    """A (possibly multi-process) global array as a numpy array on every process."""
+    if getattr(x, "is_fully_addressable", True) or x.is_fully_replicated:
+        return np.asarray(x)
+    from jax.experimental import multihost_utils
+
+    return np.asarray(multihost_utils.process_allgather(x, tiled=True))
+
+
+def _sharded_runner(mesh: Mesh, config: MMConfig, problem_specs, state_specs, length: int):
+    comm = MeshCollectives()
+
+    def skipped(st):
+        nan = jnp.full((), jnp.nan, st.share.dtype)
+        return IterationRecord(f=nan, grad_norm=nan, restarted=jnp.zeros_like(st.s, dtype=bool))
+
+    def chunk(problem, state, limit):
+        def body(st, _):
+            skip = st.iteration >= limit
+            return jax.lax.cond(skip, lambda s: (s, skipped(s)), lambda s: step(problem, config, s, comm), st)
+
+        st, rec = jax.lax.scan(body, state, None, length=length)
+        restarted = jax.lax.all_gather(rec.restarted, AXIS, axis=1, tiled=True)
+        return st, IterationRecord(f=rec.f, grad_norm=rec.grad_norm, restarted=restarted)
+
+    rec_specs = IterationRecord(f=P(), grad_norm=P(), restarted=P())
+    mapped = _shard_map(
+        chunk,
+        mesh=mesh,
+        in_specs=(problem_specs, state_specs, P()),
+        out_specs=(state_specs, rec_specs),
+        **_SHARD_MAP_NO_CHECK,
+    )
+    return jax.jit(mapped)
+
+
+# ------------------------------------------------------------------------------------------------
+# solve_sharded
+# ------------------------------------------------------------------------------------------------
+
+
+def solve_sharded(
+    graph: PoseGraph,
+    robots: int | np.ndarray | Partition = 10,
+    *,
+    mesh: Mesh | None = None,
+    devices: int | Sequence | None = None,
+    method: Literal["mm", "amm"] = "amm",
+    iterations: int = 1000,
+    init="chordal",
+    initial: Poses | None = None,
+    xi: float = 1e-3,
+    restart: Literal["paper", "adaptive"] = "adaptive",
+    subproblem: SubproblemConfig | None = None,
+    chunk_size: int = 50,
+    grad_tol: float | None = None,
+    f_target: float | None = None,
+    rel_decrease_tol: float | None = None,
+    callback: Callable[[int, np.ndarray], bool | None] | None = None,
+    reorder: bool | None = None,
+) -> SolveResult:
+    """:func:`mmpgo_jax.solve` with the robots sharded over the devices of a 1-D mesh.
+
+    Same arguments and result as :func:`~mmpgo_jax.solve`, plus ``mesh`` (a ``Mesh`` with one axis
+    named ``"robots"``) or ``devices`` (a device list, a count, or None for all devices, of every
+    process), and ``reorder`` (see :func:`plan_shards`). ``result.partition`` is the user's
+    partition (robot indices as given); ``result.extra`` holds the mesh size, the shard plan and
+    the sharded (renumbered, padded) partition. In a multi-process run every process must call
+    this with the same arguments; the callback's stop decision is taken from process 0.
+    """
+    if iterations < 0:
+        raise ValueError(f"iterations must be >= 0, got {iterations}")
+    if mesh is None:
+        mesh = make_mesh(devices)
+    elif devices is not None:
+        raise ValueError("give either mesh or devices, not both")
+    if mesh.axis_names != (AXIS,):
+        raise ValueError(f"the mesh must have exactly one axis named {AXIS!r}, got {mesh.axis_names}")
+    num_devices = mesh.devices.size
+    config = MMConfig(method=method, restart=restart, xi=xi, subproblem=subproblem or SubproblemConfig())
+    multiprocess = jax.process_count() > 1
+
+    t0 = time.perf_counter()
+    user_part = robots if isinstance(robots, Partition) else partition(graph, robots)
+    plan = plan_shards(graph, robots, num_devices, reorder=reorder)
+    if not plan.reordered and plan.padded_robots == plan.num_robots:
+        part = user_part
+    else:
+        part = partition(graph, plan.sharded_robot_of_pose, num_robots=plan.padded_robots)
+    init_robots = robots if isinstance(robots, Partition) else user_part
+    X0 = _initial_poses(graph, init, initial, init_robots, multiprocess)
+    # Constant data and the state at X^0 on this process's default device (cheap: one gradient),
+    # then split over the mesh: each process keeps only its own robots' blocks.
+    problem = MMProblem.build(part, xi)
+    state0 = init_state(problem, part.scatter(X0), config)
+    start = jax.device_get(evaluate(problem, state0))
+    problem_specs = _problem_specs(problem)
+    state_specs = _specs(state0, part.num_robots)
+    problem = _shard(problem, problem_specs, mesh)
+    state = _shard(state0, state_specs, mesh)
+    del state0
+    init_seconds = time.perf_counter() - t0
+
+    user_cols = plan.sharded_of_user  # restart flags: sharded index of each user robot
+    fs, gs = [np.atleast_1d(start.f)], [np.atleast_1d(start.grad_norm)]
+    rs = [np.asarray(start.restarted)[None, user_cols]]
+    compile_seconds = solve_seconds = 0.0
+    stop_reason = "iterations"
+    if iterations > 0:
+        length = min(chunk_size, iterations)
+        limit = jnp.asarray(iterations)
+        runner = _sharded_runner(mesh, config, problem_specs, state_specs, length)
+        t = time.perf_counter()
+        compiled = runner.lower(problem, state, limit).compile()
+        compile_seconds = time.perf_counter() - t
+        done = 0
+        while done < iterations:
+            t = time.perf_counter()
+            state, rec = compiled(problem, state, limit)
+            f_chunk, g_chunk, r_chunk = _to_host(rec.f), _to_host(rec.grad_norm), _to_host(rec.restarted)
+            solve_seconds += time.perf_counter() - t
+            take = min(length, iterations - done)
+            fs.append(f_chunk[:take])
+            gs.append(g_chunk[:take])
+            rs.append(r_chunk[:take][:, user_cols])
+            done += take
+            reason = _stop_reason(fs, gs, grad_tol, f_target, rel_decrease_tol)
+            if callback is not None and callback(done, f_chunk[:take]):
+                reason = reason or "callback"
+            if multiprocess:
+                reason = _agree(reason)
+            if reason:
+                stop_reason = reason
+                break
+    X = _to_host(state.X)
+    history = History(np.concatenate(fs), np.concatenate(gs), np.concatenate(rs))
+    return SolveResult(
+        poses=part.gather(unstack(jnp.asarray(X))),
+        history=history,
+        partition=user_part,
+        config=config,
+        init_seconds=init_seconds,
+        compile_seconds=compile_seconds,
+        solve_seconds=solve_seconds,
+        stop_reason=stop_reason,
+        extra={
+            "devices": num_devices,
+            "processes": jax.process_count(),
+            "plan": plan,
+            "sharded_partition": part,
+        },
+    )
+
+
+_REASONS = ("", "iterations", "grad_tol", "f_target", "rel_decrease_tol", "callback")
+
+
+def _agree(reason: str | None) -> str | None:
+    """Process 0's stop decision, on every process (keeps the chunk loops in lockstep)."""
+    from jax.experimental import multihost_utils
+
+    code = multihost_utils.broadcast_one_to_all(np.int32(_REASONS.index(reason or "")))
+    return _REASONS[int(code)] or None
+
+
+def _initial_poses(graph, init, initial, robots, multiprocess: bool) -> Poses:
+    from ._initialization import initialize
+
+    X0 = initialize(graph, init, initial=initial, robots=robots)
+    if not multiprocess:
+        return X0
+    # Every process computes the same start; broadcast process 0's so that hosts with different
+    # BLAS builds cannot start from slightly different poses.
+    from jax.experimental import multihost_utils
+
+    R, t = multihost_utils.broadcast_one_to_all((np.asarray(X0.R), np.asarray(X0.t)))
+    return Poses(jnp.asarray(R, X0.R.dtype), jnp.asarray(t, X0.t.dtype))
+
+
+# ------------------------------------------------------------------------------------------------
+# Communication report
+# ------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class CommunicationReport:
+    """Per-iteration traffic of a partition split over devices (float64 poses, d + d^2 numbers each).
+
+    Logical neighbour exchange (what the algorithm needs): robot a receives, from each neighbour b,
+    the poses of b at the ends of their shared edges; ``recv_poses[a]`` (= partition_stats'
+    ``received_poses``) and ``sent_poses[a]`` count distinct poses per (robot, neighbour) pair.
+    Per device, ``device_recv_poses[k]`` counts the distinct poses of other devices that robots on k
+    need, ``device_sent_poses[k]`` the distinct poses of k that other devices need.
+
+    What :func:`solve_sharded` moves: an ``all_gather`` of every robot's padded pose block, so
+    each device receives ``allgather_recv_bytes`` per iteration (the other devices' robots times
+    n_max slots), plus two scalar ``psum``s per iteration and one ``all_gather`` of A restart flags.
+    """
+
+    dim: int
+    bytes_per_pose: int
+    robot_device: np.ndarray  # (A,) device of each user robot
+    recv_poses: np.ndarray  # (A,)
+    sent_poses: np.ndarray  # (A,)
+    neighbours: list
+    device_recv_poses: np.ndarray  # (D,)
+    device_sent_poses: np.ndarray  # (D,)
+    device_robots: np.ndarray  # (D,) real robots per device
+    padded_robots: int
+    max_poses: int  # n_max of the sharded partition
+    allgather_recv_bytes: np.ndarray  # (D,)
+    psum_bytes: int  # per iteration, per device, payload of the scalar reductions
+
+    @property
+    def num_devices(self) -> int:
+        return len(self.device_recv_poses)
+
+    @property
+    def recv_bytes(self) -> np.ndarray:
+        return self.recv_poses * self.bytes_per_pose
+
+    @property
+    def sent_bytes(self) -> np.ndarray:
+        return self.sent_poses * self.bytes_per_pose
+
+    @property
+    def device_recv_bytes(self) -> np.ndarray:
+        return self.device_recv_poses * self.bytes_per_pose
+
+    @property
+    def device_sent_bytes(self) -> np.ndarray:
+        return self.device_sent_poses * self.bytes_per_pose
+
+    def to_text(self) -> str:
+        b = self.bytes_per_pose
+        lines = [
+            f"per iteration, float64 poses of d + d^2 = {b // 8} numbers ({b} bytes)",
+            "",
+            f"{'robot':>5} {'device':>6} {'recv poses':>10} {'recv bytes':>11} {'sent poses':>10} {'sent bytes':>11}  neighbours",
+        ]
+        for a in range(len(self.recv_poses)):
+            nb = " ".join(map(str, self.neighbours[a].tolist()))
+            lines.append(
+                f"{a:>5} {self.robot_device[a]:>6} {self.recv_poses[a]:>10} {self.recv_bytes[a]:>11} "
+                f"{self.sent_poses[a]:>10} {self.sent_bytes[a]:>11}  {nb}"
+            )
+        lines.append(
+            f"{'all':>5} {'':>6} {self.recv_poses.sum():>10} {self.recv_bytes.sum():>11} "
+            f"{self.sent_poses.sum():>10} {self.sent_bytes.sum():>11}"
+        )
+        lines += [
+            "",
+            f"{'device':>6} {'robots':>6} {'cross-device recv poses':>23} {'bytes':>11} {'sent poses':>10} {'bytes':>11}"
+            f" {'all_gather recv bytes':>21}",
+        ]
+        for k in range(self.num_devices):
+            lines.append(
+                f"{k:>6} {self.device_robots[k]:>6} {self.device_recv_poses[k]:>23} {self.device_recv_bytes[k]:>11} "
+                f"{self.device_sent_poses[k]:>10} {self.device_sent_bytes[k]:>11} {self.allgather_recv_bytes[k]:>21}"
+            )
+        lines += [
+            "",
+            f"note: solve_sharded moves every pose with an all_gather ({self.padded_robots} robots x "
+            f"{self.max_poses} slots, padding included), i.e. {int(self.allgather_recv_bytes.sum())} bytes received "
+            f"per iteration over all devices versus {int(self.device_recv_bytes.sum())} bytes for a neighbour-only "
+            f"exchange between devices; plus {self.psum_bytes} bytes of psum per device and one all_gather "
+            "of the robots' restart flags per iteration.",
+        ]
+        return "\n".join(lines)
+
+    def __str__(self) -> str:
+        return self.to_text()
+
+
+def communication_report(
+    graph: PoseGraph, robot_of_pose, devices: int | Sequence | Mesh | None = None, *, reorder: bool | None = None
+) -> CommunicationReport:
+    """Traffic per robot and per device of one outer iteration (see :class:`CommunicationReport`).
+
+    ``robot_of_pose``: robot count (contiguous blocks), (n,) array or Partition; ``devices``: a
+    count, a device list or a Mesh (None: 1 device). Devices are assigned as in
+    :func:`solve_sharded` (same :func:`plan_shards`); robots keep the user's numbering.
+    """
+    if devices is None:
+        D = 1
+    elif isinstance(devices, Mesh):
+        D = devices.devices.size
+    elif isinstance(devices, (int, np.integer)):
+        D = int(devices)
+    else:
+        D = len(list(devices))
+    plan = plan_shards(graph, robot_of_pose, D, reorder=reorder)
+    rop = plan.robot_of_pose
+    A = plan.num_robots
+    d = graph.dim
+    bpp = 8 * (d + d * d)
+    gi, gj = np.asarray(graph.i), np.asarray(graph.j)
+    ri, rj = rop[gi], rop[gj]
+    inter = ri != rj
+    # (receiving robot, sending robot, pose) triples of the logical exchange, deduplicated.
+    recv_robot = np.concatenate([ri[inter], rj[inter]])
+    send_robot = np.concatenate([rj[inter], ri[inter]])
+    pose = np.concatenate([gj[inter], gi[inter]])
+    triples = np.unique(np.stack([recv_robot, send_robot, pose], 1), axis=0) if len(pose) else np.zeros((0, 3), np.int64)
+    recv = np.bincount(triples[:, 0], minlength=A)
+    sent = np.bincount(triples[:, 1], minlength=A)
+    dev = plan.device_of_user_robot
+    recv_dev, send_dev = dev[triples[:, 0]], dev[triples[:, 1]]
+    cross = recv_dev != send_dev
+    pairs = np.unique(np.stack([recv_dev[cross], triples[cross, 2]], 1), axis=0) if cross.any() else np.zeros((0, 2), np.int64)
+    device_recv = np.bincount(pairs[:, 0], minlength=D)
+    spairs = np.unique(np.stack([send_dev[cross], recv_dev[cross], triples[cross, 2]], 1), axis=0)
+    # A pose sent to several devices counts once per destination device.
+    device_sent = np.bincount(spairs[:, 0], minlength=D) if len(spairs) else np.zeros(D, np.int64)
+    n_max = int(np.bincount(rop, minlength=A).max())
+    per_dev = plan.per_device
+    allgather = np.full(D, (plan.padded_robots - per_dev) * n_max * bpp, np.int64)
+    stats = partition_stats(graph, rop)
+    return CommunicationReport(
+        dim=d,
+        bytes_per_pose=bpp,
+        robot_device=dev,
+        recv_poses=recv.astype(np.int64),
+        sent_poses=sent.astype(np.int64),
+        neighbours=stats.neighbours,
+        device_recv_poses=device_recv.astype(np.int64),
+        device_sent_poses=device_sent.astype(np.int64),
+        device_robots=np.bincount(dev, minlength=D),
+        padded_robots=plan.padded_robots,
+        max_poses=n_max,
+        allgather_recv_bytes=allgather,
+        psum_bytes=2 * 8,
+    )
+
+
+# ------------------------------------------------------------------------------------------------
+# Multi-process runs (jax.distributed)
+# ------------------------------------------------------------------------------------------------
+
+
+def initialize_distributed(
+    coordinator: str,
+    num_processes: int,
+    process_id: int,
+    *,
+    cpu: bool | None = None,
+    local_devices: int | None = None,
+    timeout_s: int = 120,
+) -> None:
+    """``jax.distributed.initialize`` with bounded timeouts; call before any other JAX work.
+
+    ``cpu``: force the CPU backend (default: when ``JAX_PLATFORMS`` is ``cpu``), with the gloo
+    CPU collectives and ``local_devices`` CPU devices per process.
+    """
+    if cpu is None:
+        cpu = os.environ.get("JAX_PLATFORMS", "").strip().lower() == "cpu"
+    if cpu:
+        jax.config.update("jax_platforms", "cpu")
+        jax.config.update("jax_cpu_collectives_implementation", "gloo")
+        if local_devices:
+            jax.config.update("jax_num_cpu_devices", int(local_devices))
+    jax.distributed.initialize(
+        coordinator_address=coordinator,
+        num_processes=num_processes,
+        process_id=process_id,
+        initialization_timeout=timeout_s,
+        heartbeat_timeout_seconds=max(10, timeout_s // 2),
+        shutdown_timeout_seconds=max(10, timeout_s // 2),
+    )
+
+
+def free_port(host: str = "127.0.0.1") -> int:
+    """An unused TCP port on ``host`` (for a local coordinator)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind((host, 0))
+        return int(s.getsockname()[1])
+
+
+@dataclass
+class ProcessRun:
+    returncodes: list
+    outputs: list  # (stdout, stderr) per process
+    seconds: float
+    timed_out: bool = False
+
+    @property
+    def ok(self) -> bool:
+        return not self.timed_out and all(rc == 0 for rc in self.returncodes)
+
+
+def _strip_options(argv: Sequence[str], names: Sequence[str]) -> list[str]:
+    """argv without the options ``names`` (each taking one value, as ``--x v`` or ``--x=v``)."""
+    out, skip = [], False
+    for a in argv:
+        if skip:
+            skip = False
+            continue
+        if a in names:
+            skip = True
+            continue
+        if any(a.startswith(n + "=") for n in names):
+            continue
+        out.append(a)
+    return out
+
+
+_LAUNCH_OPTIONS = ("--processes", "--coordinator", "--num-processes", "--process-id")
+
+
+def run_multiprocess(
+    args_for_solve: Sequence[str],
+    processes: int = 2,
+    coordinator: str | None = None,
+    *,
+    local_devices: int = 1,
+    timeout_s: float = 600.0,
+    env: dict | None = None,
+    capture: bool = True,
+) -> ProcessRun:
+    """Run ``mmpgo solve <args_for_solve>`` as ``processes`` local CPU processes.
+
+    ``args_for_solve``: the arguments of ``mmpgo solve`` (file and options; a leading ``"solve"``
+    is accepted). Every process runs ``python -m mmpgo_jax.sharding`` with ``--coordinator``,
+    ``--num-processes`` and ``--process-id`` added, joins the coordinator (default a free port on
+    127.0.0.1), owns ``local_devices`` CPU devices, i.e. a contiguous slice of the robots, and
+    process 0 prints the summary and writes the output files. The processes are killed if they
+    have not all exited after ``timeout_s`` seconds.
+    """
+    args = list(args_for_solve)
+    if args and args[0] == "solve":
+        args = args[1:]
+    args = _strip_options(args, _LAUNCH_OPTIONS)
+    if processes < 1:
+        raise ValueError(f"processes must be >= 1, got {processes}")
+    coordinator = coordinator or f"127.0.0.1:{free_port()}"
+    child_env = dict(os.environ if env is None else env)
+    child_env["JAX_PLATFORMS"] = "cpu"
+    child_env["JAX_NUM_CPU_DEVICES"] = str(local_devices)
+    child_env.pop("XLA_FLAGS", None) if "xla_force_host_platform_device_count" in child_env.get("XLA_FLAGS", "") else None
+    procs = []
+    t0 = time.perf_counter()
+    for i in range(processes):
+        cmd = [
+            sys.executable,
+            "-m",
+            "mmpgo_jax.sharding",
+            "solve",
+            *args,
+            "--coordinator",
+            coordinator,
+            "--num-processes",
+            str(processes),
+            "--process-id",
+            str(i),
+            "--local-devices",
+            str(local_devices),
+        ]
+        out = subprocess.PIPE if capture else None
+        procs.append(subprocess.Popen(cmd, env=child_env, stdout=out, stderr=out, text=True))
+    deadline = t0 + timeout_s
+    outputs, codes, timed_out = [], [], False
+    for p in procs:
+        try:
+            o, e = p.communicate(timeout=max(1.0, deadline - time.perf_counter()))
+        except subprocess.TimeoutExpired:
+            timed_out = True
+            for q in procs:
+                if q.poll() is None:
+                    q.kill()
+            o, e = p.communicate()
+        outputs.append((o, e))
+        codes.append(p.returncode)
+    return ProcessRun(codes, outputs, time.perf_counter() - t0, timed_out)
+
+
+# ------------------------------------------------------------------------------------------------
+# Command line: options for `mmpgo solve` and the sharded solve command
+# ------------------------------------------------------------------------------------------------
+
+
+def add_cli_options(p) -> None:
+    """Add the sharding / multi-process options to the ``mmpgo solve`` parser."""
+    g = p.add_argument_group("sharding over devices and processes")
+    g.add_argument("--devices", type=int, default=None, help="shard the robots over this many devices of this process (0: all)")
+    g.add_argument("--processes", type=int, default=None, help="run as P local CPU processes (jax.distributed on 127.0.0.1)")
+    g.add_argument("--coordinator", default=None, help="HOST:PORT of process 0 (multi-host runs; with --num-processes, --process-id)")
+    g.add_argument("--num-processes", type=int, default=None, help="number of processes of a multi-host run")
+    g.add_argument("--process-id", type=int, default=None, help="this process's index 0..P-1 (process 0 writes the outputs)")
+    g.add_argument("--local-devices", type=int, default=None, help="CPU devices per process (with JAX_PLATFORMS=cpu)")
+    g.add_argument("--timeout", type=float, default=600.0, help="seconds before launched processes are killed (default 600)")
+
+
+def wants_sharding(args) -> bool:
+    """True when the parsed ``solve`` arguments ask for a sharded / multi-process run."""
+    return any(getattr(args, k, None) is not None for k in ("devices", "processes", "num_processes", "coordinator"))
+
+
+def cli_solve(args, argv: Sequence[str] | None = None) -> int:
+    """``mmpgo solve`` with sharding options (see :func:`add_cli_options`).
+
+    ``--processes P`` (P > 1) relaunches this command as P local processes and returns their
+    status; ``--coordinator/--num-processes/--process-id`` joins a multi-process run; ``--devices``
+    alone shards over this process's devices. ``argv``: the full command line (default sys.argv).
+    """
+    from .cli import CLIError
+
+    if args.processes is not None and args.num_processes is None:
+        if args.processes < 1:
+            raise CLIError(f"--processes must be >= 1, got {args.processes}")
+        if args.processes > 1:
+            argv = list(sys.argv[1:] if argv is None else argv)
+            run = run_multiprocess(argv, args.processes, local_devices=args.local_devices or 1, timeout_s=args.timeout, capture=False)
+            if run.timed_out:
+                raise CLIError(f"the {args.processes} processes did not finish within {args.timeout:g} s and were stopped")
+            return max((abs(rc) for rc in run.returncodes), default=0)
+    if args.num_processes is not None or args.coordinator is not None:
+        if args.num_processes is None or args.process_id is None or args.coordinator is None:
+            raise CLIError("a multi-process run needs --coordinator HOST:PORT, --num-processes P and --process-id I")
+        if not 0 <= args.process_id < args.num_processes:
+            raise CLIError(f"--process-id must be between 0 and {args.num_processes - 1}, got {args.process_id}")
+        initialize_distributed(args.coordinator, args.num_processes, args.process_id, local_devices=args.local_devices,
+                               timeout_s=int(min(args.timeout, 600)))
+        try:
+            return _cli_solve_sharded(args)
+        finally:
+            jax.distributed.shutdown()
+    return _cli_solve_sharded(args)
+
+
+def _cli_solve_sharded(args) -> int:
+    """Mirror of ``mmpgo solve`` (cli._cmd_solve) with :func:`solve_sharded`; process 0 writes."""
+    from . import cli
+    from ._datasets import benchmark_info
+    from ._g2o import read_g2o, write_g2o, write_tum
+
+    writer = jax.process_index() == 0
+    path = cli._resolve_file(args.file, args.data)
+    g2o = read_g2o(path)
+    comps, conn = cli._describe_components(g2o.graph, g2o.vertex_ids)
+    if len(comps) > 1:
+        if not args.largest_component:
+            raise cli.CLIError(f"{path}: the pose graph is {conn}; pass --largest-component to solve the largest one")
+        graph, vertex_ids, information, initial = cli._largest_component(g2o)
+        if writer:
+            print(f"note: solving the largest component only ({graph.num_poses} of {g2o.graph.num_poses} poses)")
+    else:
+        graph, vertex_ids, information, initial = g2o.graph, g2o.vertex_ids, g2o.information, g2o.initial
+    if not 1 <= args.robots <= graph.num_poses:
+        raise cli.CLIError(f"--robots must be between 1 and the number of poses ({graph.num_poses}), got {args.robots}")
+    local = jax.local_devices()
+    if args.devices:
+        if args.devices > len(local):
+            raise cli.CLIError(f"--devices {args.devices}: this process has only {len(local)} devices")
+        local = local[: args.devices]
+    # The mesh: this process's devices, or (multi-process) every process's, ordered by process.
+    devices = local if jax.process_count() == 1 else sorted(jax.devices(), key=lambda d: (d.process_index, d.id))
+
+    bar = None
+    if writer and not args.no_progress and args.iterations > 0:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=args.iterations, desc=f"{args.method.upper()}-PGO", unit="it", file=sys.stderr)
+
+    def progress(done, f_chunk):
+        if bar is not None:
+            bar.update(done - bar.n)
+            bar.set_postfix(f=f"{f_chunk[-1]:.6g}")
+
+    result = solve_sharded(
+        graph,
+        args.robots,
+        devices=devices,
+        method=args.method,
+        iterations=args.iterations,
+        init=args.init,
+        initial=initial,
+        xi=args.xi,
+        restart=args.restart,
+        chunk_size=args.chunk,
+        grad_tol=args.grad_tol,
+        callback=progress,
+    )
+    if bar is not None:
+        bar.close()
+    if not writer:
+        return 0
+    info = benchmark_info(path.name)
+    fstar = info.fstar if info is not None else None
+    cli._print_summary(result, fstar)
+    print(f"sharding    {result.extra['devices']} devices, {result.extra['processes']} processes")
+    if args.out:
+        write_g2o(args.out, graph, result.poses, vertex_ids=vertex_ids, information=information)
+        print(f"wrote {args.out}")
+    if args.tum:
+        write_tum(args.tum, result.poses, vertex_ids=vertex_ids)
+        print(f"wrote {args.tum}")
+    if args.history:
+        cli.write_history_csv(args.history, result)
+        print(f"wrote {args.history}")
+    if getattr(args, "plot", None):
+        from ._plotting import save_solve_figure
+
+        save_solve_figure(args.plot, graph, result, fstar=fstar, title=path.name)
+        print(f"wrote {args.plot}")
+    return 0
+
+
+def build_parser():
+    """``mmpgo``'s parser with the sharding options on ``solve`` (used by ``python -m``)."""
+    from .cli import build_parser as base
+
+    parser = base()
+    solve_parser = next(a for a in parser._subparsers._group_actions if hasattr(a, "choices")).choices["solve"]
+    if not any(o in solve_parser._option_string_actions for o in ("--processes", "--coordinator")):
+        add_cli_options(solve_parser)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m mmpgo_jax.sharding solve FILE [options]``: one process of a sharded solve."""
+    from .cli import CLIError
+    from ._datasets import DatasetNotFoundError
+    from ._g2o import G2OFormatError
+
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if not argv or argv[0] != "solve":
+        argv = ["solve", *argv]
+    args = build_parser().parse_args(argv)
+    if args.precision == "float64":
+        jax.config.update("jax_enable_x64", True)
+    try:
+        return cli_solve(args, argv)
+    except (G2OFormatError, DatasetNotFoundError, CLIError, ValueError, OSError) as err:
+        print(f"mmpgo: error: {err}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
