@@ -30,7 +30,12 @@ import sys
 import time
 from pathlib import Path
 
-import jax
+# Host-side LAPACK (the one-off dense Cholesky inverses of Gamma^alpha) single-threaded: on this
+# shared 2-core machine a multi-threaded OpenBLAS competing with other processes was measured
+# 5x slower (torus3D set-up 11-13 s vs 2.1-2.3 s). Must be set before numpy is imported.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import jax  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 
@@ -194,8 +199,10 @@ def main(argv=None):
         t = time.perf_counter()
         rows.append(bench(name, path, ref, args.robots, args.budget))
         print(f"[{name} done in {time.perf_counter() - t:.0f} s]", file=sys.stderr, flush=True)
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     print(f"<!-- python {platform.python_version()}, jax {jax.__version__}, {jax.devices()[0].platform}, "
-          f"{os.cpu_count()} cpus, float64 -->")
+          f"{os.cpu_count()} cpus, float64, OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS')}, "
+          f"load average at the end {load:.1f} -->")
     print(tables(rows, args.budget, args.robots))
 
 

@@ -663,7 +663,8 @@ def run_multiprocess(
     child_env = dict(os.environ if env is None else env)
     child_env["JAX_PLATFORMS"] = "cpu"
     child_env["JAX_NUM_CPU_DEVICES"] = str(local_devices)
-    child_env.pop("XLA_FLAGS", None) if "xla_force_host_platform_device_count" in child_env.get("XLA_FLAGS", "") else None
+    if "xla_force_host_platform_device_count" in child_env.get("XLA_FLAGS", ""):
+        del child_env["XLA_FLAGS"]  # the device count per process is JAX_NUM_CPU_DEVICES
     procs = []
     t0 = time.perf_counter()
     for i in range(processes):
@@ -754,6 +755,24 @@ def cli_solve(args, argv: Sequence[str] | None = None) -> int:
     return _cli_solve_sharded(args)
 
 
+def _read_g2o_process_local(read_g2o, path):
+    """``read_g2o`` in a multi-process CPU run.
+
+    Work-around: ``_g2o._rotations`` puts its batch on ``jax.devices("cpu")[0]``, which in a
+    multi-process CPU run is process 0's device (not addressable elsewhere); it should use
+    ``jax.local_devices(backend="cpu")[0]``. Until it does, ``jax.devices`` answers with this
+    process's devices while the file is read.
+    """
+    if jax.process_count() == 1:
+        return read_g2o(path)
+    original = jax.devices
+    jax.devices = lambda backend=None: jax.local_devices(backend=backend)
+    try:
+        return read_g2o(path)
+    finally:
+        jax.devices = original
+
+
 def _cli_solve_sharded(args) -> int:
     """Mirror of ``mmpgo solve`` (cli._cmd_solve) with :func:`solve_sharded`; process 0 writes."""
     from . import cli
@@ -762,7 +781,7 @@ def _cli_solve_sharded(args) -> int:
 
     writer = jax.process_index() == 0
     path = cli._resolve_file(args.file, args.data)
-    g2o = read_g2o(path)
+    g2o = _read_g2o_process_local(read_g2o, path)
     comps, conn = cli._describe_components(g2o.graph, g2o.vertex_ids)
     if len(comps) > 1:
         if not args.largest_component:
