@@ -12,8 +12,11 @@ iteration is in :class:`MeshCollectives`:
 * the per-robot restart flags of a chunk are ``all_gather``-ed once at its end (booleans).
 
 Restart decisions of AMM (and the ``lax.cond`` that skips the MM fallback when no robot needs it)
-stay per device. Per-robot arithmetic is unchanged, so a sharded run reproduces :func:`solve` up
-to the order of floating-point sums across devices.
+stay per device. Per-robot arithmetic is unchanged, so a sharded run is the same MM / AMM run as
+:func:`solve`, up to rounding: sums across devices are ordered differently, and XLA rounds a robot's
+reductions differently when a device vmaps over fewer robots. The default truncated-CG subproblem
+solver amplifies such 1e-16 differences (to ~1e-5 relative in f on the Cube data); with a
+well-conditioned subproblem (large ``xi``) runs agree to ~1e-15 (``tests/test_sharding.py``).
 
 Robots are assigned to devices in contiguous blocks of the robot index. For contiguous blocks of
 poses (``robots=<count>``) the natural order already keeps neighbours together; for a user
@@ -31,13 +34,12 @@ CPU processes on a loopback coordinator; ``python -m mmpgo_jax.sharding <mmpgo s
 
 from __future__ import annotations
 
-import math
 import os
 import socket
 import subprocess
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Callable, Literal, Sequence
 
 import numpy as np
@@ -48,7 +50,7 @@ import jax.numpy as jnp
 from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
 from ._majorization import unstack
-from ._mm import Collectives, IterationRecord, MMConfig, MMProblem, MMState, evaluate, init_state, step
+from ._mm import Collectives, IterationRecord, MMConfig, MMProblem, evaluate, init_state, step
 from ._partition import Partition, contiguous_robots, partition, partition_stats
 from ._pose_graph import PoseGraph, Poses
 from ._solve import History, SolveResult, _stop_reason
@@ -308,19 +310,21 @@ def solve_sharded(
     multiprocess = jax.process_count() > 1
 
     t0 = time.perf_counter()
-    user_part = robots if isinstance(robots, Partition) else partition(graph, robots)
     plan = plan_shards(graph, robots, num_devices, reorder=reorder)
-    if not plan.reordered and plan.padded_robots == plan.num_robots:
-        part = user_part
-    else:
-        part = partition(graph, plan.sharded_robot_of_pose, num_robots=plan.padded_robots)
-    init_robots = robots if isinstance(robots, Partition) else user_part
-    X0 = _initial_poses(graph, init, initial, init_robots, multiprocess)
-    # Constant data and the state at X^0 on this process's default device (cheap: one gradient),
-    # then split over the mesh: each process keeps only its own robots' blocks.
-    problem = MMProblem.build(part, xi)
-    state0 = init_state(problem, part.scatter(X0), config)
-    start = jax.device_get(evaluate(problem, state0))
+    # The partition, the constant data and the state at X^0 are built whole on this process's CPU
+    # (one gradient evaluation), then split over the mesh: each device receives only its own
+    # robots' blocks, so no accelerator ever holds the whole problem.
+    with _on_host():
+        user_part = robots if isinstance(robots, Partition) else partition(graph, robots)
+        if not plan.reordered and plan.padded_robots == plan.num_robots:
+            part = user_part
+        else:
+            part = partition(graph, plan.sharded_robot_of_pose, num_robots=plan.padded_robots)
+        init_robots = user_part
+        X0 = _initial_poses(graph, init, initial, init_robots, multiprocess)
+        problem = MMProblem.build(part, xi)
+        state0 = init_state(problem, part.scatter(X0), config)
+        start = jax.device_get(evaluate(problem, state0))
     problem_specs = _problem_specs(problem)
     state_specs = _specs(state0, part.num_robots)
     problem = _shard(problem, problem_specs, mesh)
@@ -328,9 +332,14 @@ def solve_sharded(
     del state0
     init_seconds = time.perf_counter() - t0
 
-    user_cols = plan.sharded_of_user  # restart flags: sharded index of each user robot
+    def user_restarts(flags):
+        """(k, padded robots) flags in sharded order -> (k, user robots) in the user's order."""
+        out = np.zeros((flags.shape[0], user_part.num_robots), dtype=bool)
+        out[:, : plan.num_robots] = flags[:, plan.sharded_of_user]
+        return out
+
     fs, gs = [np.atleast_1d(start.f)], [np.atleast_1d(start.grad_norm)]
-    rs = [np.asarray(start.restarted)[None, user_cols]]
+    rs = [user_restarts(np.asarray(start.restarted)[None])]
     compile_seconds = solve_seconds = 0.0
     stop_reason = "iterations"
     if iterations > 0:
@@ -349,7 +358,7 @@ def solve_sharded(
             take = min(length, iterations - done)
             fs.append(f_chunk[:take])
             gs.append(g_chunk[:take])
-            rs.append(r_chunk[:take][:, user_cols])
+            rs.append(user_restarts(r_chunk[:take]))
             done += take
             reason = _stop_reason(fs, gs, grad_tol, f_target, rel_decrease_tol)
             if callback is not None and callback(done, f_chunk[:take]):
@@ -377,6 +386,16 @@ def solve_sharded(
             "sharded_partition": part,
         },
     )
+
+
+def _on_host():
+    """Context: new arrays on this process's first CPU device (if the CPU backend is available)."""
+    import contextlib
+
+    try:
+        return jax.default_device(jax.local_devices(backend="cpu")[0])
+    except RuntimeError:
+        return contextlib.nullcontext()
 
 
 _REASONS = ("", "iterations", "grad_tol", "f_target", "rel_decrease_tol", "callback")
@@ -665,7 +684,9 @@ def run_multiprocess(
     child_env["JAX_NUM_CPU_DEVICES"] = str(local_devices)
     if "xla_force_host_platform_device_count" in child_env.get("XLA_FLAGS", ""):
         del child_env["XLA_FLAGS"]  # the device count per process is JAX_NUM_CPU_DEVICES
-    procs = []
+    import tempfile
+
+    procs, logs = [], []
     t0 = time.perf_counter()
     for i in range(processes):
         cmd = [
@@ -683,21 +704,35 @@ def run_multiprocess(
             "--local-devices",
             str(local_devices),
         ]
-        out = subprocess.PIPE if capture else None
-        procs.append(subprocess.Popen(cmd, env=child_env, stdout=out, stderr=out, text=True))
+        if capture:  # files, not pipes: a chatty process can never block on a full pipe
+            out, err = tempfile.TemporaryFile("w+"), tempfile.TemporaryFile("w+")
+            logs.append((out, err))
+        else:
+            out = err = None
+        procs.append(subprocess.Popen(cmd, env=child_env, stdout=out, stderr=err, text=True))
+    # Wait for all; if one fails (or time runs out) stop the others at once instead of letting
+    # them wait in a collective for a peer that is gone.
     deadline = t0 + timeout_s
-    outputs, codes, timed_out = [], [], False
-    for p in procs:
-        try:
-            o, e = p.communicate(timeout=max(1.0, deadline - time.perf_counter()))
-        except subprocess.TimeoutExpired:
-            timed_out = True
-            for q in procs:
-                if q.poll() is None:
-                    q.kill()
-            o, e = p.communicate()
-        outputs.append((o, e))
-        codes.append(p.returncode)
+    timed_out = False
+    while any(p.poll() is None for p in procs):
+        failed = any(p.returncode not in (None, 0) for p in procs)
+        if failed or time.perf_counter() > deadline:
+            timed_out = not failed
+            for p in procs:
+                if p.poll() is None:
+                    p.kill()
+            for p in procs:
+                p.wait()
+            break
+        time.sleep(0.1)
+    codes = [p.returncode for p in procs]
+    outputs = []
+    for out, err in logs:
+        out.seek(0), err.seek(0)
+        outputs.append((out.read(), err.read()))
+        out.close(), err.close()
+    if not capture:
+        outputs = [("", "")] * processes
     return ProcessRun(codes, outputs, time.perf_counter() - t0, timed_out)
 
 
