@@ -9,14 +9,19 @@ Public API (the private modules are implementation details):
 * starts: :func:`initialize`, :func:`chordal_initialization`, :func:`distributed_chordal_initialization`
 * solvers: :func:`solve`, :func:`centralized_optimum`, and the jittable core :class:`MMConfig`,
   :class:`MMProblem`, :func:`init_state`, :func:`run`, :func:`step`, :class:`SubproblemConfig`
+* sweeps and accuracy: :func:`sweep`, :class:`SweepResult`, :func:`reference_optimum`,
+  :func:`absolute_trajectory_error`, :func:`relative_pose_error`, :func:`rigid_alignment`
+* sharding over devices and processes: :mod:`mmpgo_jax.sharding` (``solve_sharded``)
+* plots (imports matplotlib): :mod:`mmpgo_jax.plotting`
 * precision: :func:`enable_float64`
 """
 
-from ._datasets import BENCHMARKS, DatasetNotFoundError, available_benchmarks, data_dir, find_benchmark
+from ._datasets import BENCHMARKS, DatasetNotFoundError, available_benchmarks, benchmark_info, data_dir, find_benchmark
 from ._distributed_chordal import distributed_chordal_initialization
 from ._g2o import G2OFile, G2OFormatError, read_g2o, write_g2o, write_tum
 from ._geometry import project_to_so, quaternion_to_rotation, rotation_2d
 from ._initialization import chordal_initialization, initialize, odometry_initialization
+from ._metrics import RelativePoseError, absolute_trajectory_error, relative_pose_error, rigid_alignment
 from ._mm import MMConfig, MMProblem, MMState, init_state, run, step
 from ._partition import Partition, contiguous_robots, partition, partition_stats
 from ._pose_graph import (
@@ -36,6 +41,7 @@ from ._pose_graph import (
 from ._precision import default_float_dtype, enable_float64, float64_enabled
 from ._solve import History, SolveResult, centralized_optimum, solve
 from ._subproblem import SubproblemConfig
+from ._sweep import SweepResult, reference_optimum, sweep
 from ._synthetic import SyntheticDataset, cube_dataset, grid_2d_dataset
 
 __version__ = "0.1.0"

@@ -158,7 +158,7 @@ def run_demo(args) -> int:
     converged = ref.stop_reason == "grad_tol"
     t_ref = ref.init_seconds + ref.compile_seconds + ref.solve_seconds
     print(f"f*             {fstar:.8g} ({ref.iterations} iterations, ||grad F|| = {ref.history.grad_norm[-1]:.1e}, "
-          f"{t_ref:.1f} s){'' if converged else '  NOT converged: gaps are relative to this estimate'}",
+          f"{t_ref:.1f} s){'' if converged else f'  (stopped at the {_FSTAR_MAX_ITERATIONS}-iteration cap before ||grad F|| <= 1e-6: gaps are relative to this value)'}",
           flush=True)
 
     results = {}

@@ -485,7 +485,7 @@ def _rotations(dim: int, params: np.ndarray) -> np.ndarray:
         padded[:, 3] = 1.0
         padded[:k] = params
         fn = _jit_quaternion_to_rotation
-    cpu = jax.devices("cpu")[0]
+    cpu = jax.local_devices(backend="cpu")[0]
     dt = jnp.float64 if jax.config.jax_enable_x64 else jnp.float32
     out = fn(jax.device_put(padded.astype(dt), cpu))
     return np.asarray(out)[:k]

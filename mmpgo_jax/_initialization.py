@@ -27,6 +27,7 @@ import os
 from collections import deque
 from pathlib import Path
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import scipy.sparse as sp
@@ -209,7 +210,9 @@ def translations_given_rotations(graph: PoseGraph, R) -> np.ndarray:
 
 
 def _project_np(R: np.ndarray) -> np.ndarray:
-    return np.asarray(project_to_so(jnp.asarray(R, dtype=jnp.float64)), dtype=np.float64)
+    # The host-side init is float64 throughout; in float32 mode JAX computes the projection in float32.
+    dt = jnp.float64 if jax.config.jax_enable_x64 else jnp.float32
+    return np.asarray(project_to_so(jnp.asarray(R, dtype=dt)), dtype=np.float64)
 
 
 def chordal_initialization(graph: PoseGraph) -> Poses:

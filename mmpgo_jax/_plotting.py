@@ -7,13 +7,14 @@ backend (a Jupyter session keeps its own).  PNG files are rendered into memory a
 
 Objective values are f = 2F (the paper's Tables I/II, NOTES §2).  Relative suboptimality is
 (f - f*)/f*; values <= 0 (an iterate at or below the reference f*, which happens when f* is itself
-only a tolerance-converged estimate) cannot be drawn on a log axis and are shown at a floor,
-which the axis label says.
+only a tolerance-converged estimate) cannot be drawn on a log axis and are shown at a floor one
+decade below the smallest positive value, which the axis label says.
 """
 
 from __future__ import annotations
 
 import io
+import math
 from collections.abc import Mapping
 from typing import Any
 
@@ -34,7 +35,7 @@ __all__ = [
     "RELATIVE_FLOOR",
 ]
 
-RELATIVE_FLOOR = 1e-12  # where (f - f*)/f* <= 0 is drawn on the log axis
+RELATIVE_FLOOR = 1e-12  # lowest level at which (f - f*)/f* <= 0 is drawn on the log axis
 MAX_LEGEND_ROBOTS = 10
 _TOLERANCES = (1e-2, 1e-3, 1e-4)
 
@@ -118,14 +119,14 @@ def plot_trajectory(ax, graph, poses, robot_of_pose, *, inter_robot_edges: bool 
             if len(run) == 1:
                 pts = t[run]
                 if three_d:
-                    ax.plot(pts[:, 0], pts[:, 1], pts[:, 2], ".", color=colors[a], ms=3)
+                    ax.plot(pts[:, 0], pts[:, 1], pts[:, 2], ".", color=colors[a], ms=5)
                 else:
-                    ax.plot(pts[:, 0], pts[:, 1], ".", color=colors[a], ms=3)
+                    ax.plot(pts[:, 0], pts[:, 1], ".", color=colors[a], ms=5)
             elif three_d:
                 ax.plot(t[run, 0], t[run, 1], t[run, 2], "-", color=colors[a], lw=lw)
             else:
                 ax.plot(t[run, 0], t[run, 1], "-", color=colors[a], lw=lw)
-        handles.append(Line2D([], [], color=colors[a], lw=2, label=f"robot {a} ({len(idx)} poses)"))
+        handles.append(Line2D([], [], color=colors[a], lw=2, label=f"robot {a} ({len(idx)} pose{'' if len(idx) == 1 else 's'})"))
 
     # start pose
     if three_d:
@@ -142,14 +143,15 @@ def plot_trajectory(ax, graph, poses, robot_of_pose, *, inter_robot_edges: bool 
         k = int(inter.sum())
         if k:
             segs = np.stack([t[i[inter]], t[j[inter]]], axis=1)
-            alpha = 0.6 if k < 500 else 0.35
+            # many inter-robot edges (e.g. city10000) would hide the trajectory: draw them fainter
+            alpha, ew = (0.6, 0.5) if k < 500 else (0.35, 0.5) if k < 2000 else (0.2, 0.3)
             if three_d:
                 from mpl_toolkits.mplot3d.art3d import Line3DCollection
 
-                coll = Line3DCollection(segs[..., :3], colors="k", linestyles="--", linewidths=0.5, alpha=alpha)
+                coll = Line3DCollection(segs[..., :3], colors="k", linestyles="--", linewidths=ew, alpha=alpha)
                 ax.add_collection3d(coll)
             else:
-                coll = LineCollection(segs[..., :2], colors="k", linestyles="--", linewidths=0.5, alpha=alpha)
+                coll = LineCollection(segs[..., :2], colors="k", linestyles="--", linewidths=ew, alpha=alpha)
                 ax.add_collection(coll)
             inter_handle = Line2D([], [], color="k", ls="--", lw=0.8, label=f"inter-robot edges ({k})")
 
@@ -157,9 +159,15 @@ def plot_trajectory(ax, graph, poses, robot_of_pose, *, inter_robot_edges: bool 
     ax.set_ylabel("y [m]")
     if three_d:
         ax.set_zlabel("z [m]")
-        lo, hi = t.min(0), t.max(0)
-        span = np.maximum(hi - lo, 1e-9 + 0.05 * (hi - lo).max())
-        ax.set_box_aspect(tuple(span[:3]))
+        # true proportions, except that no axis is squashed below 30% of the longest one
+        lo, hi = t.min(0)[:3], t.max(0)[:3]
+        span = hi - lo
+        span = np.maximum(span * 1.04, 0.3 * span.max()) if span.max() > 0 else np.ones(3)
+        mid = 0.5 * (lo + hi)
+        ax.set_xlim(mid[0] - span[0] / 2, mid[0] + span[0] / 2)
+        ax.set_ylim(mid[1] - span[1] / 2, mid[1] + span[1] / 2)
+        ax.set_zlim(mid[2] - span[2] / 2, mid[2] + span[2] / 2)
+        ax.set_box_aspect(tuple(span), zoom=0.9)
     else:
         ax.set_aspect("equal", adjustable="datalim")
         ax.grid(True, lw=0.3, alpha=0.5)
@@ -182,15 +190,19 @@ def plot_trajectory(ax, graph, poses, robot_of_pose, *, inter_robot_edges: bool 
 # --------------------------------------------------------------------------------------------
 
 
-def _gap(f: np.ndarray, fstar: float, relative: bool) -> tuple[np.ndarray, bool]:
-    """(f - f*)/f* (or f - f*) clipped to the floor; also whether anything was clipped."""
-    g = f - fstar
-    floor = RELATIVE_FLOOR * max(abs(fstar), np.finfo(float).tiny)
-    if relative:
-        g = g / abs(fstar)
-        floor = RELATIVE_FLOOR
-    clipped = bool(np.any(g <= floor))
-    return np.maximum(g, floor), clipped
+def _raw_gap(f: np.ndarray, fstar: float, relative: bool) -> np.ndarray:
+    g = np.asarray(f, dtype=np.float64) - fstar
+    return g / abs(fstar) if relative else g
+
+
+def _floor(gaps: list[np.ndarray], fstar: float, relative: bool) -> float:
+    """Where values <= 0 are drawn: a power of ten below the smallest positive value, at least
+    :data:`RELATIVE_FLOOR` (times |f*| for the absolute gap)."""
+    lowest = RELATIVE_FLOOR * (1.0 if relative else max(abs(fstar), np.finfo(float).tiny))
+    pos = np.concatenate([g[g > 0] for g in gaps]) if gaps else np.zeros(0)
+    if len(pos) == 0:
+        return lowest
+    return max(lowest, 10.0 ** (math.floor(math.log10(pos.min())) - 1))
 
 
 def plot_convergence(
@@ -208,50 +220,55 @@ def plot_convergence(
     * ``fstar`` given, ``relative=False``: f - f* on a log axis;
     * ``fstar`` None: f itself (log axis when all values are positive).
 
-    Values <= 0 are drawn at a floor (:data:`RELATIVE_FLOOR`, times |f*| for the absolute gap).
-    ``references`` maps a label to ``{iteration: f}`` points (e.g. the paper's table), drawn as
-    markers in the colour of the curve whose label is the longest prefix of the reference's label
-    (e.g. "MM (paper)" takes the colour of "MM"), else black.
+    Curve values <= 0 (an iterate at or below the reference f*) are drawn at a floor one decade
+    below the smallest positive value (never below :data:`RELATIVE_FLOOR`), and the axis label
+    says so.  ``references`` maps a label to ``{iteration: f}`` points (e.g. the paper's table),
+    drawn as markers in the colour of the curve whose label is the longest prefix of the
+    reference's label (e.g. "MM (paper)" takes the colour of "MM"), else black; reference points
+    at or below f* carry no gap information (a printed, rounded value) and are left out, which
+    the legend says.
     """
-    clipped_any = False
-    colors = {}
-    for label, h in histories.items():
-        f = _f_array(h)
-        x = np.arange(len(f))
-        if fstar is None:
-            y = f
-        else:
-            y, clipped = _gap(f, float(fstar), relative)
-            clipped_any |= clipped
-        (line,) = ax.plot(x, y, lw=1.5, label=label)
-        colors[label] = line.get_color()
+    curves = {label: _f_array(h) for label, h in histories.items()}
+    refs = {}
+    for label, pts in (references or {}).items():
+        if pts:
+            ks = sorted(pts)
+            refs[label] = (np.asarray(ks, dtype=float), np.asarray([pts[k] for k in ks], dtype=np.float64))
 
-    if references:
-        markers = "osD^v"
-        for n_ref, (label, pts) in enumerate(references.items()):
-            if not pts:
-                continue
-            ks = np.array(sorted(pts), dtype=float)
-            fs = np.array([pts[k] for k in sorted(pts)], dtype=np.float64)
-            if fstar is None:
-                y = fs
-            else:
-                y, clipped = _gap(fs, float(fstar), relative)
-                clipped_any |= clipped
-            color = max(((len(lab), c) for lab, c in colors.items() if label.startswith(lab)), default=(0, "k"))[1]
-            ax.plot(ks, y, markers[n_ref % len(markers)], ls="", ms=6, mfc="none", mew=1.5,
-                    color=color, label=label)
+    if fstar is None:
+        ys = dict(curves)
+        ref_ys = {label: (ks, fs) for label, (ks, fs) in refs.items()}
+        floor, clipped_any = None, False
+    else:
+        fstar = float(fstar)
+        raw = {label: _raw_gap(f, fstar, relative) for label, f in curves.items()}
+        floor = _floor(list(raw.values()), fstar, relative)
+        clipped_any = any(bool(np.any(g <= 0)) for g in raw.values())
+        ys = {label: np.maximum(g, floor) for label, g in raw.items()}
+        ref_ys = {}
+        for label, (ks, fs) in refs.items():
+            g = _raw_gap(fs, fstar, relative)
+            keep = g > 0
+            name = label if keep.all() else f"{label}; {int((~keep).sum())} pt(s) ≤ f* not shown"
+            ref_ys[name] = (ks[keep], g[keep])
+
+    colors = {}
+    for label, y in ys.items():
+        (line,) = ax.plot(np.arange(len(y)), y, lw=1.5, label=label)
+        colors[label] = line.get_color()
+    markers = "osD^v"
+    for n_ref, (label, (ks, y)) in enumerate(ref_ys.items()):
+        color = max(((len(lab), c) for lab, c in colors.items() if label.startswith(lab)), default=(0, "k"))[1]
+        ax.plot(ks, y, markers[n_ref % len(markers)], ls="", ms=6, mfc="none", mew=1.5, color=color, label=label)
 
     ax.set_xlabel("iteration")
-    floor_note = ""
     if fstar is None:
         ax.set_ylabel("f = 2F")
-        if all(np.all(_f_array(h) > 0) for h in histories.values()):
+        if all(np.all(f > 0) for f in curves.values()):
             ax.set_yscale("log")
     else:
         ax.set_yscale("log")
-        if clipped_any:
-            floor_note = f"\n(values ≤ 0 shown at {RELATIVE_FLOOR:.0e}" + ("" if relative else "·|f*|") + ")"
+        floor_note = f"\n(values ≤ 0 shown at {floor:.0e})" if clipped_any else ""
         if relative:
             ax.set_ylabel("relative suboptimality (f − f*) / f*" + floor_note)
             if tolerances:
@@ -260,7 +277,7 @@ def plot_convergence(
         else:
             ax.set_ylabel("suboptimality f − f*" + floor_note)
     ax.grid(True, which="major", lw=0.3, alpha=0.5)
-    if histories or references:
+    if ys or ref_ys:
         ax.legend(fontsize=8, loc="best", framealpha=0.85)
     return ax
 
@@ -272,12 +289,13 @@ def save_convergence_figure(
     title: str = "",
     *,
     references: Mapping[str, Mapping[int, float]] | None = None,
-    fstar_label: str = "f*",
+    fstar_label: str | None = None,
 ) -> None:
     """PNG comparing convergence curves (e.g. MM vs AMM): f − f* and (f − f*)/f*, log scale.
 
     Without ``fstar`` a single panel shows f.  ``references``: see :func:`plot_convergence`.
-    ``fstar_label`` describes the reference in the title (e.g. "f* = 61.1541 (ours)").
+    ``fstar_label`` describes the reference in the title (default "f* = <value>"; e.g.
+    "f* = 61.1541 (centralized)").
     """
     if fstar is None:
         fig = _new_figure((6.5, 4.5))
@@ -294,6 +312,7 @@ def save_convergence_figure(
         ax2.set_title("relative suboptimality gap (f − f*) / f*")
     sup = title
     if fstar is not None:
+        fstar_label = fstar_label or f"f* = {float(fstar):.9g}"
         sup = f"{title}  —  {fstar_label}" if title else fstar_label
     if sup:
         fig.suptitle(sup)

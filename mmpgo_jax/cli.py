@@ -61,6 +61,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--history", help="write the per-iteration history as CSV")
     p.add_argument("--plot", help="write convergence and trajectory plots to this PNG")
     _add_common(p)
+    from .sharding import add_cli_options
+
+    add_cli_options(p)
 
     p = sub.add_parser("demo", help="run AMM-PGO on a generated Cube dataset (no download needed)")
     p.add_argument("--out-dir", default="mmpgo-demo", help="folder for the plots and results (default ./mmpgo-demo)")
@@ -95,6 +98,10 @@ def main(argv: list[str] | None = None) -> int:
         if args.command == "info":
             return _cmd_info(args)
         if args.command == "solve":
+            from .sharding import cli_solve, wants_sharding
+
+            if wants_sharding(args):
+                return cli_solve(args, sys.argv[1:] if argv is None else argv)
             return _cmd_solve(args)
         if args.command == "demo":
             from ._demo import run_demo
@@ -280,7 +287,7 @@ def write_history_csv(path, result) -> None:
     with atomic_write(path) as fh:
         fh.write("iteration,f,grad_norm,restarts\n")
         for k in range(len(h.f)):
-            fh.write(f"{k},{h.f[k]!r},{h.grad_norm[k]!r},{int(h.restarts[k].sum())}\n")
+            fh.write(f"{k},{float(h.f[k])!r},{float(h.grad_norm[k])!r},{int(h.restarts[k].sum())}\n")
 
 
 if __name__ == "__main__":

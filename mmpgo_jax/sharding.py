@@ -182,7 +182,7 @@ def plan_shards(graph: PoseGraph, robots, num_devices: int, *, reorder: bool | N
     padded = -(-A // num_devices) * num_devices
     identity = np.arange(A)
     if reorder is None:
-        reorder = np.ndim(robots) != 0 and num_devices > 1
+        reorder = (isinstance(robots, Partition) or np.ndim(robots) != 0) and num_devices > 1
     if not reorder or A == 1:
         return ShardPlan(rop, identity, num_devices, padded, False)
     from scipy.sparse.csgraph import reverse_cuthill_mckee
@@ -790,24 +790,6 @@ def cli_solve(args, argv: Sequence[str] | None = None) -> int:
     return _cli_solve_sharded(args)
 
 
-def _read_g2o_process_local(read_g2o, path):
-    """``read_g2o`` in a multi-process CPU run.
-
-    Work-around: ``_g2o._rotations`` puts its batch on ``jax.devices("cpu")[0]``, which in a
-    multi-process CPU run is process 0's device (not addressable elsewhere); it should use
-    ``jax.local_devices(backend="cpu")[0]``. Until it does, ``jax.devices`` answers with this
-    process's devices while the file is read.
-    """
-    if jax.process_count() == 1:
-        return read_g2o(path)
-    original = jax.devices
-    jax.devices = lambda backend=None: jax.local_devices(backend=backend)
-    try:
-        return read_g2o(path)
-    finally:
-        jax.devices = original
-
-
 def _cli_solve_sharded(args) -> int:
     """Mirror of ``mmpgo solve`` (cli._cmd_solve) with :func:`solve_sharded`; process 0 writes."""
     from . import cli
@@ -816,7 +798,7 @@ def _cli_solve_sharded(args) -> int:
 
     writer = jax.process_index() == 0
     path = cli._resolve_file(args.file, args.data)
-    g2o = _read_g2o_process_local(read_g2o, path)
+    g2o = read_g2o(path)
     comps, conn = cli._describe_components(g2o.graph, g2o.vertex_ids)
     if len(comps) > 1:
         if not args.largest_component:

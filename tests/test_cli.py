@@ -1,0 +1,341 @@
+"""End-to-end tests of the ``mmpgo`` command line, run as subprocesses (``python -m mmpgo_jax.cli``).
+
+Each subprocess pays for importing JAX and compiling the solver, so the runs are few and small:
+``solve`` on the tiny test files, ``info``, every bad file (run concurrently), the disconnected
+graph with and without ``--largest-component``, ``bench --quick`` and a small ``demo`` from a copy
+of the package with no data folder beside it.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import csv
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mmpgo_jax._g2o import read_g2o
+
+REPO = Path(__file__).resolve().parents[1]
+DATA = Path(__file__).resolve().parent / "data"
+BAD = DATA / "bad"
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+# problems of the file as a whole: the message names the file but no line
+FILE_LEVEL_PROBLEMS = {"empty.g2o", "comments_only.g2o", "no_edges.g2o"}
+# a valid file that the CLI refuses to solve (tested separately)
+NOT_A_FORMAT_ERROR = {"disconnected.g2o"}
+
+
+def _env(**extra) -> dict:
+    env = dict(os.environ)
+    env.setdefault("JAX_PLATFORMS", "cpu")
+    env["PYTHONUNBUFFERED"] = "1"
+    env.update(extra)
+    return env
+
+
+def mmpgo(*args, cwd=None, env=None, timeout=300) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "mmpgo_jax.cli", *map(str, args)],
+        cwd=cwd or REPO,
+        env=env or _env(),
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
+
+
+def _ok(proc: subprocess.CompletedProcess) -> None:
+    assert proc.returncode == 0, f"exit {proc.returncode}\nstdout:\n{proc.stdout}\nstderr:\n{proc.stderr}"
+    assert "Traceback" not in proc.stderr, proc.stderr
+
+
+def _no_temp_files(folder: Path) -> None:
+    left = [p.name for p in folder.iterdir() if p.name.startswith(".") and p.name.endswith(".tmp")]
+    assert not left, f"atomic_write left temporary files behind: {left}"
+
+
+def _check_png(path: Path, min_bytes: int = 5000) -> None:
+    assert path.is_file(), f"{path} was not written"
+    data = path.read_bytes()
+    assert data[:8] == PNG_MAGIC, f"{path} is not a PNG"
+    assert len(data) > min_bytes, f"{path} is suspiciously small ({len(data)} bytes)"
+    import matplotlib.image as mpimg
+
+    img = mpimg.imread(path)
+    assert img.ndim == 3 and img.shape[0] > 300 and img.shape[1] > 500
+
+
+def _read_tum(path: Path) -> np.ndarray:
+    rows = []
+    for line in path.read_text().splitlines():
+        if not line.strip():
+            continue
+        fields = line.split()
+        assert len(fields) == 8, f"TUM line with {len(fields)} fields: {line!r}"
+        rows.append([float(x) for x in fields])
+    return np.asarray(rows)
+
+
+def _read_history(path: Path) -> list[dict]:
+    with open(path, newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    for r in rows:
+        for key, val in r.items():
+            try:
+                float(val)
+            except ValueError:
+                pytest.fail(f"{path.name}: column {key!r} holds a non-number {val!r}")
+    return rows
+
+
+# --------------------------------------------------------------------------------------------
+# solve
+# --------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name, robots", [("noncontiguous2d.g2o", 2)])
+def test_solve_writes_outputs(tmp_path, name, robots):
+    src = DATA / name
+    original = read_g2o(src)
+    n, m = original.graph.num_poses, original.graph.num_edges
+    out, tum, hist, plot = (tmp_path / f for f in ("est.g2o", "est.tum", "history.csv", "plot.png"))
+    iters = 20
+    proc = mmpgo("solve", src, "--robots", robots, "--iterations", iters, "--no-progress",
+                 "--out", out, "--tum", tum, "--history", hist, "--plot", plot)
+    _ok(proc)
+    assert "f = 2F" in proc.stdout
+
+    # g2o: reads back, same ids, edges and every pose has a VERTEX line
+    back = read_g2o(out)
+    assert back.graph.num_poses == n and back.graph.num_edges == m
+    assert back.graph.dim == original.graph.dim
+    np.testing.assert_array_equal(back.vertex_ids, original.vertex_ids)
+    assert back.has_vertex.all()
+    np.testing.assert_array_equal(np.asarray(back.graph.i), np.asarray(original.graph.i))
+    np.testing.assert_array_equal(np.asarray(back.graph.j), np.asarray(original.graph.j))
+    np.testing.assert_allclose(np.asarray(back.graph.kappa), np.asarray(original.graph.kappa), rtol=1e-9)
+
+    # TUM: n lines of 8 numbers, the original ids, unit quaternions, positions = the g2o's
+    T = _read_tum(tum)
+    assert T.shape == (n, 8)
+    np.testing.assert_array_equal(np.sort(T[:, 0]).astype(int), np.sort(original.vertex_ids))
+    np.testing.assert_allclose(np.linalg.norm(T[:, 4:8], axis=1), 1.0, atol=1e-9)
+    order = np.argsort(T[:, 0])
+    pos = np.asarray(back.initial.t)[np.argsort(back.vertex_ids)]
+    np.testing.assert_allclose(T[order, 1 : 1 + original.graph.dim], pos, atol=1e-9)
+
+    # history: iterations + 1 rows of numbers, f non-increasing overall
+    rows = _read_history(hist)
+    assert len(rows) == iters + 1
+    assert [int(r["iteration"]) for r in rows] == list(range(iters + 1))
+    assert float(rows[-1]["f"]) <= float(rows[0]["f"]) + 1e-9
+
+    _check_png(plot)
+    _no_temp_files(tmp_path)
+
+
+# --------------------------------------------------------------------------------------------
+# info
+# --------------------------------------------------------------------------------------------
+
+
+def test_info_prints_dimensions_and_partition():
+    proc = mmpgo("info", DATA / "noncontiguous2d.g2o", "--robots", 2)
+    _ok(proc)
+    out = proc.stdout
+    g = read_g2o(DATA / "noncontiguous2d.g2o").graph
+    assert re.search(r"\bd = 2\b", out)
+    assert re.search(rf"\bn = {g.num_poses}\b", out)
+    assert re.search(rf"\bm = {g.num_edges}\b", out)
+    # partition table: a header and one row per robot
+    lines = out.splitlines()
+    head = next(i for i, line in enumerate(lines) if re.match(r"\s*robot\s+poses", line))
+    assert "inter" in lines[head]
+    rows = [line.split() for line in lines[head + 1 : head + 3]]
+    assert [r[0] for r in rows] == ["0", "1"]
+    assert sum(int(r[1]) for r in rows) == g.num_poses
+
+
+# --------------------------------------------------------------------------------------------
+# bad input: exit status 2, one line naming file (and line), no traceback
+# --------------------------------------------------------------------------------------------
+
+BAD_FILES = sorted(p.name for p in BAD.glob("*.g2o") if p.name not in NOT_A_FORMAT_ERROR)
+# run as real subprocesses (each costs an interpreter and a JAX import); all files also run in-process
+SUBPROCESS_BAD_FILES = ["empty.g2o", "field_count.g2o", "zero_quaternion.g2o"]
+
+
+def _check_error_message(name: str, rc: int, stderr: str, stdout: str = "") -> None:
+    path = BAD / name
+    assert rc == 2, f"exit {rc}\nstdout:\n{stdout}\nstderr:\n{stderr}"
+    assert "Traceback" not in stderr, stderr
+    lines = stderr.strip().splitlines()
+    assert len(lines) == 1, f"expected a one-line message, got:\n{stderr}"
+    msg = lines[0]
+    prefix = f"mmpgo: error: {path}:"
+    assert msg.startswith(prefix), msg
+    rest = msg[len(prefix):]
+    m = re.match(r"(\d+): \S", rest)
+    if name in FILE_LEVEL_PROBLEMS:
+        assert m is None and rest.startswith(" ") and len(rest.strip()) > 5, msg
+    else:
+        assert m is not None, f"no line number in: {msg}"
+        line = int(m.group(1))
+        text = path.read_text().splitlines()
+        assert 1 <= line <= len(text) and text[line - 1].strip(), f"line {line} does not point into the file: {msg}"
+
+
+def test_bad_files_exist():
+    assert len(BAD_FILES) >= 10
+    assert set(SUBPROCESS_BAD_FILES) <= set(BAD_FILES)
+
+
+@pytest.fixture(scope="module")
+def bad_runs():
+    """``mmpgo info`` on a few bad files as subprocesses, concurrently (they mostly wait on imports)."""
+    with concurrent.futures.ThreadPoolExecutor(max_workers=len(SUBPROCESS_BAD_FILES)) as pool:
+        futures = {name: pool.submit(mmpgo, "info", BAD / name) for name in SUBPROCESS_BAD_FILES}
+        return {name: f.result() for name, f in futures.items()}
+
+
+@pytest.mark.parametrize("name", SUBPROCESS_BAD_FILES)
+def test_bad_file_subprocess(bad_runs, name):
+    proc = bad_runs[name]
+    _check_error_message(name, proc.returncode, proc.stderr, proc.stdout)
+
+
+@pytest.mark.parametrize("command", ["info", "solve"])
+@pytest.mark.parametrize("name", BAD_FILES)
+def test_bad_file_in_process(capsys, name, command):
+    """Every bad file through ``cli.main`` (the code the subprocess runs), for both commands."""
+    from mmpgo_jax.cli import main
+
+    rc = main([command, str(BAD / name), "--no-progress"] if command == "solve" else [command, str(BAD / name)])
+    captured = capsys.readouterr()
+    _check_error_message(name, rc, captured.err, captured.out)
+
+
+def test_disconnected_graph_needs_largest_component(tmp_path):
+    src = BAD / "disconnected.g2o"
+    proc = mmpgo("solve", src, "--robots", 2, "--iterations", 5, "--no-progress")
+    assert proc.returncode == 2, proc.stdout + proc.stderr
+    assert "Traceback" not in proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("mmpgo: error: "), proc.stderr
+    assert str(src) in lines[0] and "--largest-component" in lines[0]
+
+    out = tmp_path / "largest.g2o"
+    proc = mmpgo("solve", src, "--robots", 2, "--iterations", 5, "--no-progress", "--largest-component", "--out", out)
+    _ok(proc)
+    assert "largest component" in proc.stdout
+    back = read_g2o(out)
+    assert back.graph.num_poses == 3 and back.graph.num_edges == 2
+    np.testing.assert_array_equal(np.sort(back.vertex_ids), [0, 1, 2])
+
+
+# --------------------------------------------------------------------------------------------
+# bench and demo
+# --------------------------------------------------------------------------------------------
+
+
+def test_bench_quick(tmp_path):
+    out = tmp_path / "bench"
+    proc = mmpgo("bench", "--quick", "--out-dir", out, "--no-progress")
+    _ok(proc)
+    assert "| dataset |" in proc.stdout
+    md = (out / "bench.md").read_text()
+    for needle in ("bench --quick", "JAX", "backend", "f* ours", "ms/iter", "iters → 1e-3", "| MM |", "| AMM |"):
+        assert needle in md, f"{needle!r} missing from bench.md"
+    with open(out / "bench.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert {r["run"] for r in rows} == {"MM", "AMM", "AMM-alg2"}
+    assert all(int(r["k"]) == 100 for r in rows)
+    for r in rows:
+        assert float(r["f"]) >= float(r["fstar_used"]) * (1 - 1e-6)
+    doc = json.loads((out / "bench.json").read_text())
+    assert doc["complete"] is True and doc["iterations"] == 100 and len(doc["datasets"]) == 1
+    ds = doc["datasets"][0]
+    assert set(ds["runs"]) == {"MM", "AMM", "AMM-alg2"}
+    assert len(ds["runs"]["MM"]["f_history"]) == 101
+    assert doc["machine"]["cpu"] and doc["machine"]["jax"]
+    if ds["name"] == "MITb":  # the paper's numbers are carried along
+        assert rows[0]["paper_f"] and rows[0]["fstar_sesync"]
+    _check_png(out / ds["figure"])
+    _no_temp_files(out)
+
+
+def test_bench_quick_falls_back_to_cube(tmp_path):
+    """With no benchmark data at all, --quick still exercises everything on a generated Cube dataset."""
+    from mmpgo_jax._datasets import available_benchmarks
+
+    if not available_benchmarks():
+        pytest.skip("no data here: test_bench_quick already ran the fallback")
+    empty = tmp_path / "empty-data"
+    empty.mkdir()
+    out = tmp_path / "bench"
+    proc = mmpgo("bench", "--quick", "--out-dir", out, "--no-progress", env=_env(MMPGO_DATA=str(empty)))
+    _ok(proc)
+    assert "generated Cube dataset" in proc.stdout
+    doc = json.loads((out / "bench.json").read_text())
+    ds = doc["datasets"][0]
+    assert ds["name"].startswith("cube") and ds["fstar"]["source"].startswith("ours")
+    assert (out / "bench.md").is_file() and (out / "bench.csv").is_file()
+    _check_png(out / ds["figure"])
+
+
+def test_demo_without_data(tmp_path):
+    """The demo needs no data: run it from a copy of the package with no ../shared beside it."""
+    repo = tmp_path / "repo"
+    shutil.copytree(REPO / "mmpgo_jax", repo / "mmpgo_jax", ignore=shutil.ignore_patterns("__pycache__"))
+    empty = tmp_path / "empty-data"
+    empty.mkdir()
+    env = _env(MMPGO_DATA=str(empty))
+    env.pop("PYTHONPATH", None)
+    where = subprocess.run([sys.executable, "-c", "import mmpgo_jax; print(mmpgo_jax.__file__)"],
+                           cwd=repo, env=env, capture_output=True, text=True, timeout=120)
+    assert Path(where.stdout.strip()).resolve() == (repo / "mmpgo_jax" / "__init__.py").resolve(), where
+    assert not (tmp_path / "shared").exists()
+
+    out = tmp_path / "demo-out"
+    proc = mmpgo("demo", "--poses", 300, "--iterations", 50, "--out-dir", out, "--no-progress", cwd=repo, env=env)
+    _ok(proc)
+    for needle in ("f*", "MM-PGO", "AMM-PGO", "ATE", "ms/it"):
+        assert needle in proc.stdout, f"{needle!r} missing from the demo's output:\n{proc.stdout}"
+    _check_png(out / "demo_trajectory.png")
+    _check_png(out / "demo_convergence.png")
+    back = read_g2o(out / "demo_result.g2o")
+    assert back.graph.num_poses == 300 and back.has_vertex.all()
+    rows = _read_history(out / "demo_history.csv")
+    assert len(rows) == 51
+    assert float(rows[-1]["f_amm"]) < float(rows[0]["f_amm"])
+    _no_temp_files(out)
+
+
+@pytest.mark.parametrize(
+    "argv, needle",
+    [
+        (["bench", "--datasets", "no-such-benchmark"], "no-such-benchmark"),
+        (["bench", "--robots", "0"], "--robots"),
+        (["demo", "--robots", "0"], "--robots"),
+        (["demo", "--poses", "1"], "--poses"),
+    ],
+)
+def test_bench_demo_bad_arguments(capsys, tmp_path, argv, needle):
+    """Invalid bench/demo options end with exit status 2 and a one-line message, before any work."""
+    from mmpgo_jax.cli import main
+
+    rc = main(argv + ["--out-dir", str(tmp_path / "out"), "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc == 2
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("mmpgo: error: ") and needle in lines[0], err
+    assert not (tmp_path / "out").exists()
