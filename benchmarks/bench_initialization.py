@@ -115,7 +115,6 @@ def bench(name: str, path: Path, ref: float, robots: int, budget: int) -> dict:
     _, t_long = timed(lambda: dc._run_rotations(st, GinvR, R0, 210, None, True, history_length=budget).X)
     row["ms_R"] = (t_long - t_short) / 200 * 1e3
     row["t_R6"] = None if row["k_restart"] is None else row["setup_R"] + row["k_restart"] * row["ms_R"] / 1e3
-    del GinvR
 
     # --- distributed, all defaults ----------------------------------------------------------
     (pd, info), row["t_d"] = timed(dc.distributed_chordal_initialization, g, robots)

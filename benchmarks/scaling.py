@@ -37,7 +37,6 @@ def one(args) -> dict:
     import jax
 
     jax.config.update("jax_enable_x64", True)
-    import numpy as np
 
     from mmpgo_jax import cube_dataset, initialize, solve
     from mmpgo_jax.sharding import solve_sharded

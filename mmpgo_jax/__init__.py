@@ -10,7 +10,8 @@ Public API (the private modules are implementation details):
 * solvers: :func:`solve`, :func:`centralized_optimum`, and the jittable core :class:`MMConfig`,
   :class:`MMProblem`, :func:`init_state`, :func:`run`, :func:`step`, :class:`SubproblemConfig`
 * sweeps and accuracy: :func:`sweep`, :class:`SweepResult`, :func:`reference_optimum`,
-  :func:`absolute_trajectory_error`, :func:`relative_pose_error`, :func:`rigid_alignment`
+  :func:`trajectory_accuracy`, :func:`absolute_trajectory_error`, :func:`relative_pose_error`,
+  :func:`align_poses`
 * sharding over devices and processes: :mod:`mmpgo_jax.sharding` (``solve_sharded``)
 * plots (imports matplotlib): :mod:`mmpgo_jax.plotting`
 * precision: :func:`enable_float64`
@@ -20,8 +21,16 @@ from ._datasets import BENCHMARKS, DatasetNotFoundError, available_benchmarks, b
 from ._distributed_chordal import distributed_chordal_initialization
 from ._g2o import G2OFile, G2OFormatError, read_g2o, write_g2o, write_tum
 from ._geometry import project_to_so, quaternion_to_rotation, rotation_2d
-from ._initialization import chordal_initialization, initialize, odometry_initialization
-from ._metrics import RelativePoseError, absolute_trajectory_error, relative_pose_error, rigid_alignment
+from ._initialization import chordal_initialization, initialize, load_poses, odometry_initialization
+from ._metrics import (
+    RelativePoseError,
+    TrajectoryAccuracy,
+    absolute_trajectory_error,
+    align_poses,
+    relative_pose_error,
+    rigid_alignment,
+    trajectory_accuracy,
+)
 from ._mm import MMConfig, MMProblem, MMState, init_state, run, step
 from ._partition import Partition, contiguous_robots, partition, partition_stats
 from ._pose_graph import (
@@ -45,3 +54,68 @@ from ._sweep import SweepResult, reference_optimum, sweep
 from ._synthetic import SyntheticDataset, cube_dataset, grid_2d_dataset
 
 __version__ = "0.1.0"
+
+__all__ = [
+    "absolute_trajectory_error",
+    "align_poses",
+    "available_benchmarks",
+    "benchmark_info",
+    "BENCHMARKS",
+    "centralized_optimum",
+    "chordal_initialization",
+    "connected_components",
+    "contiguous_robots",
+    "cost",
+    "cube_dataset",
+    "data_dir",
+    "data_matrix",
+    "DatasetNotFoundError",
+    "default_float_dtype",
+    "distributed_chordal_initialization",
+    "edge_costs",
+    "enable_float64",
+    "euclidean_gradient",
+    "find_benchmark",
+    "float64_enabled",
+    "G2OFile",
+    "G2OFormatError",
+    "grid_2d_dataset",
+    "History",
+    "init_state",
+    "initialize",
+    "load_poses",
+    "matrix_to_poses",
+    "MMConfig",
+    "MMProblem",
+    "MMState",
+    "objective",
+    "odometry_initialization",
+    "Partition",
+    "partition",
+    "partition_stats",
+    "PoseGraph",
+    "Poses",
+    "poses_to_matrix",
+    "project_to_so",
+    "quaternion_to_rotation",
+    "read_g2o",
+    "reference_optimum",
+    "relative_pose_error",
+    "RelativePoseError",
+    "riemannian_gradient",
+    "riemannian_gradient_norm",
+    "rigid_alignment",
+    "rotation_2d",
+    "run",
+    "solve",
+    "SolveResult",
+    "step",
+    "SubproblemConfig",
+    "sweep",
+    "SweepResult",
+    "SyntheticDataset",
+    "trajectory_accuracy",
+    "TrajectoryAccuracy",
+    "write_g2o",
+    "write_tum",
+]

@@ -12,7 +12,7 @@ the centralized chordal initialization, prints a summary and writes into ``--out
 
 The absolute trajectory error (ATE) is the RMSE of the positions after the rigid transform
 (rotation + translation, no scale) that best aligns the estimate with the ground truth
-(:func:`align_and_ate`; the estimate is only determined up to a global rigid transform).
+(:func:`~mmpgo_jax.trajectory_accuracy`; the estimate is only determined up to a global rigid transform).
 """
 
 from __future__ import annotations
@@ -20,65 +20,15 @@ from __future__ import annotations
 import dataclasses
 import sys
 import time
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-__all__ = ["run_demo", "align_and_ate", "Alignment", "demo_grid"]
+__all__ = ["run_demo", "demo_grid"]
 
 _TOLS = (1e-2, 1e-3, 1e-4)
 # cap on the centralized reference solve (it usually stops at its gradient tolerance far earlier)
 _FSTAR_MAX_ITERATIONS = 1000
-
-
-@dataclass(frozen=True)
-class Alignment:
-    """Result of :func:`align_and_ate`: the transform with ``R @ est_i + t ≈ gt_i``."""
-
-    R: np.ndarray  # (d, d) rotation applied to the estimate
-    t: np.ndarray  # (d,) translation applied after R
-    rmse: float  # ATE: sqrt(mean ||R est_i + t - gt_i||^2)
-    max_error: float  # max_i ||R est_i + t - gt_i||
-    aligned: np.ndarray  # (n, d) aligned estimate
-
-
-def align_and_ate(est_t, gt_t) -> Alignment:
-    """Rigid (rotation + translation, no scale) least-squares alignment of ``est_t`` onto ``gt_t``.
-
-    Horn / Umeyama: with centred point sets, R = U diag(1, .., det(U V^T)) V^T from the SVD
-    U S V^T of sum_i gt_i est_i^T, t = mean(gt) - R mean(est).  Returns the ATE (position RMSE
-    after alignment) and the transform.
-    """
-    est = np.asarray(est_t, dtype=np.float64)
-    gt = np.asarray(gt_t, dtype=np.float64)
-    if est.shape != gt.shape or est.ndim != 2:
-        raise ValueError(f"est_t and gt_t must both be (n, d), got {est.shape} and {gt.shape}")
-    mu_e, mu_g = est.mean(0), gt.mean(0)
-    E, G = est - mu_e, gt - mu_g
-    U, _, Vt = np.linalg.svd(G.T @ E)
-    D = np.eye(est.shape[1])
-    D[-1, -1] = np.sign(np.linalg.det(U @ Vt)) or 1.0
-    R = U @ D @ Vt
-    t = mu_g - R @ mu_e
-    aligned = est @ R.T + t
-    err = np.linalg.norm(aligned - gt, axis=1)
-    return Alignment(R=R, t=t, rmse=float(np.sqrt(np.mean(err**2))), max_error=float(err.max()), aligned=aligned)
-
-
-def rotation_error_deg(est_R, gt_R, R_align) -> float:
-    """RMS geodesic angle (degrees) between R_align @ est_R_i and gt_R_i."""
-    est = np.asarray(est_R, dtype=np.float64)
-    gt = np.asarray(gt_R, dtype=np.float64)
-    rel = np.einsum("nba,bc,ncd->nad", gt, R_align, est)  # gt_i^T R_align est_i
-    d = rel.shape[-1]
-    tr = np.trace(rel, axis1=1, axis2=2)
-    if d == 2:
-        cos = np.clip(tr / 2.0, -1.0, 1.0)
-    else:
-        cos = np.clip((tr - 1.0) / 2.0, -1.0, 1.0)
-    ang = np.degrees(np.arccos(cos))
-    return float(np.sqrt(np.mean(ang**2)))
 
 
 def demo_grid(num_poses: int) -> int:
@@ -116,10 +66,9 @@ def run_demo(args) -> int:
     from ._atomic import atomic_write
     from ._g2o import write_g2o
     from ._initialization import initialize
+    from ._metrics import align_poses, trajectory_accuracy
     from ._plotting import save_convergence_figure, save_solve_figure
-    import jax.numpy as jnp
-
-    from ._pose_graph import Poses, cost
+    from ._pose_graph import cost
     from ._solve import centralized_optimum, solve
     from ._synthetic import cube_dataset
 
@@ -173,11 +122,8 @@ def run_demo(args) -> int:
                 bar.close()
 
     # summary ------------------------------------------------------------------------------
-    gt_t, gt_R = np.asarray(ds.ground_truth.t), np.asarray(ds.ground_truth.R)
-    ate = {}
-    for label, est in [("chordal init", X0), ("f* solution", ref.poses)] + [(k, r.poses) for k, r in results.items()]:
-        al = align_and_ate(np.asarray(est.t), gt_t)
-        ate[label] = (al, rotation_error_deg(np.asarray(est.R), gt_R, al.R))
+    accuracy = {label: trajectory_accuracy(est, ds.ground_truth)
+                for label, est in [("chordal init", X0), ("f* solution", ref.poses)] + [(k, r.poses) for k, r in results.items()]}
 
     print()
     print(f"{iters} iterations, {A} robots, centralized chordal initialization, f* = {fstar:.8g}")
@@ -194,9 +140,10 @@ def run_demo(args) -> int:
     print("(it→tol: first iteration with (f - f*)/f* <= tol; — = not reached)")
     print()
     print("error vs ground truth after rigid alignment (rotation + translation, no scale):")
-    print(f"{'estimate':<14} {'ATE RMSE [m]':>12} {'max [m]':>8} {'rot RMSE [deg]':>14}")
-    for label, (al, rot) in ate.items():
-        print(f"{label:<14} {al.rmse:>12.4f} {al.max_error:>8.4f} {rot:>14.3f}")
+    print(f"{'estimate':<14} {'ATE RMSE [m]':>12} {'max [m]':>8} {'rot RMSE [deg]':>14} {'RPE [m]':>8} {'RPE [deg]':>9}")
+    for label, acc in accuracy.items():
+        print(f"{label:<14} {acc.ate:>12.4f} {acc.ate_max:>8.4f} {acc.rotation_deg:>14.3f} "
+              f"{acc.rpe_translation:>8.4f} {acc.rpe_rotation_deg:>9.3f}")
     if any(r.f < fstar for r in results.values()):
         print("note: a distributed run ended below the centralized f* (within its tolerance); "
               "its gap is shown as negative / at the floor of the plots")
@@ -206,9 +153,7 @@ def run_demo(args) -> int:
     title = f"Cube dataset (seed {args.seed}, {n} poses, {graph.num_edges} edges), {A} robots"
     p_traj = out / "demo_trajectory.png"
     # plot the estimate in the ground truth's frame (it is only determined up to a rigid motion)
-    al = ate["AMM-PGO"][0]
-    shown = dataclasses.replace(amm, poses=Poses(jnp.einsum("ab,nbc->nac", jnp.asarray(al.R, amm.poses.R.dtype), amm.poses.R),
-                                                 jnp.asarray(al.aligned, amm.poses.t.dtype)))
+    shown = dataclasses.replace(amm, poses=align_poses(amm.poses, ds.ground_truth))
     save_solve_figure(p_traj, graph, shown, fstar=fstar, title=title + " — estimate aligned to the ground truth")
     p_conv = out / "demo_convergence.png"
     save_convergence_figure(p_conv, {k: r.history for k, r in results.items()}, fstar, title,

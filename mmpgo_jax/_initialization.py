@@ -42,6 +42,7 @@ __all__ = [
     "chordal_initialization",
     "chordal_relaxed_rotations",
     "initialize",
+    "load_poses",
     "odometry_initialization",
     "poses_from_arrays",
     "relaxed_rotation_cost",
@@ -333,24 +334,30 @@ def poses_from_arrays(graph: PoseGraph, R, t, *, what: str = "initial poses") ->
     return Poses(jnp.asarray(_project_np(R), dt), jnp.asarray(t, dt))
 
 
-def _load_file(graph: PoseGraph, path: Path) -> Poses:
+def load_poses(graph: PoseGraph, path, *, what: str = "initial-pose file") -> Poses:
+    """Poses for ``graph`` from a ``.g2o`` file (its VERTEX lines) or an ``.npz`` with ``R``, ``t``.
+
+    Checked against the graph (count, dimension, finite, rotations in SO(d)); ``what`` names the
+    file's role in error messages.
+    """
+    path = Path(path)
     suffix = path.suffix.lower()
     if not path.is_file():
-        raise ValueError(f"initial-pose file {str(path)!r} does not exist")
+        raise ValueError(f"{what} {str(path)!r} does not exist")
     if suffix == ".npz":
         with np.load(path) as z:
             missing = [k for k in ("R", "t") if k not in z.files]
             if missing:
-                raise ValueError(f"{path}: .npz initial poses need arrays 'R' (n,d,d) and 't' (n,d); missing {missing}")
-            return poses_from_arrays(graph, z["R"], z["t"], what=str(path))
+                raise ValueError(f"{path}: .npz poses need arrays 'R' (n,d,d) and 't' (n,d); missing {missing}")
+            return poses_from_arrays(graph, z["R"], z["t"], what=f"{what} {path}")
     if suffix == ".g2o":
         from ._g2o import read_g2o
 
         f = read_g2o(path)
         if f.initial is None:
             raise ValueError(f"{path}: the file has no VERTEX estimate for every pose")
-        return poses_from_arrays(graph, f.initial.R, f.initial.t, what=str(path))
-    raise ValueError(f"initial-pose file {str(path)!r}: expected a .g2o or .npz file")
+        return poses_from_arrays(graph, f.initial.R, f.initial.t, what=f"{what} {path}")
+    raise ValueError(f"{what} {str(path)!r}: expected a .g2o or .npz file")
 
 
 def initialize(
@@ -397,7 +404,7 @@ def initialize(
     if isinstance(method, (str, os.PathLike)):
         p = Path(method)
         if p.suffix.lower() in (".g2o", ".npz") or p.exists():
-            return _load_file(graph, p)
+            return load_poses(graph, p)
         raise ValueError(
             f"unknown initialization {method!r}: expected one of {', '.join(INITIALIZATION_METHODS)}, "
             "a Poses, or a path to a .g2o / .npz file"

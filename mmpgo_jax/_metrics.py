@@ -22,7 +22,15 @@ import numpy as np
 
 from ._pose_graph import Poses
 
-__all__ = ["absolute_trajectory_error", "relative_pose_error", "rigid_alignment", "RelativePoseError"]
+__all__ = [
+    "absolute_trajectory_error",
+    "relative_pose_error",
+    "rigid_alignment",
+    "align_poses",
+    "trajectory_accuracy",
+    "RelativePoseError",
+    "TrajectoryAccuracy",
+]
 
 
 def _as_np(poses: Poses) -> tuple[np.ndarray, np.ndarray]:
@@ -104,3 +112,40 @@ def relative_pose_error(est: Poses, gt: Poses, delta: int = 1) -> RelativePoseEr
     trans = float(np.sqrt(np.mean(np.sum(tE**2, axis=-1))))
     rot = float(np.degrees(np.sqrt(np.mean(_rotation_angle(RE) ** 2))))
     return RelativePoseError(trans, rot)
+
+
+def align_poses(est: Poses, gt: Poses) -> Poses:
+    """``est`` moved by the rigid transform that best aligns its positions with ``gt``'s.
+
+    PGO determines the poses only up to one global rigid motion; this expresses the estimate in
+    the ground truth's frame (for plots and per-pose comparisons).
+    """
+    Re, te, _, tg = _check_pair(est, gt)
+    Q, c = rigid_alignment(te, tg)
+    return Poses(np.einsum("ab,nbc->nac", Q, Re), te @ Q.T + c)
+
+
+class TrajectoryAccuracy(NamedTuple):
+    """Errors of an estimate against the ground truth, after the best rigid alignment."""
+
+    ate: float  # RMSE of the positions (length unit)
+    ate_max: float  # largest position error
+    rotation_deg: float  # RMSE of the absolute rotation errors, degrees
+    rpe_translation: float  # RPE (consecutive poses), translation RMSE
+    rpe_rotation_deg: float  # RPE (consecutive poses), rotation RMSE in degrees
+
+
+def trajectory_accuracy(est: Poses, gt: Poses) -> TrajectoryAccuracy:
+    """ATE (mean and max), absolute rotation error and RPE of ``est`` against ``gt``."""
+    aligned = align_poses(est, gt)
+    Rg, tg = _as_np(gt)
+    err = np.linalg.norm(aligned.t - tg, axis=1)
+    rot = _rotation_angle(np.swapaxes(Rg, 1, 2) @ aligned.R)
+    rpe = relative_pose_error(est, gt) if len(tg) > 1 else RelativePoseError(0.0, 0.0)
+    return TrajectoryAccuracy(
+        ate=float(np.sqrt(np.mean(err**2))),
+        ate_max=float(err.max()),
+        rotation_deg=float(np.degrees(np.sqrt(np.mean(rot**2)))),
+        rpe_translation=rpe.translation,
+        rpe_rotation_deg=rpe.rotation_deg,
+    )

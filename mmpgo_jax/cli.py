@@ -60,6 +60,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--tum", help="write the estimate as a TUM trajectory (index tx ty tz qx qy qz qw)")
     p.add_argument("--history", help="write the per-iteration history as CSV")
     p.add_argument("--plot", help="write convergence and trajectory plots to this PNG")
+    p.add_argument(
+        "--ground-truth",
+        help="poses to compare with (.g2o VERTEX lines or .npz with R, t): reports ATE and RPE after rigid alignment",
+    )
     _add_common(p)
     from .sharding import add_cli_options
 
@@ -101,6 +105,8 @@ def main(argv: list[str] | None = None) -> int:
             from .sharding import cli_solve, wants_sharding
 
             if wants_sharding(args):
+                if args.ground_truth:
+                    raise CLIError("--ground-truth is not available with --devices / --processes")
                 return cli_solve(args, sys.argv[1:] if argv is None else argv)
             return _cmd_solve(args)
         if args.command == "demo":
@@ -216,6 +222,13 @@ def _cmd_solve(args) -> int:
         graph, vertex_ids, information, initial = g2o.graph, g2o.vertex_ids, g2o.information, g2o.initial
     if not 1 <= args.robots <= graph.num_poses:
         raise CLIError(f"--robots must be between 1 and the number of poses ({graph.num_poses}), got {args.robots}")
+    ground_truth = None
+    if args.ground_truth:
+        if len(comps) > 1:
+            raise CLIError("--ground-truth cannot be combined with --largest-component (pose indices differ)")
+        from ._initialization import load_poses
+
+        ground_truth = load_poses(graph, args.ground_truth, what="ground-truth file")
     init = args.init
     if init not in ("chordal", "distributed-chordal", "vertices", "odometry") and not Path(init).is_file():
         raise CLIError(f"--init {init!r}: not a known method (chordal, distributed-chordal, vertices, odometry) nor a file")
@@ -243,6 +256,7 @@ def _cmd_solve(args) -> int:
         chunk_size=args.chunk,
         grad_tol=args.grad_tol,
         callback=progress,
+        ground_truth=ground_truth,
     )
     if bar is not None:
         bar.close()
@@ -274,6 +288,11 @@ def _print_summary(result, fstar: float | None) -> None:
     if fstar is not None:
         print(f"f*          {fstar:.6g} (reference), relative gap (f - f*)/f* = {(h.f[-1] - fstar) / fstar:.3e}")
     print(f"|grad F|    {h.grad_norm[-1]:.3e}")
+    if result.accuracy is not None:
+        a = result.accuracy
+        print(f"ATE         {a.ate:.6g} RMSE, {a.ate_max:.6g} max (positions after rigid alignment); "
+              f"rotation {a.rotation_deg:.4g} deg RMSE")
+        print(f"RPE         {a.rpe_translation:.6g} translation, {a.rpe_rotation_deg:.4g} deg rotation (consecutive poses, RMSE)")
     print(
         f"time        init {result.init_seconds:.2f} s, compile {result.compile_seconds:.2f} s, "
         f"iterations {result.solve_seconds:.2f} s ({result.ms_per_iteration:.2f} ms/iteration)"

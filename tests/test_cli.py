@@ -339,3 +339,29 @@ def test_bench_demo_bad_arguments(capsys, tmp_path, argv, needle):
     lines = err.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("mmpgo: error: ") and needle in lines[0], err
     assert not (tmp_path / "out").exists()
+
+
+def test_solve_reports_accuracy_with_ground_truth(tmp_path):
+    """--ground-truth: ATE/RPE printed, equal to the library's; a wrong-size file is a clean error."""
+    import mmpgo_jax as mm
+    from mmpgo_jax._g2o import write_g2o
+
+    mm.enable_float64()
+    data = mm.cube_dataset(2, num_poses=120, grid=3)
+    problem, truth = tmp_path / "cube.g2o", tmp_path / "truth.g2o"
+    write_g2o(problem, data.graph, None)
+    write_g2o(truth, data.graph, data.ground_truth)
+    out = tmp_path / "est.g2o"
+    proc = mmpgo("solve", problem, "--robots", 3, "--iterations", 10, "--no-progress", "--ground-truth", truth, "--out", out)
+    _ok(proc)
+    ate = float(re.search(r"^ATE\s+(\S+) RMSE", proc.stdout, re.M).group(1))
+    est = read_g2o(out).initial
+    assert ate == pytest.approx(mm.trajectory_accuracy(est, data.ground_truth).ate, rel=1e-5)
+    assert re.search(r"^RPE\s+\S+ translation", proc.stdout, re.M)
+
+    small = tmp_path / "small.g2o"
+    sub = mm.cube_dataset(2, num_poses=60, grid=3)
+    write_g2o(small, sub.graph, sub.ground_truth)
+    proc = mmpgo("solve", problem, "--iterations", 1, "--no-progress", "--ground-truth", small)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr
+    assert "ground-truth file" in proc.stderr and "small.g2o" in proc.stderr
