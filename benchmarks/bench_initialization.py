@@ -15,7 +15,7 @@ Per dataset (float64 throughout):
   compiled, measured as the time difference of two budgets on the same compiled loop); the
   one-off set-up (sparse LU inverses of Gamma_R^alpha) and the resulting time to 1e-6;
 * the distributed initialization with all defaults (``distributed_chordal_initialization(graph,
-  robots)``: budgets 2000 + 2000, tol 1e-10, restart): iterations used by each stage, the
+  robots)``: default budgets (20000 + 20000), tol 1e-10, restart): iterations used by each stage, the
   translation stage's first iteration within 1e-6 of the centralized translation optimum for the
   same rotations, f = 2F of the result and its relative difference from the centralized start,
   and the wall time of the whole call (set-up and compilation included).
@@ -161,7 +161,7 @@ def tables(rows: list[dict], budget: int, robots: int) -> str:
     out.append("")
     out.append(f"### Distributed chordal initialization with the defaults ({robots} robots)\n")
     out.append(
-        "`distributed_chordal_initialization(graph, 10)`: budgets 2000 + 2000, tol 1e-10, restart, xi 1e-3. "
+        f"`distributed_chordal_initialization(graph, 10)`: budgets {dc.DEFAULT_ROTATION_ITERATIONS} + {dc.DEFAULT_TRANSLATION_ITERATIONS}, tol 1e-10, restart, xi 1e-3. "
         "Rotation gap: relative gap of the relaxed rotation objective at the stop; translation iterations to "
         "1e-6: against the centralized translation optimum for the same (distributed) rotations; f: "
         "2F of the result vs the centralized chordal start; time: the whole call (set-up and compilation included).\n"
