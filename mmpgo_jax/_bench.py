@@ -47,6 +47,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ._progress import progress_bar
+
 __all__ = ["run_bench", "machine_info", "command_line", "paper_rounding"]
 
 CHECKPOINTS = (100, 250, 1000)
@@ -259,20 +261,6 @@ class _Result:
     figure: str | None = None
 
 
-def _progress(desc: str, total: int, disable: bool):
-    if disable or total <= 0:
-        return None, None
-    from tqdm.auto import tqdm
-
-    bar = tqdm(total=total, desc=desc, unit="it", file=sys.stderr, leave=False, dynamic_ncols=True)
-
-    def callback(done, f_chunk):
-        bar.update(done - bar.n)
-        bar.set_postfix(f=f"{f_chunk[-1]:.7g}")
-
-    return bar, callback
-
-
 def _checkpoints(iterations: int) -> list[int]:
     ks = [k for k in CHECKPOINTS if k <= iterations]
     if iterations not in ks and iterations > 0:
@@ -352,12 +340,8 @@ def _bench_one(job: _Job, args, iterations: int, no_progress: bool) -> _Result:
     res = _Result(job.name, file, graph.dim, n, graph.num_edges, A, iterations, chordal, fstar)
 
     for key, label, method, restart, pcol, ccol in RUNS:
-        bar, cb = _progress(f"[{job.name}] {label}", iterations, no_progress)
-        try:
+        with progress_bar(f"[{job.name}] {label}", iterations, disable=no_progress, leave=False) as cb:
             r = solve(graph, A, method=method, restart=restart, iterations=iterations, init=X0, callback=cb)
-        finally:
-            if bar is not None:
-                bar.close()
         h = r.history
         at = {}
         for k in _checkpoints(h.iterations):

@@ -24,6 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ._progress import progress_bar
+
 __all__ = ["run_demo", "demo_grid"]
 
 _TOLS = (1e-2, 1e-3, 1e-4)
@@ -38,20 +40,6 @@ def demo_grid(num_poses: int) -> int:
     a sparser cube).
     """
     return max(1, round((num_poses / 3.0) ** (1.0 / 3.0)) - 1)
-
-
-def _progress(desc: str, total: int, disable: bool):
-    if disable or total <= 0:
-        return None, None
-    from tqdm.auto import tqdm
-
-    bar = tqdm(total=total, desc=desc, unit="it", file=sys.stderr, leave=True, dynamic_ncols=True)
-
-    def callback(done, f_chunk):
-        bar.update(done - bar.n)
-        bar.set_postfix(f=f"{f_chunk[-1]:.6g}")
-
-    return bar, callback
 
 
 def _iters_to(history, fstar: float, tol: float):
@@ -113,13 +101,9 @@ def run_demo(args) -> int:
     results = {}
     for method in ("mm", "amm"):
         label = f"{method.upper()}-PGO"
-        bar, cb = _progress(f"{label} ({A} robots)", iters, no_progress)
-        try:
+        with progress_bar(f"{label} ({A} robots)", iters, disable=no_progress) as cb:
             results[label] = solve(graph, A, method=method, iterations=iters, init=X0,
                                    chunk_size=25, callback=cb)
-        finally:
-            if bar is not None:
-                bar.close()
 
     # summary ------------------------------------------------------------------------------
     accuracy = {label: trajectory_accuracy(est, ds.ground_truth)

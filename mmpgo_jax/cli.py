@@ -12,6 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ._progress import progress_bar
+
 
 class CLIError(Exception):
     """An error to report to the user without a traceback."""
@@ -233,33 +235,21 @@ def _cmd_solve(args) -> int:
     if init not in ("chordal", "distributed-chordal", "vertices", "odometry") and not Path(init).is_file():
         raise CLIError(f"--init {init!r}: not a known method (chordal, distributed-chordal, vertices, odometry) nor a file")
 
-    bar = None
-    if not args.no_progress and args.iterations > 0:
-        from tqdm.auto import tqdm
-
-        bar = tqdm(total=args.iterations, desc=f"{args.method.upper()}-PGO", unit="it", file=sys.stderr)
-
-    def progress(done, f_chunk):
-        if bar is not None:
-            bar.update(done - bar.n)
-            bar.set_postfix(f=f"{f_chunk[-1]:.6g}")
-
-    result = solve(
-        graph,
-        args.robots,
-        method=args.method,
-        iterations=args.iterations,
-        init=init,
-        initial=initial,
-        xi=args.xi,
-        restart=args.restart,
-        chunk_size=args.chunk,
-        grad_tol=args.grad_tol,
-        callback=progress,
-        ground_truth=ground_truth,
-    )
-    if bar is not None:
-        bar.close()
+    with progress_bar(f"{args.method.upper()}-PGO", args.iterations, disable=args.no_progress) as progress:
+        result = solve(
+            graph,
+            args.robots,
+            method=args.method,
+            iterations=args.iterations,
+            init=init,
+            initial=initial,
+            xi=args.xi,
+            restart=args.restart,
+            chunk_size=args.chunk,
+            grad_tol=args.grad_tol,
+            callback=progress,
+            ground_truth=ground_truth,
+        )
     info = benchmark_info(path.name)
     fstar = info.fstar if info is not None else None
     _print_summary(result, fstar)

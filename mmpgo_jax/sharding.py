@@ -52,6 +52,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 from ._majorization import unstack
 from ._mm import Collectives, IterationRecord, MMConfig, MMProblem, evaluate, init_state, step
 from ._partition import Partition, contiguous_robots, partition, partition_stats
+from ._progress import progress_bar
 from ._pose_graph import PoseGraph, Poses
 from ._solve import History, SolveResult, _stop_reason
 from ._subproblem import SubproblemConfig
@@ -818,33 +819,21 @@ def _cli_solve_sharded(args) -> int:
     # The mesh: this process's devices, or (multi-process) every process's, ordered by process.
     devices = local if jax.process_count() == 1 else sorted(jax.devices(), key=lambda d: (d.process_index, d.id))
 
-    bar = None
-    if writer and not args.no_progress and args.iterations > 0:
-        from tqdm.auto import tqdm
-
-        bar = tqdm(total=args.iterations, desc=f"{args.method.upper()}-PGO", unit="it", file=sys.stderr)
-
-    def progress(done, f_chunk):
-        if bar is not None:
-            bar.update(done - bar.n)
-            bar.set_postfix(f=f"{f_chunk[-1]:.6g}")
-
-    result = solve_sharded(
-        graph,
-        args.robots,
-        devices=devices,
-        method=args.method,
-        iterations=args.iterations,
-        init=args.init,
-        initial=initial,
-        xi=args.xi,
-        restart=args.restart,
-        chunk_size=args.chunk,
-        grad_tol=args.grad_tol,
-        callback=progress,
-    )
-    if bar is not None:
-        bar.close()
+    with progress_bar(f"{args.method.upper()}-PGO", args.iterations, disable=(not writer) or args.no_progress) as progress:
+        result = solve_sharded(
+            graph,
+            args.robots,
+            devices=devices,
+            method=args.method,
+            iterations=args.iterations,
+            init=args.init,
+            initial=initial,
+            xi=args.xi,
+            restart=args.restart,
+            chunk_size=args.chunk,
+            grad_tol=args.grad_tol,
+            callback=progress,
+        )
     if not writer:
         return 0
     info = benchmark_info(path.name)
