@@ -15,8 +15,9 @@ same robot count on many datasets), at one compilation per (method, robot count)
 the same either way.
 
 Under ``vmap`` the ``lax.cond`` inside the AMM step (the MM fallback, computed only when some robot
-restarts) becomes a ``select`` that evaluates both branches: results are unchanged, AMM costs more
-per iteration than in :func:`~mmpgo_jax.solve`.
+restarts) becomes a ``select`` that evaluates both branches: results are unchanged, but AMM costs
+more per iteration than in :func:`~mmpgo_jax.solve`. A batch of one configuration (the CPU default
+of ``benchmarks/fig1.py``) is therefore run without ``vmap`` and keeps the real ``cond``.
 
 When the stacked batch (bytes of the problem and state pytrees, times the number of
 configurations) would exceed ``max_batch_bytes`` (default: a quarter of ``MemAvailable`` from
@@ -60,6 +61,12 @@ TRACE_COUNTS: Counter = Counter()
 
 def _sweep_chunk_impl(problem: MMProblem, config: MMConfig, state, length: int, limit):
     TRACE_COUNTS[config.method] += 1  # runs only while tracing
+    if state.s.shape[0] == 1:
+        # A batch of one runs unbatched: under vmap the AMM step's lax.cond (MM fallback only when a
+        # robot restarts) would become a select that computes the fallback every iteration.
+        squeeze = lambda tree: jax.tree.map(lambda x: x[0], tree)
+        out = run(squeeze(problem), config, squeeze(state), length, limit)
+        return jax.tree.map(lambda x: x[None], out)
     return jax.vmap(lambda p, s: run(p, config, s, length, limit))(problem, state)
 
 

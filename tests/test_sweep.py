@@ -146,3 +146,19 @@ def test_sweep_mixed_sizes_and_csv(tmp_path):
     assert len(lines) == 1 + 4
     res.configs_to_csv(tmp_path / "configs.csv")
     assert (tmp_path / "configs.csv").read_text().startswith("graph,robots,method")
+
+
+def test_batches_of_one_run_unbatched_and_agree(amm_sweep, cube):
+    """max_batch_configs=1: every batch runs without vmap (the AMM fallback stays a real cond), the
+    group still compiles once, and the histories equal the one-batch vmapped sweep."""
+    full, _, _ = amm_sweep
+    res, traces, compiles = _sweep_logging_compiles({"cube": cube}, ROBOTS, methods=("amm",),
+                                                    iterations=ITERATIONS, subproblem=STABLE, chunk_size=CHUNK,
+                                                    max_batch_configs=1)
+    (group,) = res.groups
+    assert group["batches"] == 4 and group["configs_per_batch"] == 1
+    assert traces == 1 and len(compiles) == 1
+    for a in ROBOTS:
+        np.testing.assert_allclose(res.history("cube", a, "amm"), full.history("cube", a, "amm"), rtol=1e-9, atol=0)
+        np.testing.assert_allclose(np.asarray(res.poses[("cube", a, "amm")].t),
+                                   np.asarray(full.poses[("cube", a, "amm")].t), atol=1e-8)
