@@ -7,7 +7,7 @@ Public API (the private modules are implementation details):
 * objective: :func:`cost` (f = 2F), :func:`objective` (F), gradients, :func:`data_matrix`
 * robots: :func:`partition`, :func:`contiguous_robots`, :func:`partition_stats`
 * starts: :func:`initialize`, :func:`chordal_initialization`, :func:`distributed_chordal_initialization`
-* solvers: :func:`solve`, :func:`centralized_optimum`, and the jittable core :class:`MMConfig`,
+* solvers: :func:`solve`, :func:`centralized_optimum`, :func:`certify` (global optimality check), and the jittable core :class:`MMConfig`,
   :class:`MMProblem`, :func:`init_state`, :func:`run`, :func:`step`, :class:`SubproblemConfig`
 * sweeps and accuracy: :func:`sweep`, :class:`SweepResult`, :func:`reference_optimum`,
   :func:`trajectory_accuracy`, :func:`absolute_trajectory_error`, :func:`relative_pose_error`,
@@ -17,6 +17,7 @@ Public API (the private modules are implementation details):
 * precision: :func:`enable_float64`
 """
 
+from ._certificate import OptimalityCertificate, certificate_matrix, certify
 from ._datasets import BENCHMARKS, DatasetNotFoundError, available_benchmarks, benchmark_info, data_dir, find_benchmark
 from ._distributed_chordal import distributed_chordal_initialization
 from ._g2o import G2OFile, G2OFormatError, read_g2o, write_g2o, write_tum
@@ -62,6 +63,8 @@ __all__ = [
     "benchmark_info",
     "BENCHMARKS",
     "centralized_optimum",
+    "certificate_matrix",
+    "certify",
     "chordal_initialization",
     "connected_components",
     "contiguous_robots",
@@ -89,6 +92,7 @@ __all__ = [
     "MMProblem",
     "MMState",
     "objective",
+    "OptimalityCertificate",
     "odometry_initialization",
     "Partition",
     "partition",

@@ -63,6 +63,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--history", help="write the per-iteration history as CSV")
     p.add_argument("--plot", help="write convergence and trajectory plots to this PNG")
     p.add_argument(
+        "--certify",
+        action="store_true",
+        help="check global optimality of the result (SE-Sync's dual certificate; meaningful at a critical point)",
+    )
+    p.add_argument(
         "--ground-truth",
         help="poses to compare with (.g2o VERTEX lines or .npz with R, t): reports ATE and RPE after rigid alignment",
     )
@@ -253,6 +258,10 @@ def _cmd_solve(args) -> int:
     info = benchmark_info(path.name)
     fstar = info.fstar if info is not None else None
     _print_summary(result, fstar)
+    if args.certify:
+        from ._certificate import certify
+
+        print(f"certificate {certify(graph, result.poses).summary()}")
     if args.out:
         write_g2o(args.out, graph, result.poses, vertex_ids=vertex_ids, information=information)
         print(f"wrote {args.out}")

@@ -365,3 +365,21 @@ def test_solve_reports_accuracy_with_ground_truth(tmp_path):
     proc = mmpgo("solve", problem, "--iterations", 1, "--no-progress", "--ground-truth", small)
     assert proc.returncode == 2 and "Traceback" not in proc.stderr
     assert "ground-truth file" in proc.stderr and "small.g2o" in proc.stderr
+
+
+def test_solve_certify_reports_global_optimum(tmp_path):
+    """--certify on a converged centralized run prints the dual certificate's verdict."""
+    import mmpgo_jax as mm
+    from mmpgo_jax._g2o import write_g2o
+
+    mm.enable_float64()
+    data = mm.cube_dataset(2, num_poses=120, grid=3)
+    problem = tmp_path / "cube.g2o"
+    write_g2o(problem, data.graph, None)
+    proc = mmpgo("solve", problem, "--robots", 1, "--iterations", 300, "--grad-tol", "1e-7", "--no-progress", "--certify")
+    _ok(proc)
+    line = re.search(r"^certificate (.*)$", proc.stdout, re.M).group(1)
+    assert line.startswith("global optimum (certified)"), proc.stdout
+    lam = float(re.search(r"lambda_min\(S\) = (\S+) ", line).group(1))
+    eta = float(re.search(r"eta = ([0-9.e+-]+)", line).group(1))
+    assert -eta <= lam <= eta
