@@ -46,15 +46,24 @@ class MMConfig(eqx.Module):
       the rule turns into Algorithm 2's test as k grows. The robot's shares move between robots
       through inter-robot edges, so a test against the robot's own share history (NOTES §7) would
       keep restarting robots whose share legitimately grows; the slack avoids that.
+      "average" tests against moving averages of each robot's own objective share, in the spirit
+      of the authors' later code (NOTES §7): a hard restart (MM fallback, momentum reset) when
+      G^alpha(Z|X^k) exceeds the slow average (rate ``average_rates[0]``) or when its increase over
+      Gbar^alpha(k) exceeds the vanishing slack above (which keeps F bounded and the rule tending to
+      Algorithm 2's); a soft restart (momentum reset only, Z kept) after ``soft_restart_hits``
+      consecutive iterations in which G^alpha(Z|X^k) exceeds the fast average (rate
+      ``average_rates[1]``). Measured against "adaptive" in benchmarks/restart_rules.md.
     xi: the proximal term of Eq. (13).
     """
 
     method: Literal["mm", "amm"] = eqx.field(static=True, default="amm")
-    restart: Literal["paper", "adaptive"] = eqx.field(static=True, default="adaptive")
+    restart: Literal["paper", "adaptive", "average"] = eqx.field(static=True, default="adaptive")
     xi: float = eqx.field(static=True, default=1e-3)
     subproblem: SubproblemConfig = SubproblemConfig()
     slack_scale: float = eqx.field(static=True, default=1.0)
     slack_decay: float = eqx.field(static=True, default=5e-4)
+    average_rates: tuple[float, float] = eqx.field(static=True, default=(5e-4, 2.5e-2))
+    soft_restart_hits: int = eqx.field(static=True, default=25)
 
 
 class MMProblem(eqx.Module):
@@ -102,6 +111,9 @@ class MMState(eqx.Module):
     s: jax.Array  # (A,) Nesterov sequence
     slack: jax.Array  # (A,) allowed increase of G^alpha over Gbar^alpha (adaptive restart)
     iteration: jax.Array
+    share_slow: jax.Array  # (A,) slow moving average of Gbar^alpha ("average" restart)
+    share_fast: jax.Array  # (A,) fast moving average of Gbar^alpha
+    soft_hits: jax.Array  # (A,) consecutive iterations above the fast average
 
 
 class IterationRecord(eqx.Module):
@@ -160,6 +172,9 @@ def init_state(problem: MMProblem, X0: Poses, config: "MMConfig" = None) -> MMSt
         s=jnp.ones(A, share.dtype),
         slack=config.slack_scale * local,
         iteration=jnp.asarray(0),
+        share_slow=share,
+        share_fast=share,
+        soft_hits=jnp.zeros(A, jnp.int32),
     )
 
 
@@ -180,12 +195,23 @@ def _amm_update(problem: MMProblem, config: MMConfig, st: MMState):
     Z = jax.vmap(solve)(problem.gamma_soa, problem._solver_preconditioner(config), start, Y, gY)
     # G^alpha(Z | X^k) - Gbar^alpha(k): no objective evaluation needed (NOTES §3).
     decrease = jax.vmap(majorizer_value)(problem.gamma_soa, Z, st.X, st.grad)
+    soft_hits = st.soft_hits
+    soft = jnp.zeros_like(decrease, dtype=bool)
     if config.restart == "paper":
         restart = decrease > 0
-    else:
+    elif config.restart == "adaptive":
         # Algorithm 2's test with a vanishing slack: G^alpha(Z|X^k) may exceed Gbar^alpha(k) by at
         # most slack^alpha_k = slack^alpha_0 (1 - slack_decay)^k, which is summable over k.
         restart = decrease > st.slack
+    elif config.restart == "average":
+        value = st.share + decrease  # G^alpha(Z | X^k)
+        restart = (value > st.share_slow) | (decrease > st.slack)
+        above = (value > st.share_fast) & ~restart
+        soft_hits = jnp.where(above, soft_hits + 1, 0)
+        soft = soft_hits >= config.soft_restart_hits
+        soft_hits = jnp.where(soft, 0, soft_hits)
+    else:
+        raise ValueError(f"unknown restart rule {config.restart!r}: use 'adaptive', 'average' or 'paper'")
     # The MM fallback is computed only in iterations where some robot needs it.
     r = restart[:, None, None, None]
     X_new = jax.lax.cond(
@@ -194,7 +220,8 @@ def _amm_update(problem: MMProblem, config: MMConfig, st: MMState):
         lambda: Z,
     )
     s_new = jnp.where(restart, jnp.maximum(0.5 * s_next, 1.0), s_next)
-    return X_new, s_new, restart
+    s_new = jnp.where(soft, 1.0, s_new)
+    return X_new, s_new, restart, soft_hits
 
 
 def step(problem: MMProblem, config: MMConfig, st: MMState, comm: Collectives = LOCAL):
@@ -203,8 +230,9 @@ def step(problem: MMProblem, config: MMConfig, st: MMState, comm: Collectives = 
         X_new = _mm_update(problem, config, st.X, st.grad)
         s_new = st.s
         restart = jnp.zeros_like(st.s, dtype=bool)
+        soft_hits = st.soft_hits
     elif config.method == "amm":
-        X_new, s_new, restart = _amm_update(problem, config, st)
+        X_new, s_new, restart, soft_hits = _amm_update(problem, config, st)
     else:
         raise ValueError(f"unknown method {config.method!r}: use 'mm' or 'amm'")
     grad, share, local = _gradients(problem, X_new, comm)
@@ -217,6 +245,9 @@ def step(problem: MMProblem, config: MMConfig, st: MMState, comm: Collectives = 
         s=s_new,
         slack=(1.0 - config.slack_decay) * st.slack,
         iteration=st.iteration + 1,
+        share_slow=st.share_slow + config.average_rates[0] * (share - st.share_slow),
+        share_fast=st.share_fast + config.average_rates[1] * (share - st.share_fast),
+        soft_hits=soft_hits,
     )
     rec = IterationRecord(
         f=2.0 * comm.sum(share), grad_norm=_riemannian_grad_norm(X_new, grad, comm), restarted=restart

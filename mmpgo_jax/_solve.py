@@ -78,7 +78,7 @@ def solve(
     init="chordal",
     initial: Poses | None = None,
     xi: float = 1e-3,
-    restart: Literal["paper", "adaptive"] = "adaptive",
+    restart: Literal["paper", "adaptive", "average"] = "adaptive",
     subproblem: SubproblemConfig | None = None,
     chunk_size: int = 50,
     grad_tol: float | None = None,

@@ -281,7 +281,7 @@ def sweep(
     *,
     init="chordal",
     xi: float = 1e-3,
-    restart: Literal["paper", "adaptive"] = "adaptive",
+    restart: Literal["paper", "adaptive", "average"] = "adaptive",
     fstar: Mapping[str, float] | Sequence[float] | float | str | None = None,
     max_batch_bytes: int | None = None,
     max_batch_configs: int | None = None,

@@ -38,7 +38,8 @@ def _add_solver_options(p: argparse.ArgumentParser) -> None:
         default="chordal",
         help="start: chordal (default), distributed-chordal, vertices, odometry, or a .g2o/.npz file of poses",
     )
-    p.add_argument("--restart", choices=("adaptive", "paper"), default="adaptive", help="AMM restart rule")
+    p.add_argument("--restart", choices=("adaptive", "average", "paper"), default="adaptive",
+                   help="AMM restart rule (default adaptive; see README)")
     p.add_argument("--xi", type=float, default=1e-3, help="proximal weight xi of Eq. (13) (default 1e-3)")
     p.add_argument("--grad-tol", type=float, default=None, help="stop when ||grad F|| falls below this")
     p.add_argument("--chunk", type=int, default=50, help="iterations per compiled chunk (progress granularity)")

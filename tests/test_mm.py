@@ -139,6 +139,11 @@ class _Runs:
         _, problem, st0 = setup_mm(self.p["graph"], self.p["X0"], self.p["robots"], cfg)
         return dict(run_chunks(problem, cfg, st0, 1), state0=st0, config=cfg)
 
+    def _amm_average(self):
+        cfg = MMConfig(method="amm", restart="average")
+        _, problem, st0 = setup_mm(self.p["graph"], self.p["X0"], self.p["robots"], cfg)
+        return dict(run_chunks(problem, cfg, st0, 1), state0=st0, config=cfg, problem=problem)
+
     def _extremes(self):
         """A = 1 (centralized) and A = n (one pose per robot), 600 iterations each, both padded to
         one common shape (one compile)."""
@@ -417,6 +422,50 @@ def test_amm_adaptive_bounded_and_faster(runs, problem2d):
     assert np.all(f[1:] <= f[0] + 2 * np.cumsum(slack) + 1e-10 * f[0])
     mm = runs.get("mm")["f"][: len(r["f"])]
     assert r["f"][-1] < mm[-1], (r["f"][-1], mm[-1])
+
+
+def test_amm_average_bounded_and_faster(runs, problem2d):
+    """Moving-average restart: its hard test includes the vanishing slack, so the same bound as the
+    adaptive rule holds; it still ends below MM."""
+    r = runs.get("amm_average")
+    cfg, st0 = r["config"], r["state0"]
+    f = np.concatenate([[problem2d["f0"]], r["f"]])
+    k = np.arange(len(r["f"]))
+    slack = float(jnp.sum(st0.slack)) * (1.0 - cfg.slack_decay) ** k
+    assert np.all(np.diff(f) <= 2 * slack + 1e-10 * f[:-1])
+    mm = runs.get("mm")["f"][: len(r["f"])]
+    assert r["f"][-1] < mm[-1], (r["f"][-1], mm[-1])
+    # the averages track the shares: after the run the fast one is closer to the current share
+    st = r["state"]
+    assert np.all(np.abs(st.share_fast - st.share) <= np.abs(st.share_slow - st.share) + 1e-12)
+
+
+def test_amm_average_hard_and_soft_restarts(runs):
+    """Hard restart (value above the slow average) takes the MM step; a soft restart keeps the
+    momentum step Z but resets s to 1 after ``soft_restart_hits`` consecutive hits."""
+    from mmpgo_jax._mm import step
+
+    r = runs.get("amm_average")
+    cfg, problem = r["config"], r["problem"]
+    st, _ = run(problem, cfg, r["state0"], 5)  # some momentum built up (s > 1)
+    assert np.all(np.asarray(st.s) > 1.0)
+    A = st.s.shape[0]
+    # Hard: slow average far below every share -> every robot falls back to the MM step.
+    hard = eqx.tree_at(lambda t: t.share_slow, st, st.share - 1e6)
+    new, rec = step(problem, cfg, hard)
+    assert np.all(np.asarray(rec.restarted))
+    np.testing.assert_allclose(np.asarray(new.X), np.asarray(_mm_update(problem, cfg, st.X, st.grad)), atol=1e-12)
+    # Soft: slow average far above (no hard restart), fast average far below, one hit from the limit.
+    soft = eqx.tree_at(lambda t: (t.share_slow, t.share_fast, t.soft_hits), st,
+                       (st.share + 1e6, st.share - 1e6, jnp.full(A, cfg.soft_restart_hits - 1, jnp.int32)))
+    new_soft, rec_soft = step(problem, cfg, soft)
+    plain = eqx.tree_at(lambda t: t.share_slow, st, st.share + 1e6)
+    new_plain, rec_plain = step(problem, cfg, eqx.tree_at(lambda t: t.share_fast, plain, st.share + 1e6))
+    assert not np.any(np.asarray(rec_soft.restarted)) and not np.any(np.asarray(rec_plain.restarted))
+    np.testing.assert_array_equal(np.asarray(new_soft.s), np.ones(A))
+    assert np.all(np.asarray(new_plain.s) > 1.0) and np.all(np.asarray(new_plain.soft_hits) == 0)
+    np.testing.assert_allclose(np.asarray(new_soft.X), np.asarray(new_plain.X), atol=1e-12)  # Z kept
+    np.testing.assert_array_equal(np.asarray(new_soft.soft_hits), np.zeros(A))
 
 
 def test_chunked_run_matches_and_does_not_recompile(runs, caplog):
