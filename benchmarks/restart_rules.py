@@ -72,7 +72,7 @@ def main(argv=None) -> int:
 
     m = machine_info()
     out = ["# AMM-PGO restart rules on the benchmark files\n",
-           f"Command: `{command_line()}`\n",
+           f"Command: `python {command_line()}`\n",
            f"Machine: {m['cpu']}, {m['cpu_count']} cores, {m['platform']}; JAX {m['jax']} ({m['backend']}), float64. "
            f"Wall time {time.perf_counter() - t_all:.0f} s.\n",
            f"Settings: {args.robots} robots (contiguous blocks), centralized chordal start, xi = 1e-3, default inner "
