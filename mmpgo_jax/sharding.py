@@ -6,8 +6,11 @@ The outer loop (``lax.scan`` over :func:`mmpgo_jax.step`) runs inside ``jax.shar
 device runs the ``vmap``-ped subproblems of its own robots only, and the only communication of an
 iteration is in :class:`MeshCollectives`:
 
-* ``gather_poses``: ``all_gather`` of the robots' poses (every device receives ALL poses, padded
-  slots included; a neighbour-only exchange would send far less, see :func:`communication_report`);
+* ``gather_poses``: by default (``exchange="halo"``) one ``all_to_all`` in which every device
+  sends each other device exactly the poses that device's robots read (the ends of their
+  cross-device edges), padded to a common halo size H (:func:`halo_plan`); with
+  ``exchange="all_gather"`` every device receives ALL poses, padded slots included (see
+  :func:`communication_report` for both volumes);
 * ``sum``: ``psum`` of the robots' objective shares and gradient norms (two scalars);
 * the per-robot restart flags of a chunk are ``all_gather``-ed once at its end (booleans).
 
@@ -78,6 +81,65 @@ class MeshCollectives(Collectives):
 
     def sum(self, x):
         return jax.lax.psum(jnp.sum(x), self.axis_name)
+
+
+class HaloCollectives(Collectives):
+    """Neighbour-only pose exchange: one ``all_to_all`` of fixed-size halo buffers per iteration.
+
+    ``send_index[k, j, h]``: flat slot (robot-in-device * n_max + slot) of the h-th pose that
+    device k sends to device j; ``recv_index[j, k, h]``: flat global slot (robot * n_max + slot) where
+    device j puts it (``A * n_max`` for padding entries, which are dropped). Built by
+    :func:`halo_plan`; both arrays are sharded on their first axis, so inside ``shard_map`` each
+    device holds its own rows. The returned array has the device's own poses and the neighbour
+    poses its robots' inter-robot edges read; all other slots are zero and never read.
+    """
+
+    send_index: jax.Array  # (D, D, H) int32
+    recv_index: jax.Array  # (D, D, H) int32
+    num_robots: int = eqx.field(static=True, default=0)
+    axis_name: str = eqx.field(static=True, default=AXIS)
+
+    def sum(self, x):
+        return jax.lax.psum(jnp.sum(x), self.axis_name)
+
+    def gather_poses(self, X):
+        B, n_max = X.shape[0], X.shape[1]
+        flat = X.reshape((B * n_max,) + X.shape[2:])
+        send = flat[self.send_index[0]]  # (D, H, d, d+1): row j goes to device j
+        recv = jax.lax.all_to_all(send, self.axis_name, 0, 0, tiled=True)  # row k came from device k
+        full = jnp.zeros((self.num_robots * n_max,) + X.shape[2:], X.dtype)
+        full = full.at[self.recv_index[0].reshape(-1)].set(recv.reshape((-1,) + X.shape[2:]), mode="drop")
+        start = jax.lax.axis_index(self.axis_name) * (B * n_max)
+        full = jax.lax.dynamic_update_slice_in_dim(full, flat, start, axis=0)
+        return full.reshape((self.num_robots, n_max) + X.shape[2:])
+
+
+def halo_plan(part: Partition, graph: PoseGraph, num_devices: int) -> tuple[np.ndarray, np.ndarray]:
+    """(send_index, recv_index) of :class:`HaloCollectives` for a partition whose robots are split
+    into ``num_devices`` contiguous blocks; H = the largest number of poses one device sends another
+    (at least 1)."""
+    A, n_max = part.num_robots, part.max_poses
+    B = A // num_devices
+    rop, sop = np.asarray(part.robot_of_pose), np.asarray(part.slot_of_pose)
+    dev = rop // B
+    I, J = np.asarray(graph.i), np.asarray(graph.j)
+    cross = dev[I] != dev[J]
+    # a pose is needed by the device holding the other end of one of its cross-device edges
+    src_pose = np.concatenate([I[cross], J[cross]])
+    dst_dev = np.concatenate([dev[J[cross]], dev[I[cross]]])
+    pairs = np.unique(np.stack([dev[src_pose], dst_dev, src_pose], 1), axis=0).reshape(-1, 3)
+    counts = np.zeros((num_devices, num_devices), int)
+    np.add.at(counts, (pairs[:, 0], pairs[:, 1]), 1)
+    H = max(int(counts.max(initial=0)), 1)
+    send = np.zeros((num_devices, num_devices, H), np.int32)
+    recv = np.full((num_devices, num_devices, H), A * n_max, np.int32)
+    fill = np.zeros((num_devices, num_devices), int)
+    for k, j, pose in pairs:
+        h = fill[k, j]
+        fill[k, j] += 1
+        send[k, j, h] = (rop[pose] - k * B) * n_max + sop[pose]
+        recv[j, k, h] = rop[pose] * n_max + sop[pose]
+    return send, recv
 
 
 # ------------------------------------------------------------------------------------------------
@@ -237,14 +299,12 @@ def _to_host(x) -> np.ndarray:
     return np.asarray(multihost_utils.process_allgather(x, tiled=True))
 
 
-def _sharded_runner(mesh: Mesh, config: MMConfig, problem_specs, state_specs, length: int):
-    comm = MeshCollectives()
-
+def _sharded_runner(mesh: Mesh, config: MMConfig, problem_specs, state_specs, comm_specs, length: int):
     def skipped(st):
         nan = jnp.full((), jnp.nan, st.share.dtype)
         return IterationRecord(f=nan, grad_norm=nan, restarted=jnp.zeros_like(st.s, dtype=bool))
 
-    def chunk(problem, state, limit):
+    def chunk(problem, state, comm, limit):
         def body(st, _):
             skip = st.iteration >= limit
             return jax.lax.cond(skip, lambda s: (s, skipped(s)), lambda s: step(problem, config, s, comm), st)
@@ -257,7 +317,7 @@ def _sharded_runner(mesh: Mesh, config: MMConfig, problem_specs, state_specs, le
     mapped = _shard_map(
         chunk,
         mesh=mesh,
-        in_specs=(problem_specs, state_specs, P()),
+        in_specs=(problem_specs, state_specs, comm_specs, P()),
         out_specs=(state_specs, rec_specs),
         **_SHARD_MAP_NO_CHECK,
     )
@@ -280,7 +340,7 @@ def solve_sharded(
     init="chordal",
     initial: Poses | None = None,
     xi: float = 1e-3,
-    restart: Literal["paper", "adaptive"] = "adaptive",
+    restart: Literal["paper", "adaptive", "average"] = "adaptive",
     subproblem: SubproblemConfig | None = None,
     chunk_size: int = 50,
     grad_tol: float | None = None,
@@ -288,12 +348,15 @@ def solve_sharded(
     rel_decrease_tol: float | None = None,
     callback: Callable[[int, np.ndarray], bool | None] | None = None,
     reorder: bool | None = None,
+    exchange: Literal["halo", "all_gather"] = "halo",
 ) -> SolveResult:
     """:func:`mmpgo_jax.solve` with the robots sharded over the devices of a 1-D mesh.
 
     Same arguments and result as :func:`~mmpgo_jax.solve`, plus ``mesh`` (a ``Mesh`` with one axis
     named ``"robots"``) or ``devices`` (a device list, a count, or None for all devices, of every
-    process), and ``reorder`` (see :func:`plan_shards`). ``result.partition`` is the user's
+    process), ``reorder`` (see :func:`plan_shards`) and ``exchange``: "halo" (default) sends each
+    device only the neighbour poses its robots read (one ``all_to_all`` per iteration), "all_gather"
+    every pose. ``result.partition`` is the user's
     partition (robot indices as given); ``result.extra`` holds the mesh size, the shard plan and
     the sharded (renumbered, padded) partition. In a multi-process run every process must call
     this with the same arguments; the callback's stop decision is taken from process 0.
@@ -304,6 +367,8 @@ def solve_sharded(
         mesh = make_mesh(devices)
     elif devices is not None:
         raise ValueError("give either mesh or devices, not both")
+    if exchange not in ("halo", "all_gather"):
+        raise ValueError(f"exchange must be 'halo' or 'all_gather', got {exchange!r}")
     if mesh.axis_names != (AXIS,):
         raise ValueError(f"the mesh must have exactly one axis named {AXIS!r}, got {mesh.axis_names}")
     num_devices = mesh.devices.size
@@ -330,6 +395,12 @@ def solve_sharded(
     state_specs = _specs(state0, part.num_robots)
     problem = _shard(problem, problem_specs, mesh)
     state = _shard(state0, state_specs, mesh)
+    if exchange == "halo":
+        send, recv = halo_plan(part, graph, num_devices)
+        comm_specs = HaloCollectives(send_index=P(AXIS), recv_index=P(AXIS), num_robots=part.num_robots)
+        comm = _shard(HaloCollectives(send_index=send, recv_index=recv, num_robots=part.num_robots), comm_specs, mesh)
+    else:
+        comm = comm_specs = MeshCollectives()
     del state0
     init_seconds = time.perf_counter() - t0
 
@@ -346,14 +417,14 @@ def solve_sharded(
     if iterations > 0:
         length = min(chunk_size, iterations)
         limit = jnp.asarray(iterations)
-        runner = _sharded_runner(mesh, config, problem_specs, state_specs, length)
+        runner = _sharded_runner(mesh, config, problem_specs, state_specs, comm_specs, length)
         t = time.perf_counter()
-        compiled = runner.lower(problem, state, limit).compile()
+        compiled = runner.lower(problem, state, comm, limit).compile()
         compile_seconds = time.perf_counter() - t
         done = 0
         while done < iterations:
             t = time.perf_counter()
-            state, rec = compiled(problem, state, limit)
+            state, rec = compiled(problem, state, comm, limit)
             f_chunk, g_chunk, r_chunk = _to_host(rec.f), _to_host(rec.grad_norm), _to_host(rec.restarted)
             solve_seconds += time.perf_counter() - t
             take = min(length, iterations - done)
@@ -385,6 +456,8 @@ def solve_sharded(
             "processes": jax.process_count(),
             "plan": plan,
             "sharded_partition": part,
+            "exchange": exchange,
+            "halo_size": int(comm.send_index.shape[-1]) if exchange == "halo" else None,
         },
     )
 
@@ -439,9 +512,11 @@ class CommunicationReport:
     Per device, ``device_recv_poses[k]`` counts the distinct poses of other devices that robots on k
     need, ``device_sent_poses[k]`` the distinct poses of k that other devices need.
 
-    What :func:`solve_sharded` moves: an ``all_gather`` of every robot's padded pose block, so
-    each device receives ``allgather_recv_bytes`` per iteration (the other devices' robots times
-    n_max slots), plus two scalar ``psum``s per iteration and one ``all_gather`` of A restart flags.
+    What :func:`solve_sharded` moves: with the default halo exchange, one ``all_to_all`` of
+    ``halo_size`` poses per ordered device pair (the largest per-pair need, so ``halo_recv_bytes``
+    = (D - 1) * halo_size poses per device); with ``exchange="all_gather"`` every robot's padded
+    pose block, ``allgather_recv_bytes`` per device (the other devices' robots times n_max slots).
+    Plus two scalar ``psum``s per iteration and one ``all_gather`` of A restart flags per chunk.
     """
 
     dim: int
@@ -457,6 +532,12 @@ class CommunicationReport:
     max_poses: int  # n_max of the sharded partition
     allgather_recv_bytes: np.ndarray  # (D,)
     psum_bytes: int  # per iteration, per device, payload of the scalar reductions
+    halo_size: int = 0  # poses per ordered device pair in the halo all_to_all
+
+    @property
+    def halo_recv_bytes(self) -> np.ndarray:
+        D = len(self.device_recv_poses)
+        return np.full(D, (D - 1) * self.halo_size * self.bytes_per_pose, np.int64)
 
     @property
     def num_devices(self) -> int:
@@ -498,20 +579,22 @@ class CommunicationReport:
         lines += [
             "",
             f"{'device':>6} {'robots':>6} {'cross-device recv poses':>23} {'bytes':>11} {'sent poses':>10} {'bytes':>11}"
-            f" {'all_gather recv bytes':>21}",
+            f" {'halo recv bytes':>15} {'all_gather recv bytes':>21}",
         ]
         for k in range(self.num_devices):
             lines.append(
                 f"{k:>6} {self.device_robots[k]:>6} {self.device_recv_poses[k]:>23} {self.device_recv_bytes[k]:>11} "
-                f"{self.device_sent_poses[k]:>10} {self.device_sent_bytes[k]:>11} {self.allgather_recv_bytes[k]:>21}"
+                f"{self.device_sent_poses[k]:>10} {self.device_sent_bytes[k]:>11} {self.halo_recv_bytes[k]:>15} "
+                f"{self.allgather_recv_bytes[k]:>21}"
             )
         lines += [
             "",
-            f"note: solve_sharded moves every pose with an all_gather ({self.padded_robots} robots x "
-            f"{self.max_poses} slots, padding included), i.e. {int(self.allgather_recv_bytes.sum())} bytes received "
-            f"per iteration over all devices versus {int(self.device_recv_bytes.sum())} bytes for a neighbour-only "
-            f"exchange between devices; plus {self.psum_bytes} bytes of psum per device and one all_gather "
-            "of the robots' restart flags per iteration.",
+            f"note: solve_sharded's default halo exchange receives {int(self.halo_recv_bytes.sum())} bytes per "
+            f"iteration over all devices (halo of {self.halo_size} poses per device pair, padding included) for "
+            f"{int(self.device_recv_bytes.sum())} bytes of needed poses; exchange='all_gather' would receive "
+            f"{int(self.allgather_recv_bytes.sum())} ({self.padded_robots} robots x {self.max_poses} slots). Plus "
+            f"{self.psum_bytes} bytes of psum per device per iteration and one all_gather of the robots' restart "
+            "flags per chunk.",
         ]
         return "\n".join(lines)
 
@@ -559,6 +642,9 @@ def communication_report(
     spairs = np.unique(np.stack([send_dev[cross], recv_dev[cross], triples[cross, 2]], 1), axis=0)
     # A pose sent to several devices counts once per destination device.
     device_sent = np.bincount(spairs[:, 0], minlength=D) if len(spairs) else np.zeros(D, np.int64)
+    per_pair = np.zeros((D, D), np.int64)
+    if len(spairs):
+        np.add.at(per_pair, (spairs[:, 0], spairs[:, 1]), 1)
     n_max = int(np.bincount(rop, minlength=A).max())
     per_dev = plan.per_device
     allgather = np.full(D, (plan.padded_robots - per_dev) * n_max * bpp, np.int64)
@@ -577,6 +663,7 @@ def communication_report(
         max_poses=n_max,
         allgather_recv_bytes=allgather,
         psum_bytes=2 * 8,
+        halo_size=max(int(per_pair.max(initial=0)), 1),
     )
 
 
@@ -752,6 +839,8 @@ def add_cli_options(p) -> None:
     g.add_argument("--process-id", type=int, default=None, help="this process's index 0..P-1 (process 0 writes the outputs)")
     g.add_argument("--local-devices", type=int, default=None, help="CPU devices per process (with JAX_PLATFORMS=cpu)")
     g.add_argument("--timeout", type=float, default=600.0, help="seconds before launched processes are killed (default 600)")
+    g.add_argument("--exchange", choices=("halo", "all_gather"), default="halo",
+                   help="per-iteration pose exchange between devices: neighbour poses only (default) or all poses")
 
 
 def wants_sharding(args) -> bool:
@@ -833,13 +922,20 @@ def _cli_solve_sharded(args) -> int:
             chunk_size=args.chunk,
             grad_tol=args.grad_tol,
             callback=progress,
+            exchange=args.exchange,
         )
     if not writer:
         return 0
     info = benchmark_info(path.name)
     fstar = info.fstar if info is not None else None
     cli._print_summary(result, fstar)
-    print(f"sharding    {result.extra['devices']} devices, {result.extra['processes']} processes")
+    halo = f", halo of {result.extra['halo_size']} poses per device pair" if result.extra["halo_size"] else ""
+    print(f"sharding    {result.extra['devices']} devices, {result.extra['processes']} processes, "
+          f"{result.extra['exchange']} exchange{halo}")
+    if getattr(args, "certify", False):
+        from ._certificate import certify
+
+        print(f"certificate {certify(graph, result.poses).summary()}")
     if args.out:
         write_g2o(args.out, graph, result.poses, vertex_ids=vertex_ids, information=information)
         print(f"wrote {args.out}")

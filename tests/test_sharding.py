@@ -71,6 +71,8 @@ CHILD = textwrap.dedent(
     results = {}
     for D in (1, 2, 4, 8):
         results[f"D{D}"] = compare(ref, solve_sharded(graph, 8, devices=D, **opts))
+    # the all_gather exchange (the default is the neighbour-only halo)
+    results["all_gather_D4"] = compare(ref, solve_sharded(graph, 8, devices=4, exchange="all_gather", **opts))
     # The default xi with a short CG budget (5 iterations), where the inner solver is well conditioned.
     opts_xi = dict(opts, xi=1e-3, subproblem=SubproblemConfig(cg_iterations=5))
     ref_xi = solve(graph, 8, **opts_xi)
@@ -129,9 +131,14 @@ def sharded_results(child_dir):
 
 
 @pytest.mark.parametrize("method", ["mm", "amm"])
-@pytest.mark.parametrize("devices", [1, 2, 4, 8, "xi_default_2", "xi_default_8"])
+@pytest.mark.parametrize("devices", [1, 2, 4, 8, "xi_default_2", "xi_default_8", "all_gather_4"])
 def test_sharded_equals_single_device(sharded_results, method, devices):
-    key = f"D{devices}" if isinstance(devices, int) else f"xi_default_D{devices.rsplit('_', 1)[1]}"
+    if isinstance(devices, int):
+        key = f"D{devices}"
+    elif devices.startswith("xi_default"):
+        key = f"xi_default_D{devices.rsplit('_', 1)[1]}"
+    else:
+        key = "all_gather_D4"
     r = sharded_results[method][key]
     assert r["f_rel"] <= 1e-10, r
     assert r["R_rel"] <= 1e-10 and r["t_rel"] <= 1e-10, r
@@ -233,6 +240,37 @@ def test_renumbering_keeps_neighbours_on_one_device():
     assert rep.device_recv_poses.sum() < communication_report(graph, rop, D, reorder=False).device_recv_poses.sum()
 
 
+@pytest.mark.parametrize("A, D", [(8, 2), (8, 4), (9, 3), (16, 8)])
+def test_halo_plan_delivers_exactly_the_cross_device_endpoints(cube, A, D):
+    """Each device receives, from each other device, exactly the poses at the far end of their
+    cross-device edges, at their global slots; the halo size matches the communication report."""
+    from mmpgo_jax import partition
+    from mmpgo_jax.sharding import halo_plan
+
+    part = partition(cube, contiguous_robots(cube.num_poses, A), num_robots=-(-A // D) * D)
+    send, recv = halo_plan(part, cube, D)
+    n_max, B = part.max_poses, part.num_robots // D
+    rop, sop = np.asarray(part.robot_of_pose), np.asarray(part.slot_of_pose)
+    dev = rop // B
+    I, J = np.asarray(cube.i), np.asarray(cube.j)
+    for j in range(D):
+        need = set()
+        for a, b in ((I, J), (J, I)):
+            cross = (dev[b] == j) & (dev[a] != j)
+            need |= {(int(dev[p]), int(rop[p] * n_max + sop[p])) for p in a[cross]}
+        got = set()
+        for k in range(D):
+            valid = recv[j, k] < part.num_robots * n_max
+            # what k sends to j is what j expects from k, slot by slot
+            np.testing.assert_array_equal(send[k, j][valid] + k * B * n_max, recv[j, k][valid])
+            got |= {(k, int(x)) for x in recv[j, k][valid]}
+        assert got == need
+    rep = communication_report(cube, contiguous_robots(cube.num_poses, A), D)
+    assert rep.halo_size == send.shape[-1]
+    assert np.all(rep.halo_recv_bytes == (D - 1) * send.shape[-1] * rep.bytes_per_pose)
+    assert rep.halo_recv_bytes.sum() < rep.allgather_recv_bytes.sum()
+
+
 def test_solve_sharded_argument_errors(cube):
     with pytest.raises(ValueError, match="mesh or devices"):
         from mmpgo_jax.sharding import make_mesh
@@ -242,6 +280,8 @@ def test_solve_sharded_argument_errors(cube):
         solve_sharded(cube, 4, devices=1, iterations=-1)
     with pytest.raises(ValueError, match="devices"):
         solve_sharded(cube, 4, devices=10_000, iterations=0)
+    with pytest.raises(ValueError, match="exchange"):
+        solve_sharded(cube, 4, devices=1, iterations=0, exchange="ring")
 
 
 # ------------------------------------------------------------------------------------------------
