@@ -92,7 +92,8 @@ def solve(
     ``robots``: a count (contiguous blocks, as in the paper), an (n,) robot-of-pose array, or a
     prepared :class:`Partition`. ``init``: see :func:`mmpgo_jax.initialize` (``"chordal"`` is the
     paper's start); ``initial`` holds the file's VERTEX estimates for ``init="vertices"``.
-    Stops after ``iterations`` or, checked after each chunk of ``chunk_size`` iterations, when
+    ``restart``: AMM's restart rule, ``"adaptive"`` (default), ``"average"`` or ``"paper"`` (see
+    :class:`MMConfig`; measured in benchmarks/restart_rules.md). Stops after ``iterations`` or, checked after each chunk of ``chunk_size`` iterations, when
     ||grad F|| <= ``grad_tol``, f <= ``f_target``, or the relative decrease of f over the last chunk
     is below ``rel_decrease_tol``. ``callback(k, f_chunk)`` is called after each chunk (k = total
     iterations so far); returning True stops the run. With ``ground_truth`` (synthetic data), the
