@@ -64,7 +64,7 @@ def one(args) -> dict:
         res = solve(graph, args.robots, **opts)
         devices = 1
     else:
-        res = solve_sharded(graph, args.robots, devices=args.devices, **opts)
+        res = solve_sharded(graph, args.robots, devices=args.devices, exchange=args.exchange, **opts)
         devices = res.extra["devices"]
     load1 = os.getloadavg()[0]
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
@@ -77,6 +77,7 @@ def one(args) -> dict:
         "robots": args.robots,
         "devices": devices,
         "sharded": args.devices != 0,
+        "exchange": args.exchange if args.devices != 0 else None,
         "method": args.method,
         "init": args.init,
         "iterations": res.iterations,
@@ -108,6 +109,7 @@ def run_config(poses, robots, devices, args) -> dict:
         sys.executable, os.path.abspath(__file__), "--one",
         "--poses", str(poses), "--grid", str(grid), "--robots", str(robots), "--devices", str(devices),
         "--iterations", str(args.iterations), "--method", args.method, "--init", args.init, "--seed", str(args.seed),
+        "--exchange", args.exchange,
     ]
     env = dict(os.environ)
     env["JAX_PLATFORMS"] = env.get("JAX_PLATFORMS", "cpu")
@@ -158,6 +160,8 @@ def main(argv=None) -> int:
     ap.add_argument("--method", default="amm", choices=("amm", "mm"))
     ap.add_argument("--init", default="ground-truth", help="ground-truth (default), odometry, chordal")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--exchange", default="halo", choices=("halo", "all_gather"),
+                    help="solve_sharded's pose exchange between devices (default halo)")
     ap.add_argument("--timeout", type=float, default=540.0, help="seconds per configuration (default 540)")
     ap.add_argument("--json", help="also write the rows as JSON")
     args = ap.parse_args(argv)
