@@ -262,7 +262,10 @@ def _cmd_solve(args) -> int:
     if args.certify:
         from ._certificate import certify
 
-        print(f"certificate {certify(graph, result.poses).summary()}")
+        cert = certify(graph, result.poses)
+        print(f"certificate {cert.summary()}")
+        if not cert.certified:
+            print("            (the certificate decides only at a critical point: run to a tight --grad-tol, e.g. --robots 1)")
     if args.out:
         write_g2o(args.out, graph, result.poses, vertex_ids=vertex_ids, information=information)
         print(f"wrote {args.out}")
