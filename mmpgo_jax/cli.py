@@ -77,6 +77,17 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_cli_options(p)
 
+    p = sub.add_parser("optimum", help="centralized optimum f* of a g2o file, with its global-optimality certificate")
+    p.add_argument("file", help="g2o file, or a benchmark name (e.g. MITb, city10000)")
+    p.add_argument("--init", default="chordal", help="start: chordal (default), vertices, odometry, or a .g2o/.npz file")
+    p.add_argument("--grad-tol", type=float, default=1e-6, help="stop when ||grad F|| falls below this (default 1e-6)")
+    p.add_argument("--max-iterations", type=int, default=5000)
+    p.add_argument("--no-certify", action="store_true", help="skip the dual certificate")
+    p.add_argument("--out", "-o", help="write the optimum as g2o (VERTEX lines + the original edges)")
+    p.add_argument("--tum", help="write the optimum as a TUM trajectory")
+    p.add_argument("--largest-component", action="store_true", help="solve only the largest connected component")
+    _add_common(p)
+
     p = sub.add_parser("demo", help="run AMM-PGO on a generated Cube dataset (no download needed)")
     p.add_argument("--out-dir", default="mmpgo-demo", help="folder for the plots and results (default ./mmpgo-demo)")
     p.add_argument("--poses", type=int, default=1000, help="poses of the generated Cube dataset (default 1000)")
@@ -117,6 +128,8 @@ def main(argv: list[str] | None = None) -> int:
                     raise CLIError("--ground-truth is not available with --devices / --processes")
                 return cli_solve(args, sys.argv[1:] if argv is None else argv)
             return _cmd_solve(args)
+        if args.command == "optimum":
+            return _cmd_optimum(args)
         if args.command == "demo":
             from ._demo import run_demo
 
@@ -209,10 +222,10 @@ def _largest_component(g2o):
     return sub, g2o.vertex_ids[comp], g2o.information[keep], initial
 
 
-def _cmd_solve(args) -> int:
-    from ._datasets import benchmark_info
-    from ._g2o import read_g2o, write_g2o, write_tum
-    from ._solve import solve
+def _load_for_solve(args):
+    """(path, graph, vertex_ids, information, initial, components) of ``args.file``; refuses a
+    disconnected graph unless ``--largest-component``."""
+    from ._g2o import read_g2o
 
     path = _resolve_file(args.file, args.data)
     g2o = read_g2o(path)
@@ -228,6 +241,15 @@ def _cmd_solve(args) -> int:
         print(f"note: solving the largest component only ({graph.num_poses} of {g2o.graph.num_poses} poses)")
     else:
         graph, vertex_ids, information, initial = g2o.graph, g2o.vertex_ids, g2o.information, g2o.initial
+    return path, graph, vertex_ids, information, initial, comps
+
+
+def _cmd_solve(args) -> int:
+    from ._datasets import benchmark_info
+    from ._g2o import write_g2o, write_tum
+    from ._solve import solve
+
+    path, graph, vertex_ids, information, initial, comps = _load_for_solve(args)
     if not 1 <= args.robots <= graph.num_poses:
         raise CLIError(f"--robots must be between 1 and the number of poses ({graph.num_poses}), got {args.robots}")
     ground_truth = None
@@ -280,6 +302,40 @@ def _cmd_solve(args) -> int:
 
         save_solve_figure(args.plot, graph, result, fstar=fstar, title=path.name)
         print(f"wrote {args.plot}")
+    return 0
+
+
+def _cmd_optimum(args) -> int:
+    from ._datasets import benchmark_info
+    from ._g2o import write_g2o, write_tum
+    from ._solve import centralized_optimum
+
+    path, graph, vertex_ids, information, initial, _ = _load_for_solve(args)
+    init = args.init
+    if init not in ("chordal", "vertices", "odometry") and not Path(init).is_file():
+        raise CLIError(f"--init {init!r}: not a known method (chordal, vertices, odometry) nor a file")
+    if init == "vertices":
+        from ._initialization import initialize
+
+        init = initialize(graph, "vertices", initial=initial)
+    res = centralized_optimum(graph, init=init, grad_tol=args.grad_tol, max_iterations=args.max_iterations)
+    h = res.history
+    total = res.init_seconds + res.compile_seconds + res.solve_seconds
+    print(f"f* = 2F      {res.f:.10g} ({res.iterations} iterations, {res.stop_reason}, ||grad F|| = {h.grad_norm[-1]:.2e}, "
+          f"{total:.1f} s)")
+    info = benchmark_info(path.name)
+    if info is not None and info.fstar is not None:
+        print(f"published   {info.fstar:.6g} ({info.name}); relative difference {(res.f - info.fstar) / info.fstar:+.1e}")
+    if not args.no_certify:
+        from ._certificate import certify
+
+        print(f"certificate {certify(graph, res.poses).summary()}")
+    if args.out:
+        write_g2o(args.out, graph, res.poses, vertex_ids=vertex_ids, information=information)
+        print(f"wrote {args.out}")
+    if args.tum:
+        write_tum(args.tum, res.poses, vertex_ids=vertex_ids)
+        print(f"wrote {args.tum}")
     return 0
 
 

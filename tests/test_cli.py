@@ -383,3 +383,27 @@ def test_solve_certify_reports_global_optimum(tmp_path):
     lam = float(re.search(r"lambda_min\(S\) = (\S+) ", line).group(1))
     eta = float(re.search(r"eta = ([0-9.e+-]+)", line).group(1))
     assert -eta <= lam <= eta
+
+
+def test_optimum_command_writes_certified_optimum(tmp_path):
+    """`mmpgo optimum`: centralized f*, its certificate, and the result file; bad --init is a clean error."""
+    import mmpgo_jax as mm
+    from mmpgo_jax._g2o import write_g2o
+
+    mm.enable_float64()
+    data = mm.cube_dataset(4, num_poses=150, grid=3)
+    problem, out = tmp_path / "cube.g2o", tmp_path / "opt.g2o"
+    write_g2o(problem, data.graph, data.ground_truth)
+    proc = mmpgo("optimum", problem, "--init", "vertices", "--out", out)
+    _ok(proc)
+    f = float(re.search(r"^f\* = 2F\s+(\S+) ", proc.stdout, re.M).group(1))
+    assert "global optimum (certified)" in proc.stdout
+    ref = mm.centralized_optimum(data.graph)
+    assert f == pytest.approx(ref.f, rel=1e-9)
+    back = read_g2o(out)
+    assert back.has_vertex.all()
+    assert float(mm.cost(back.graph, back.initial)) == pytest.approx(ref.f, rel=1e-9)
+    _no_temp_files(tmp_path)
+
+    proc = mmpgo("optimum", problem, "--init", "nowhere")
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr and "--init" in proc.stderr
