@@ -60,6 +60,12 @@ class OptimalityCertificate:
 
 def certificate_matrix(graph: PoseGraph, poses: Poses) -> tuple[sp.csc_matrix, np.ndarray, sp.csr_matrix]:
     """(S, X, M): the certificate matrix S = M - Λ(X), the pose matrix X and the data matrix M."""
+    S, X, M, _ = _certificate_parts(graph, poses)
+    return S, X, M
+
+
+def _certificate_parts(graph: PoseGraph, poses: Poses):
+    """S, X, M and X M (d x (d+1)n)."""
     n, d = graph.num_poses, graph.dim
     M = data_matrix(graph).tocsr()
     X = np.asarray(poses_to_matrix(poses), dtype=np.float64)
@@ -72,7 +78,7 @@ def certificate_matrix(graph: PoseGraph, poses: Poses) -> tuple[sp.csc_matrix, n
     rows = np.broadcast_to(base + np.arange(d)[None, :, None], lam.shape)
     cols = np.broadcast_to(base + np.arange(d)[None, None, :], lam.shape)
     Lam = sp.coo_matrix((lam.ravel(), (rows.ravel(), cols.ravel())), shape=M.shape)
-    return (M - Lam).tocsc(), X, M
+    return (M - Lam).tocsc(), X, M, XM
 
 
 def _negative_pivots(A: sp.csc_matrix) -> int | None:
@@ -108,9 +114,10 @@ def certify(graph: PoseGraph, poses: Poses, *, eta: float | None = None, relativ
     ``stationarity``); at a point far from critical S is typically indefinite and nothing is certified.
     Meaningful in float64 (float32 poses are stationary only to ~1e-7).
     """
-    S, X, M = certificate_matrix(graph, poses)
+    S, X, M, XM = _certificate_parts(graph, poses)
+    max_diag = float(np.max(np.abs(M.diagonal())))
     if eta is None:
-        eta = relative_eta * float(np.max(np.abs(M.diagonal())))
+        eta = relative_eta * max_diag
     shifted = (S + eta * sp.identity(S.shape[0], format="csc")).tocsc()
     negative = _negative_pivots(shifted)
     if negative is None:  # fall back to eigenvalues alone
@@ -118,8 +125,7 @@ def certify(graph: PoseGraph, poses: Poses, *, eta: float | None = None, relativ
         negative = int(lam < -eta)
     else:
         lam = _min_eigenvalue(S, eta, negative == 0, graph.dim)
-    XM = np.asarray(M @ X.T)
-    scale = float(np.max(np.abs(M.diagonal()))) * np.linalg.norm(X)
+    scale = max_diag * np.linalg.norm(X)
     stationarity = float(np.linalg.norm(S @ X.T) / max(scale, np.finfo(float).tiny))
     return OptimalityCertificate(
         certified=negative == 0,
@@ -127,5 +133,5 @@ def certify(graph: PoseGraph, poses: Poses, *, eta: float | None = None, relativ
         negative_eigenvalues=negative,
         eta=float(eta),
         stationarity=stationarity,
-        f=float(np.sum(X * XM.T)),
+        f=float(np.sum(X * XM)),
     )

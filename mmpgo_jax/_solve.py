@@ -167,6 +167,7 @@ def centralized_optimum(
     graph: PoseGraph,
     *,
     init="chordal",
+    initial: Poses | None = None,
     grad_tol: float = 1e-6,
     max_iterations: int = 5000,
     xi: float = 1e-6,
@@ -181,7 +182,7 @@ def centralized_optimum(
     default, 20 CG iterations) needs thousands on ill-conditioned files (parking-garage: its
     rotation weights span 9 decades). In float32, which stalls far above ``grad_tol``, it also stops
     once 25 iterations lower f by less than a relative 1e-7. Used by the benchmarks as f*; check a
-    result with :func:`~mmpgo_jax.certify`.
+    result with :func:`~mmpgo_jax.certify`. ``init`` / ``initial``: as for :func:`solve`.
     """
     # float32 cannot resolve a 1e-8 residual: CG would always run to its cap
     tol = 1e-8 if float64_enabled() else 1e-4
@@ -192,6 +193,7 @@ def centralized_optimum(
         method="mm",
         iterations=max_iterations,
         init=init,
+        initial=initial,
         xi=xi,
         subproblem=sub,
         chunk_size=25,

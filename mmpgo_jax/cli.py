@@ -222,9 +222,9 @@ def _largest_component(g2o):
     return sub, g2o.vertex_ids[comp], g2o.information[keep], initial
 
 
-def _load_for_solve(args):
+def _load_for_solve(args, *, announce: bool = True):
     """(path, graph, vertex_ids, information, initial, components) of ``args.file``; refuses a
-    disconnected graph unless ``--largest-component``."""
+    disconnected graph unless ``--largest-component``. ``announce``: print the component note."""
     from ._g2o import read_g2o
 
     path = _resolve_file(args.file, args.data)
@@ -238,7 +238,8 @@ def _load_for_solve(args):
                 "largest one (the others are left out of the result)."
             )
         graph, vertex_ids, information, initial = _largest_component(g2o)
-        print(f"note: solving the largest component only ({graph.num_poses} of {g2o.graph.num_poses} poses)")
+        if announce:
+            print(f"note: solving the largest component only ({graph.num_poses} of {g2o.graph.num_poses} poses)")
     else:
         graph, vertex_ids, information, initial = g2o.graph, g2o.vertex_ids, g2o.information, g2o.initial
     return path, graph, vertex_ids, information, initial, comps
@@ -246,7 +247,6 @@ def _load_for_solve(args):
 
 def _cmd_solve(args) -> int:
     from ._datasets import benchmark_info
-    from ._g2o import write_g2o, write_tum
     from ._solve import solve
 
     path, graph, vertex_ids, information, initial, comps = _load_for_solve(args)
@@ -281,19 +281,36 @@ def _cmd_solve(args) -> int:
     info = benchmark_info(path.name)
     fstar = info.fstar if info is not None else None
     _print_summary(result, fstar)
-    if args.certify:
-        from ._certificate import certify
+    finish_solve(args, path, graph, result, fstar, vertex_ids, information)
+    return 0
 
-        cert = certify(graph, result.poses)
-        print(f"certificate {cert.summary()}")
-        if not cert.certified:
-            print("            (the certificate decides only at a critical point: run to a tight --grad-tol, e.g. --robots 1)")
+
+def _print_certificate(graph, poses, *, hint: bool) -> None:
+    from ._certificate import certify
+
+    cert = certify(graph, poses)
+    print(f"certificate {cert.summary()}")
+    if hint and not cert.certified:
+        print("            (the certificate decides only at a critical point: run to a tight --grad-tol, e.g. --robots 1)")
+
+
+def _write_estimate(args, graph, poses, vertex_ids, information) -> None:
+    """--out (g2o) and --tum files of an estimate."""
+    from ._g2o import write_g2o, write_tum
+
     if args.out:
-        write_g2o(args.out, graph, result.poses, vertex_ids=vertex_ids, information=information)
+        write_g2o(args.out, graph, poses, vertex_ids=vertex_ids, information=information)
         print(f"wrote {args.out}")
     if args.tum:
-        write_tum(args.tum, result.poses, vertex_ids=vertex_ids)
+        write_tum(args.tum, poses, vertex_ids=vertex_ids)
         print(f"wrote {args.tum}")
+
+
+def finish_solve(args, path, graph, result, fstar, vertex_ids, information) -> None:
+    """After a solve (single- or multi-device): --certify, then the --out/--tum/--history/--plot files."""
+    if args.certify:
+        _print_certificate(graph, result.poses, hint=True)
+    _write_estimate(args, graph, result.poses, vertex_ids, information)
     if args.history:
         write_history_csv(args.history, result)
         print(f"wrote {args.history}")
@@ -302,23 +319,18 @@ def _cmd_solve(args) -> int:
 
         save_solve_figure(args.plot, graph, result, fstar=fstar, title=path.name)
         print(f"wrote {args.plot}")
-    return 0
 
 
 def _cmd_optimum(args) -> int:
     from ._datasets import benchmark_info
-    from ._g2o import write_g2o, write_tum
     from ._solve import centralized_optimum
 
     path, graph, vertex_ids, information, initial, _ = _load_for_solve(args)
     init = args.init
     if init not in ("chordal", "vertices", "odometry") and not Path(init).is_file():
         raise CLIError(f"--init {init!r}: not a known method (chordal, vertices, odometry) nor a file")
-    if init == "vertices":
-        from ._initialization import initialize
-
-        init = initialize(graph, "vertices", initial=initial)
-    res = centralized_optimum(graph, init=init, grad_tol=args.grad_tol, max_iterations=args.max_iterations)
+    res = centralized_optimum(graph, init=init, initial=initial, grad_tol=args.grad_tol,
+                              max_iterations=args.max_iterations)
     h = res.history
     total = res.init_seconds + res.compile_seconds + res.solve_seconds
     print(f"f* = 2F      {res.f:.10g} ({res.iterations} iterations, {res.stop_reason}, ||grad F|| = {h.grad_norm[-1]:.2e}, "
@@ -327,15 +339,8 @@ def _cmd_optimum(args) -> int:
     if info is not None and info.fstar is not None:
         print(f"published   {info.fstar:.6g} ({info.name}); relative difference {(res.f - info.fstar) / info.fstar:+.1e}")
     if not args.no_certify:
-        from ._certificate import certify
-
-        print(f"certificate {certify(graph, res.poses).summary()}")
-    if args.out:
-        write_g2o(args.out, graph, res.poses, vertex_ids=vertex_ids, information=information)
-        print(f"wrote {args.out}")
-    if args.tum:
-        write_tum(args.tum, res.poses, vertex_ids=vertex_ids)
-        print(f"wrote {args.tum}")
+        _print_certificate(graph, res.poses, hint=False)
+    _write_estimate(args, graph, res.poses, vertex_ids, information)
     return 0
 
 

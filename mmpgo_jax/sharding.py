@@ -83,7 +83,7 @@ class MeshCollectives(Collectives):
         return jax.lax.psum(jnp.sum(x), self.axis_name)
 
 
-class HaloCollectives(Collectives):
+class HaloCollectives(MeshCollectives):
     """Neighbour-only pose exchange: one ``all_to_all`` of fixed-size halo buffers per iteration.
 
     ``send_index[k, j, h]``: flat slot (robot-in-device * n_max + slot) of the h-th pose that
@@ -94,13 +94,9 @@ class HaloCollectives(Collectives):
     poses its robots' inter-robot edges read; all other slots are zero and never read.
     """
 
-    send_index: jax.Array  # (D, D, H) int32
-    recv_index: jax.Array  # (D, D, H) int32
+    send_index: jax.Array = None  # (D, D, H) int32
+    recv_index: jax.Array = None  # (D, D, H) int32
     num_robots: int = eqx.field(static=True, default=0)
-    axis_name: str = eqx.field(static=True, default=AXIS)
-
-    def sum(self, x):
-        return jax.lax.psum(jnp.sum(x), self.axis_name)
 
     def gather_poses(self, X):
         B, n_max = X.shape[0], X.shape[1]
@@ -131,14 +127,14 @@ def halo_plan(part: Partition, graph: PoseGraph, num_devices: int) -> tuple[np.n
     counts = np.zeros((num_devices, num_devices), int)
     np.add.at(counts, (pairs[:, 0], pairs[:, 1]), 1)
     H = max(int(counts.max(initial=0)), 1)
+    # np.unique sorted the pairs by (k, j): a pose's halo slot h is its rank within its (k, j) group
+    k, j, pose = pairs.T
+    group = k * num_devices + j
+    h = np.arange(len(pairs)) - np.searchsorted(group, group)
     send = np.zeros((num_devices, num_devices, H), np.int32)
     recv = np.full((num_devices, num_devices, H), A * n_max, np.int32)
-    fill = np.zeros((num_devices, num_devices), int)
-    for k, j, pose in pairs:
-        h = fill[k, j]
-        fill[k, j] += 1
-        send[k, j, h] = (rop[pose] - k * B) * n_max + sop[pose]
-        recv[j, k, h] = rop[pose] * n_max + sop[pose]
+    send[k, j, h] = (rop[pose] - k * B) * n_max + sop[pose]
+    recv[j, k, h] = rop[pose] * n_max + sop[pose]
     return send, recv
 
 
@@ -884,20 +880,9 @@ def _cli_solve_sharded(args) -> int:
     """Mirror of ``mmpgo solve`` (cli._cmd_solve) with :func:`solve_sharded`; process 0 writes."""
     from . import cli
     from ._datasets import benchmark_info
-    from ._g2o import read_g2o, write_g2o, write_tum
 
     writer = jax.process_index() == 0
-    path = cli._resolve_file(args.file, args.data)
-    g2o = read_g2o(path)
-    comps, conn = cli._describe_components(g2o.graph, g2o.vertex_ids)
-    if len(comps) > 1:
-        if not args.largest_component:
-            raise cli.CLIError(f"{path}: the pose graph is {conn}; pass --largest-component to solve the largest one")
-        graph, vertex_ids, information, initial = cli._largest_component(g2o)
-        if writer:
-            print(f"note: solving the largest component only ({graph.num_poses} of {g2o.graph.num_poses} poses)")
-    else:
-        graph, vertex_ids, information, initial = g2o.graph, g2o.vertex_ids, g2o.information, g2o.initial
+    path, graph, vertex_ids, information, initial, _ = cli._load_for_solve(args, announce=writer)
     if not 1 <= args.robots <= graph.num_poses:
         raise cli.CLIError(f"--robots must be between 1 and the number of poses ({graph.num_poses}), got {args.robots}")
     local = jax.local_devices()
@@ -932,27 +917,7 @@ def _cli_solve_sharded(args) -> int:
     halo = f", halo of {result.extra['halo_size']} poses per device pair" if result.extra["halo_size"] else ""
     print(f"sharding    {result.extra['devices']} devices, {result.extra['processes']} processes, "
           f"{result.extra['exchange']} exchange{halo}")
-    if getattr(args, "certify", False):
-        from ._certificate import certify
-
-        cert = certify(graph, result.poses)
-        print(f"certificate {cert.summary()}")
-        if not cert.certified:
-            print("            (the certificate decides only at a critical point: run to a tight --grad-tol, e.g. --robots 1)")
-    if args.out:
-        write_g2o(args.out, graph, result.poses, vertex_ids=vertex_ids, information=information)
-        print(f"wrote {args.out}")
-    if args.tum:
-        write_tum(args.tum, result.poses, vertex_ids=vertex_ids)
-        print(f"wrote {args.tum}")
-    if args.history:
-        cli.write_history_csv(args.history, result)
-        print(f"wrote {args.history}")
-    if getattr(args, "plot", None):
-        from ._plotting import save_solve_figure
-
-        save_solve_figure(args.plot, graph, result, fstar=fstar, title=path.name)
-        print(f"wrote {args.plot}")
+    cli.finish_solve(args, path, graph, result, fstar, vertex_ids, information)
     return 0
 
 
