@@ -5,6 +5,7 @@ Public API (the private modules are implementation details):
 * data: :class:`PoseGraph`, :class:`Poses`, :func:`read_g2o`, :func:`write_g2o`, :func:`write_tum`,
   :func:`find_benchmark`, :data:`BENCHMARKS`, :func:`cube_dataset`, :func:`grid_2d_dataset`
 * objective: :func:`cost` (f = 2F), :func:`objective` (F), gradients, :func:`data_matrix`
+* gauge: :class:`FixedPoses` (g2o FIX), :func:`express_in_frame`, :func:`output_frame`
 * robots: :func:`partition`, :func:`contiguous_robots`, :func:`partition_stats`
 * starts: :func:`initialize`, :func:`chordal_initialization`, :func:`distributed_chordal_initialization`
 * solvers: :func:`solve`, :func:`centralized_optimum`, :func:`certify` (global optimality check), and the jittable core :class:`MMConfig`,
@@ -20,6 +21,7 @@ Public API (the private modules are implementation details):
 from ._certificate import OptimalityCertificate, certificate_matrix, certify
 from ._datasets import BENCHMARKS, DatasetNotFoundError, available_benchmarks, benchmark_info, data_dir, find_benchmark
 from ._distributed_chordal import distributed_chordal_initialization
+from ._gauge import FixedPoses, express_in_frame
 from ._g2o import G2OFile, G2OFormatError, read_g2o, write_g2o, write_tum
 from ._geometry import project_to_so, quaternion_to_rotation, rotation_2d
 from ._initialization import chordal_initialization, initialize, load_poses, odometry_initialization
@@ -49,7 +51,7 @@ from ._pose_graph import (
     riemannian_gradient_norm,
 )
 from ._precision import default_float_dtype, enable_float64, float64_enabled
-from ._solve import History, SolveResult, centralized_optimum, solve
+from ._solve import History, NonFiniteError, SolveResult, centralized_optimum, output_frame, solve
 from ._subproblem import SubproblemConfig
 from ._sweep import SweepResult, reference_optimum, sweep
 from ._synthetic import SyntheticDataset, cube_dataset, grid_2d_dataset
@@ -78,6 +80,8 @@ __all__ = [
     "edge_costs",
     "enable_float64",
     "euclidean_gradient",
+    "express_in_frame",
+    "FixedPoses",
     "find_benchmark",
     "float64_enabled",
     "G2OFile",
@@ -91,9 +95,11 @@ __all__ = [
     "MMConfig",
     "MMProblem",
     "MMState",
+    "NonFiniteError",
     "objective",
     "OptimalityCertificate",
     "odometry_initialization",
+    "output_frame",
     "Partition",
     "partition",
     "partition_stats",

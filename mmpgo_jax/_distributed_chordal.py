@@ -25,9 +25,10 @@ Translations. With the projected rotations fixed, the translation problem (25)-(
 kind of quadratic with the tau-weighted graph Laplacian (a scalar n_alpha x n_alpha Gamma_t^alpha,
 2 tau on inter-robot edge ends, + xi I), solved by the identical accelerated scheme, t_0 = 0.
 
-Anchoring. As in the centralized version (:func:`~._initialization.anchor_poses`) the first pose
-of every connected component of the measurement graph is held at R = I, t = 0 (pose 0 of robot 0
-for a connected graph with the contiguous partition). It is eliminated from the robot's
+Anchoring. As in the centralized version (:func:`~._initialization.anchor_set`) the fixed poses
+(g2o FIX) are held at their values and the first pose of every other connected component of the
+measurement graph at R = I, t = 0 (pose 0 of robot 0 for a connected graph without fixed poses
+and the contiguous partition). An anchor is eliminated from the robot's
 subproblem by zeroing its gradient and its rows/columns of Gamma (identity on the diagonal), so
 its value never moves.
 
@@ -97,7 +98,8 @@ import scipy.sparse as sp
 import scipy.linalg as sla
 
 from ._geometry import project_to_so
-from ._initialization import anchor_poses
+from ._gauge import FixedPoses
+from ._initialization import anchor_set
 from ._partition import Partition, partition as make_partition
 from ._pose_graph import PoseGraph, Poses
 
@@ -401,6 +403,8 @@ class _Setup(eqx.Module):
 
     part: Partition
     anchor: jax.Array  # (A, n_max) bool: the slots of the anchor poses
+    anchor_R: jax.Array  # (A, n_max, d, d): their rotations (I elsewhere)
+    anchor_t: jax.Array  # (A, n_max, d): their translations (0 elsewhere)
     dim: int = eqx.field(static=True)
     dtype: object = eqx.field(static=True)
 
@@ -409,10 +413,16 @@ class _Setup(eqx.Module):
         return jnp.asarray(G, self.dtype)
 
 
-def _setup(graph: PoseGraph, robots) -> _Setup:
+def _setup(graph: PoseGraph, robots, fixed: FixedPoses | None = None) -> _Setup:
     part = _as_partition(graph, robots)
-    anchor = jnp.asarray(_padded_anchor_mask(part, anchor_poses(graph)))
-    return _Setup(part, anchor, graph.dim, jnp.asarray(graph.R).dtype)
+    anchors = anchor_set(graph, fixed)
+    n, d, dt = graph.num_poses, graph.dim, jnp.asarray(graph.R).dtype
+    R = np.broadcast_to(np.eye(d), (n, d, d)).copy()
+    t = np.zeros((n, d))
+    R[anchors.index], t[anchors.index] = anchors.R, anchors.t
+    values = part.scatter(Poses(jnp.asarray(R, dt), jnp.asarray(t, dt)))
+    anchor = jnp.asarray(_padded_anchor_mask(part, anchors.index))
+    return _Setup(part, anchor, values.R, values.t, d, dt)
 
 
 def _initial_rotations(st: _Setup, initial, n: int):
@@ -424,18 +434,18 @@ def _initial_rotations(st: _Setup, initial, n: int):
         if R0g.shape != (n, d, d):
             raise ValueError(f"initial rotations must have shape ({n}, {d}, {d}), got {R0g.shape}")
     R0 = st.part.scatter(Poses(R0g, jnp.zeros((n, d), dt))).R
-    return jnp.where(st.anchor[..., None, None], jnp.eye(d, dtype=dt), R0)
+    return jnp.where(st.anchor[..., None, None], st.anchor_R, R0)
 
 
 def _initial_translations(st: _Setup, initial, n: int):
     d, dt = st.dim, st.dtype
     if initial is None:
-        return jnp.zeros(st.part.pose_mask.shape + (d,), dt)
+        return st.anchor_t
     t0 = jnp.asarray(initial, dt)
     if t0.shape != (n, d):
         raise ValueError(f"initial translations must have shape ({n}, {d}), got {t0.shape}")
     t0 = st.part.scatter(Poses(jnp.zeros((n, d, d), dt), t0)).t
-    return jnp.where(st.anchor[..., None], 0.0, t0)
+    return jnp.where(st.anchor[..., None], st.anchor_t, t0)
 
 
 def _run_rotations(st: _Setup, Ginv, R0, budget: int, tol, restart: bool, history_length: int | None = None):
@@ -522,6 +532,7 @@ def distributed_chordal_initialization(
     restart: bool = DEFAULT_RESTART,
     initial_rotations=None,
     initial_translations=None,
+    fixed: FixedPoses | None = None,
 ) -> tuple[Poses, DistributedChordalInfo]:
     """Distributed chordal initialization: AMM-Chordal (Algorithm 3) for the relaxed rotations,
     projection of every block to SO(d) (each robot its own poses, SVD with det fixed), then the
@@ -533,20 +544,21 @@ def distributed_chordal_initialization(
     tolerance of both stages (module docstring), None to spend the whole budgets. ``restart``:
     per-robot momentum restart (False = Algorithm 3 verbatim). ``xi``: proximal weight of Eq. (24).
     ``initial_rotations`` (n, d, d) / ``initial_translations`` (n, d): starting iterates
-    (default: all rotations I, all translations 0).
+    (default: all rotations I, all translations 0). ``fixed``: poses held at their values in both
+    stages (the anchors; default the first pose of every component, at identity).
 
     Returns the poses (graph dtype) and a :class:`DistributedChordalInfo`.
     """
     rotation_iterations = _check_iters("rotation_iterations", rotation_iterations)
     translation_iterations = _check_iters("translation_iterations", translation_iterations)
     n = graph.num_poses
-    st = _setup(graph, robots)
+    st = _setup(graph, robots, fixed)
     R0 = _initial_rotations(st, initial_rotations, n)
     t0 = _initial_translations(st, initial_translations, n)
     _tol_value(tol, st.dtype)
     outR = _run_rotations(st, st.gamma_inverse(xi, True), R0, rotation_iterations, tol, restart)
-    # each robot projects its own blocks; padding slots hold I, anchors stay I
-    Rpad = project_to_so(outR.X)
+    # each robot projects its own blocks; padding slots hold I, anchors keep their values
+    Rpad = jnp.where(st.anchor[..., None, None], st.anchor_R, project_to_so(outR.X))
     outt = _run_translations(st, st.gamma_inverse(xi, False), Rpad, t0, translation_iterations, tol, restart)
     kR, kt = int(outR.k), int(outt.k)
     info = DistributedChordalInfo(

@@ -33,12 +33,14 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from ._gauge import FixedPoses
 from ._geometry import project_to_so
 from ._pose_graph import PoseGraph, Poses, connected_components
 
 __all__ = [
     "INITIALIZATION_METHODS",
     "anchor_poses",
+    "anchor_set",
     "chordal_initialization",
     "chordal_relaxed_rotations",
     "initialize",
@@ -77,13 +79,30 @@ def _float_dtype(graph: PoseGraph):
     return jnp.asarray(graph.R).dtype
 
 
-def anchor_poses(graph: PoseGraph) -> np.ndarray:
-    """Poses held fixed by the initializations: the first pose of every connected component.
-
-    Sorted ascending; ``[0]`` for a connected graph.
-    """
+def anchor_set(graph: PoseGraph, fixed: FixedPoses | None = None) -> FixedPoses:
+    """The poses the initializations hold: the ``fixed`` poses at their values, plus the first pose
+    of every connected component without a fixed pose, at R = I, t = 0 (pose 0 alone for a connected
+    graph without fixed poses)."""
+    d = graph.dim
     comps = connected_components(graph.num_poses, np.asarray(graph.i), np.asarray(graph.j))
-    return np.sort(np.array([c[0] for c in comps], dtype=np.int64))
+    if fixed is None:
+        return FixedPoses.identity(np.array([c[0] for c in comps], dtype=np.int64), d)
+    fixed.check(graph.num_poses, d)
+    mask = fixed.mask(graph.num_poses)
+    free_comps = np.array([c[0] for c in comps if not mask[c].any()], dtype=np.int64)
+    if free_comps.size == 0:
+        return fixed
+    ident = FixedPoses.identity(free_comps, d)
+    return FixedPoses(
+        np.concatenate([fixed.index, ident.index]),
+        np.concatenate([fixed.R, ident.R]),
+        np.concatenate([fixed.t, ident.t]),
+    )
+
+
+def anchor_poses(graph: PoseGraph, fixed: FixedPoses | None = None) -> np.ndarray:
+    """Indices of :func:`anchor_set` (sorted ascending; ``[0]`` for a connected graph without fixed poses)."""
+    return anchor_set(graph, fixed).index
 
 
 def rotation_connection_laplacian(graph: PoseGraph) -> sp.csr_matrix:
@@ -156,21 +175,22 @@ def _free_mask(n: int, anchors: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------------------------
 
 
-def chordal_relaxed_rotations(graph: PoseGraph) -> np.ndarray:
-    """Minimiser of the relaxed rotation problem (22) with the anchor poses at I: (n, d, d).
+def chordal_relaxed_rotations(graph: PoseGraph, fixed: FixedPoses | None = None) -> np.ndarray:
+    """Minimiser of the relaxed rotation problem (22) with the anchor poses held (:func:`anchor_set`:
+    the ``fixed`` poses at their rotations, else I): (n, d, d).
 
     The blocks are general d x d matrices (not yet projected to SO(d)). float64 numpy.
     """
     n, d = graph.num_poses, graph.dim
-    anchors = anchor_poses(graph)
-    free = _free_mask(n, anchors)
+    anchor = anchor_set(graph, fixed)
+    free = _free_mask(n, anchor.index)
     # V = R^T stacked pose-major ((dn) x d): 2 F_R = tr(V^T L V). Fix V_a = I for anchors:
     # L_ff V_f = -L_fa V_a.
     L = rotation_connection_laplacian(graph).tocsr()
     fdof = np.repeat(free, d)
     L_ff = L[fdof][:, fdof]
     L_fa = L[fdof][:, ~fdof]
-    Va = np.tile(np.eye(d), (len(anchors), 1))  # (d*|anchors|, d)
+    Va = np.swapaxes(anchor.R, 1, 2).reshape(-1, d)  # (d*|anchors|, d): V_a = R_a^T
     Vf = _solve_spd(L_ff, -(L_fa @ Va))
     V = np.zeros((d * n, d))
     V[fdof] = Vf
@@ -195,32 +215,39 @@ def relaxed_translation_cost(graph: PoseGraph, R, t) -> float:
     return float(np.sum(tau * np.sum(res**2, axis=1)))
 
 
-def translations_given_rotations(graph: PoseGraph, R) -> np.ndarray:
-    """Minimiser of the translation problem (25) for rotations ``R`` with anchor translations 0.
+def translations_given_rotations(graph: PoseGraph, R, fixed: FixedPoses | None = None) -> np.ndarray:
+    """Minimiser of the translation problem (25) for rotations ``R`` with the anchor translations
+    held (:func:`anchor_set`: the ``fixed`` poses' translations, else 0).
 
     Returns (n, d) float64.
     """
     n, d = graph.num_poses, graph.dim
-    anchors = anchor_poses(graph)
-    free = _free_mask(n, anchors)
+    anchor = anchor_set(graph, fixed)
+    free = _free_mask(n, anchor.index)
     L = translation_laplacian(graph).tocsr()
     b = translation_rhs(graph, R)
     t = np.zeros((n, d))
-    t[free] = _solve_spd(L[free][:, free], b[free])
+    t[anchor.index] = anchor.t
+    # L_ff t_f = b_f - L_fa t_a
+    t[free] = _solve_spd(L[free][:, free], b[free] - L[free][:, ~free] @ t[~free])
     return t
 
 
 def _project_np(R: np.ndarray) -> np.ndarray:
     # The host-side init is float64 throughout; in float32 mode JAX computes the projection in float32.
     dt = jnp.float64 if jax.config.jax_enable_x64 else jnp.float32
-    return np.asarray(project_to_so(jnp.asarray(R, dtype=dt)), dtype=np.float64)
+    return np.array(project_to_so(jnp.asarray(R, dtype=dt)), dtype=np.float64)
 
 
-def chordal_initialization(graph: PoseGraph) -> Poses:
-    """Centralized chordal initialization (NOTES §5): relaxed rotations, SO(d) projection,
-    translations by linear least squares. Anchor poses (pose 0 when connected) at identity."""
-    R = _project_np(chordal_relaxed_rotations(graph))
-    t = translations_given_rotations(graph, R)
+def chordal_initialization(graph: PoseGraph, fixed: FixedPoses | None = None) -> Poses:
+    """Centralized chordal initialization (the paper's start for Tables I/II, Section VII):
+    relaxed rotations, SO(d) projection, translations by linear least squares. The anchor poses
+    (:func:`anchor_set`: the ``fixed`` poses at their values, else pose 0 when connected, at
+    identity) are held."""
+    R = _project_np(chordal_relaxed_rotations(graph, fixed))
+    if fixed is not None:
+        R[fixed.index] = fixed.R  # exactly, not their projection
+    t = translations_given_rotations(graph, R, fixed)
     dt = _float_dtype(graph)
     return Poses(jnp.asarray(R, dt), jnp.asarray(t, dt))
 
@@ -230,12 +257,12 @@ def chordal_initialization(graph: PoseGraph) -> Poses:
 # --------------------------------------------------------------------------------------------
 
 
-def _spanning_tree(graph: PoseGraph):
-    """Parent edge of every pose in a spanning forest rooted at the anchor poses.
+def _spanning_tree(graph: PoseGraph, roots: np.ndarray):
+    """Parent edge of every pose in a spanning forest rooted at ``roots`` (the anchor poses).
 
     0-1 BFS where odometry edges (|i - j| = 1) cost 0 and loop closures cost 1: poses reachable
-    from the root along the odometry chain are reached through it, the rest through as few loop
-    closures as possible. Returns (order, parent_edge) with ``order`` a topological order of the
+    from a root along the odometry chain are reached through it, the rest through as few loop
+    closures as possible (all roots start together, so each pose hangs from its nearest root). Returns (order, parent_edge) with ``order`` a topological order of the
     poses (roots first) and ``parent_edge[p]`` the index of the edge linking p to its parent
     (-1 for roots).
     """
@@ -259,47 +286,51 @@ def _spanning_tree(graph: PoseGraph):
     parent_edge = [-1] * n
     done = [False] * n
     order: list[int] = []
-    for root in anchor_poses(graph).tolist():
+    roots = np.asarray(roots, dtype=np.int64).tolist()
+    for root in roots:
         dist[root] = 0
-        dq = deque([root])
-        while dq:
-            u = dq.popleft()
-            if done[u]:
+    dq = deque(roots)
+    while dq:
+        u = dq.popleft()
+        if done[u]:
+            continue
+        done[u] = True
+        order.append(u)
+        du = dist[u]
+        for k in range(ptr[u], ptr[u + 1]):
+            v, e = nbr[k], nbe[k]
+            if done[v]:
                 continue
-            done[u] = True
-            order.append(u)
-            du = dist[u]
-            for k in range(ptr[u], ptr[u + 1]):
-                v, e = nbr[k], nbe[k]
-                if done[v]:
-                    continue
-                w = 0 if odo[e] else 1
-                if du + w < dist[v]:
-                    dist[v] = du + w
-                    parent_edge[v] = e
-                    if w == 0:
-                        dq.appendleft(v)
-                    else:
-                        dq.append(v)
+            w = 0 if odo[e] else 1
+            if du + w < dist[v]:
+                dist[v] = du + w
+                parent_edge[v] = e
+                if w == 0:
+                    dq.appendleft(v)
+                else:
+                    dq.append(v)
     return np.asarray(order, dtype=np.int64), np.asarray(parent_edge, dtype=np.int64)
 
 
-def odometry_initialization(graph: PoseGraph) -> Poses:
-    """Compose the measurements from the anchor (pose 0 at identity) along a spanning tree.
+def odometry_initialization(graph: PoseGraph, fixed: FixedPoses | None = None) -> Poses:
+    """Compose the measurements from the anchors along a spanning tree.
 
-    When every consecutive pair (i, i+1) is measured this is the odometry chain; otherwise the
-    tree prefers odometry edges and uses as few loop closures as possible (0-1 BFS). Each
-    component of a disconnected graph starts from its first pose at identity.
+    The anchors (:func:`anchor_set`) are the ``fixed`` poses at their values, else pose 0 at
+    identity; each component of a disconnected graph without a fixed pose starts from its first
+    pose at identity. When every consecutive pair (i, i+1) is measured the tree is the odometry
+    chain; otherwise it prefers odometry edges and uses as few loop closures as possible (0-1 BFS).
     """
     I_, J_, Rm, tm, _, _ = _edges_np(graph)
     n, d = graph.num_poses, graph.dim
-    order, parent_edge = _spanning_tree(graph)
+    anchor = anchor_set(graph, fixed)
+    order, parent_edge = _spanning_tree(graph, anchor.index)
     R = np.zeros((n, d, d))
     t = np.zeros((n, d))
+    R[anchor.index] = anchor.R
+    t[anchor.index] = anchor.t
     for p in order.tolist():
         e = parent_edge[p]
         if e < 0:
-            R[p] = np.eye(d)
             continue
         if J_[e] == p:  # parent is the tail: g_j = g_i * (Rt, tt)
             q = I_[e]
@@ -310,6 +341,8 @@ def odometry_initialization(graph: PoseGraph) -> Poses:
             R[p] = R[q] @ Rm[e].T
             t[p] = t[q] - R[p] @ tm[e]
     R = _project_np(R)  # remove round-off drift along long chains
+    if fixed is not None:
+        R[fixed.index] = fixed.R  # exactly, not their projection
     dt = _float_dtype(graph)
     return Poses(jnp.asarray(R, dt), jnp.asarray(t, dt))
 
@@ -334,30 +367,79 @@ def poses_from_arrays(graph: PoseGraph, R, t, *, what: str = "initial poses") ->
     return Poses(jnp.asarray(_project_np(R), dt), jnp.asarray(t, dt))
 
 
-def load_poses(graph: PoseGraph, path, *, what: str = "initial-pose file") -> Poses:
+def _id_list(ids: np.ndarray, limit: int = 5) -> str:
+    shown = ", ".join(map(str, ids[:limit].tolist()))
+    return shown + (f", ... ({ids.size} in all)" if ids.size > limit else "")
+
+
+def match_vertex_ids(file_ids, graph_ids, *, where: str) -> np.ndarray:
+    """Row of ``file_ids`` holding each of ``graph_ids``; ValueError naming missing / extra ids.
+
+    ``file_ids`` need not be sorted but must be distinct; ``where`` starts the error message.
+    """
+    file_ids = np.asarray(file_ids, dtype=np.int64).reshape(-1)
+    graph_ids = np.asarray(graph_ids, dtype=np.int64).reshape(-1)
+    if np.unique(file_ids).size != file_ids.size:
+        raise ValueError(f"{where}: vertex ids are not distinct")
+    order = np.argsort(file_ids, kind="stable")
+    sorted_ids = file_ids[order]
+    if sorted_ids.size == 0:
+        raise ValueError(f"{where}: no poses")
+    pos = np.minimum(np.searchsorted(sorted_ids, graph_ids), sorted_ids.size - 1)
+    found = sorted_ids[pos] == graph_ids
+    extra = np.setdiff1d(file_ids, graph_ids)
+    if not found.all() or extra.size:
+        parts = []
+        if not found.all():
+            parts.append(f"missing vertex ids {_id_list(np.sort(graph_ids[~found]))}")
+        if extra.size:
+            parts.append(f"vertex ids not in the graph {_id_list(extra)}")
+        raise ValueError(f"{where}: poses do not match the graph's vertex ids ({'; '.join(parts)})")
+    return order[pos]
+
+
+def load_poses(graph: PoseGraph, path, *, vertex_ids=None, what: str = "initial-pose file") -> Poses:
     """Poses for ``graph`` from a ``.g2o`` file (its VERTEX lines) or an ``.npz`` with ``R``, ``t``.
 
-    Checked against the graph (count, dimension, finite, rotations in SO(d)); ``what`` names the
-    file's role in error messages.
+    Poses are matched by vertex id: ``vertex_ids`` (n,) are the original ids of the graph's poses
+    (e.g. :attr:`G2OFile.vertex_ids`; default 0..n-1). A g2o file's VERTEX lines must name exactly
+    these ids (edges are optional: a poses-only file is fine); an ``.npz`` may carry them as
+    ``vertex_ids`` (else its rows are taken in the graph's pose order). Missing or extra ids,
+    another dimension, non-finite values: ValueError. ``what`` names the file's role in messages.
     """
     path = Path(path)
     suffix = path.suffix.lower()
+    n, d = graph.num_poses, graph.dim
+    graph_ids = np.arange(n, dtype=np.int64) if vertex_ids is None else np.asarray(vertex_ids, dtype=np.int64)
+    if graph_ids.shape != (n,):
+        raise ValueError(f"vertex_ids must have shape ({n},), got {graph_ids.shape}")
+    where = f"{what} {path}"
+    if not path.exists():
+        raise ValueError(f"{where}: file does not exist")
     if not path.is_file():
-        raise ValueError(f"{what} {str(path)!r} does not exist")
+        raise ValueError(f"{where}: is not a file")
     if suffix == ".npz":
         with np.load(path) as z:
             missing = [k for k in ("R", "t") if k not in z.files]
             if missing:
-                raise ValueError(f"{path}: .npz poses need arrays 'R' (n,d,d) and 't' (n,d); missing {missing}")
-            return poses_from_arrays(graph, z["R"], z["t"], what=f"{what} {path}")
+                raise ValueError(f"{where}: .npz poses need arrays 'R' (n,d,d) and 't' (n,d); missing {missing}")
+            R, t = z["R"], z["t"]
+            if "vertex_ids" in z.files:
+                ids = z["vertex_ids"]
+                if ids.shape != (R.shape[0],) or not np.issubdtype(ids.dtype, np.integer):
+                    raise ValueError(f"{where}: 'vertex_ids' must be ({R.shape[0]},) integers, got {ids.dtype} {ids.shape}")
+                rows = match_vertex_ids(ids, graph_ids, where=where)
+                R, t = R[rows], t[rows]
+            return poses_from_arrays(graph, R, t, what=where)
     if suffix == ".g2o":
-        from ._g2o import read_g2o
+        from ._g2o import read_g2o_poses
 
-        f = read_g2o(path)
-        if f.initial is None:
-            raise ValueError(f"{path}: the file has no VERTEX estimate for every pose")
-        return poses_from_arrays(graph, f.initial.R, f.initial.t, what=f"{what} {path}")
-    raise ValueError(f"{what} {str(path)!r}: expected a .g2o or .npz file")
+        f = read_g2o_poses(path)
+        if f.dim != d:
+            raise ValueError(f"{where}: poses are {f.dim}D, the graph is {d}D")
+        rows = match_vertex_ids(f.vertex_ids, graph_ids, where=where)
+        return poses_from_arrays(graph, f.R[rows], f.t[rows], what=where)
+    raise ValueError(f"{where}: expected a .g2o or .npz file")
 
 
 def initialize(
@@ -366,9 +448,10 @@ def initialize(
     *,
     initial: Poses | None = None,
     robots=None,
+    fixed: FixedPoses | None = None,
     **distributed_options,
 ) -> Poses:
-    """Initial poses for ``graph``.
+    """Initial poses for ``graph``; the ``fixed`` poses (if any) are at their values in every case.
 
     ``method`` is one of
 
@@ -380,17 +463,29 @@ def initialize(
     * ``"vertices"`` -- the file's VERTEX estimates, given as ``initial``;
     * a :class:`Poses` -- used as given (shapes checked, rotations projected to SO(d));
     * a path (``str`` or ``os.PathLike``) to a ``.g2o`` file (its VERTEX lines) or an ``.npz``
-      file with arrays ``R`` (n, d, d) and ``t`` (n, d).
+      file with arrays ``R`` (n, d, d) and ``t`` (n, d), matched by vertex id (:func:`load_poses`;
+      the graph's poses are taken to carry ids 0..n-1: pass ``Poses`` from :func:`load_poses` with
+      ``vertex_ids`` otherwise).
+
+    The chordal, odometry and distributed-chordal starts hold the fixed poses during their solves;
+    the others get them set afterwards.
     """
+    if fixed is not None:
+        fixed.check(graph.num_poses, graph.dim)
+    poses = _initial_poses(graph, method, initial, robots, fixed, distributed_options)
+    return poses if fixed is None else fixed.apply(poses)
+
+
+def _initial_poses(graph, method, initial, robots, fixed, distributed_options) -> Poses:
     if isinstance(method, Poses):
         return poses_from_arrays(graph, method.R, method.t)
     if isinstance(method, str) and method in INITIALIZATION_METHODS:
         if distributed_options and method != "distributed-chordal":
             raise ValueError(f"options {sorted(distributed_options)} only apply to 'distributed-chordal'")
         if method == "chordal":
-            return chordal_initialization(graph)
+            return chordal_initialization(graph, fixed)
         if method == "odometry":
-            return odometry_initialization(graph)
+            return odometry_initialization(graph, fixed)
         if method == "vertices":
             if initial is None:
                 raise ValueError("method 'vertices' needs the file's VERTEX estimates (initial=...), but none were given")
@@ -399,7 +494,7 @@ def initialize(
 
         if robots is None:
             robots = min(10, graph.num_poses)
-        poses, _ = distributed_chordal_initialization(graph, robots, **distributed_options)
+        poses, _ = distributed_chordal_initialization(graph, robots, fixed=fixed, **distributed_options)
         return poses
     if isinstance(method, (str, os.PathLike)):
         p = Path(method)

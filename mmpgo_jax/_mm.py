@@ -14,6 +14,7 @@ from typing import Literal
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ._majorization import (
     BlockJacobi,
@@ -67,7 +68,13 @@ class MMConfig(eqx.Module):
 
 
 class MMProblem(eqx.Module):
-    """Constant data of a run: the partition and Gamma^alpha of every robot (built once)."""
+    """Constant data of a run: the partition and Gamma^alpha of every robot (built once).
+
+    ``free`` (A, n_max) bool marks the slots the solver may move: all but the fixed poses (g2o FIX;
+    see :class:`~mmpgo_jax.FixedPoses`), which keep their value in X^0; None when no pose is fixed
+    (``build(..., fixed=mask)`` with an all-False mask gives an all-True array, e.g. to batch
+    problems with and without fixed poses).
+    """
 
     partition: Partition
     gamma: GammaOperator  # batched over robots
@@ -75,6 +82,7 @@ class MMProblem(eqx.Module):
     block_jacobi: BlockJacobi  # inverses of Gamma's diagonal blocks, batched
     gamma_soa: GammaSoA  # the solver's (structure-of-arrays) copies of gamma and block_jacobi
     block_jacobi_soa: BlockJacobiSoA
+    free: jax.Array | None  # (A, n_max) bool, or None when no pose is fixed
     xi: float = eqx.field(static=True)
 
     def preconditioner(self, config: "MMConfig"):
@@ -91,13 +99,24 @@ class MMProblem(eqx.Module):
         return self.block_jacobi_soa if pre is self.block_jacobi else pre
 
     @staticmethod
-    def build(partition: Partition, xi: float = 1e-3, *, min_couplings: int = 0) -> "MMProblem":
-        """``min_couplings`` pads Gamma's loop-closure list (to batch problems of one shape)."""
+    def build(partition: Partition, xi: float = 1e-3, *, min_couplings: int = 0, fixed=None) -> "MMProblem":
+        """``min_couplings`` pads Gamma's loop-closure list (to batch problems of one shape);
+        ``fixed``: a :class:`~mmpgo_jax.FixedPoses` (or (n,) bool mask) of poses that never move."""
         gamma = build_gamma_operator(partition.edges, xi, partition.max_poses, min_couplings=min_couplings)
         chain = build_chain_preconditioner(gamma)
         block_jacobi = BlockJacobi(jnp.linalg.inv(gamma.diag))
         soa = jax.vmap(gamma_to_soa)(gamma)
-        return MMProblem(partition, gamma, chain, block_jacobi, soa, jax.vmap(preconditioner_to_soa)(block_jacobi), xi)
+        free = None  # no fixed pose: the solver runs without a mask (same compiled code as ever)
+        if fixed is not None:
+            mask = fixed.mask(partition.num_poses) if hasattr(fixed, "mask") else np.asarray(fixed, dtype=bool)
+            if mask.shape != (partition.num_poses,):
+                raise ValueError(f"fixed mask must have shape ({partition.num_poses},), got {mask.shape}")
+            # padding slots count as free: they have no edges and never move anyway
+            free = np.ones(partition.pose_mask.shape, dtype=bool)
+            free[np.asarray(partition.robot_of_pose)[mask], np.asarray(partition.slot_of_pose)[mask]] = False
+            free = jnp.asarray(free)
+        return MMProblem(partition, gamma, chain, block_jacobi, soa, jax.vmap(preconditioner_to_soa)(block_jacobi),
+                         free, xi)
 
 
 class MMState(eqx.Module):
@@ -152,9 +171,12 @@ def _gradients(problem: MMProblem, X, comm: Collectives = LOCAL):
     return stack(grad), share, local
 
 
-def _riemannian_grad_norm(X, grad, comm: Collectives = LOCAL):
-    per_robot = jnp.sum(tangent_projection(X, grad) ** 2, axis=(1, 2, 3))
-    return jnp.sqrt(comm.sum(per_robot))
+def _riemannian_grad_norm(X, grad, free, comm: Collectives = LOCAL):
+    """||grad F|| over the free poses (the fixed ones are not variables)."""
+    rgrad = tangent_projection(X, grad)
+    if free is not None:
+        rgrad = jnp.where(free[..., None, None], rgrad, 0.0)
+    return jnp.sqrt(comm.sum(jnp.sum(rgrad**2, axis=(1, 2, 3))))
 
 
 def init_state(problem: MMProblem, X0: Poses, config: "MMConfig" = None) -> MMState:
@@ -180,8 +202,13 @@ def init_state(problem: MMProblem, X0: Poses, config: "MMConfig" = None) -> MMSt
 
 def _mm_update(problem: MMProblem, config: MMConfig, X, grad):
     """X^{alpha,k+1} = argmin G^alpha(. | X^k) for every robot (Algorithm 1 line 6)."""
-    solve = lambda G, P, x, g: solve_subproblem(G, P, x, x, g, config.subproblem)[0]
-    return jax.vmap(solve)(problem.gamma_soa, problem._solver_preconditioner(config), X, grad)
+    solve = lambda G, P, x, g, free: solve_subproblem(G, P, x, x, g, config.subproblem, free)[0]
+    return jax.vmap(solve, in_axes=(0, 0, 0, 0, _free_axis(problem)))(
+        problem.gamma_soa, problem._solver_preconditioner(config), X, grad, problem.free)
+
+
+def _free_axis(problem: MMProblem):
+    return None if problem.free is None else 0
 
 
 def _amm_update(problem: MMProblem, config: MMConfig, st: MMState):
@@ -191,8 +218,11 @@ def _amm_update(problem: MMProblem, config: MMConfig, st: MMState):
     Y = st.X + gamma * (st.X - st.X_prev)
     gY = st.grad + gamma * (st.grad - st.grad_prev)
     start = Y.at[..., 1:].set(project_rotations(Y[..., 1:]))
-    solve = lambda G, P, x0, c, g: solve_subproblem(G, P, x0, c, g, config.subproblem)[0]
-    Z = jax.vmap(solve)(problem.gamma_soa, problem._solver_preconditioner(config), start, Y, gY)
+    if problem.free is not None:  # fixed slots have Y = X exactly; unprojected, they stay bit-exact
+        start = jnp.where(problem.free[..., None, None], start, Y)
+    solve = lambda G, P, x0, c, g, free: solve_subproblem(G, P, x0, c, g, config.subproblem, free)[0]
+    Z = jax.vmap(solve, in_axes=(0, 0, 0, 0, 0, _free_axis(problem)))(
+        problem.gamma_soa, problem._solver_preconditioner(config), start, Y, gY, problem.free)
     # G^alpha(Z | X^k) - Gbar^alpha(k): no objective evaluation needed (NOTES §3).
     decrease = jax.vmap(majorizer_value)(problem.gamma_soa, Z, st.X, st.grad)
     soft_hits = st.soft_hits
@@ -250,7 +280,7 @@ def step(problem: MMProblem, config: MMConfig, st: MMState, comm: Collectives = 
         soft_hits=soft_hits,
     )
     rec = IterationRecord(
-        f=2.0 * comm.sum(share), grad_norm=_riemannian_grad_norm(X_new, grad, comm), restarted=restart
+        f=2.0 * comm.sum(share), grad_norm=_riemannian_grad_norm(X_new, grad, problem.free, comm), restarted=restart
     )
     return new, rec
 
@@ -282,6 +312,6 @@ def evaluate(problem: MMProblem, state: MMState) -> IterationRecord:
     """The record (f, gradient norm) of the state itself, e.g. at X^0."""
     return IterationRecord(
         f=2.0 * jnp.sum(state.share),
-        grad_norm=_riemannian_grad_norm(state.X, state.grad),
+        grad_norm=_riemannian_grad_norm(state.X, state.grad, problem.free),
         restarted=jnp.zeros_like(state.s, dtype=bool),
     )

@@ -15,6 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._gauge import FixedPoses, express_in_frame
 from ._initialization import initialize
 from ._majorization import unstack
 from ._metrics import TrajectoryAccuracy, trajectory_accuracy
@@ -86,6 +87,8 @@ def solve(
     rel_decrease_tol: float | None = None,
     callback: Callable[[int, np.ndarray], bool | None] | None = None,
     ground_truth: Poses | None = None,
+    fixed: FixedPoses | None = None,
+    frame: FixedPoses | Literal["raw"] | None = None,
 ) -> SolveResult:
     """Run MM-PGO (``method="mm"``) or AMM-PGO (``"amm"``) on ``graph`` split among ``robots``.
 
@@ -98,16 +101,27 @@ def solve(
     is below ``rel_decrease_tol``. ``callback(k, f_chunk)`` is called after each chunk (k = total
     iterations so far); returning True stops the run. With ``ground_truth`` (synthetic data), the
     result's ``accuracy`` holds ATE / RPE of the final estimate after rigid alignment.
+
+    ``fixed`` (e.g. :attr:`G2OFile.fixed_poses`): poses held at their values by the start and by
+    every iteration. ``frame``: the frame of ``result.poses`` (see :func:`output_frame`): by
+    default the fixed poses' frame when there are fixed poses, else pose 0 at the identity; a
+    :class:`FixedPoses` (e.g. :attr:`G2OFile.frame`: the file's first pose at its VERTEX value)
+    moves the result rigidly so that its first pose takes that value; ``"raw"`` keeps the solver's
+    own gauge. f and the history do not depend on it.
+
+    Raises :class:`NonFiniteError` when f or its gradient stops being finite (data whose weights or
+    residuals float arithmetic cannot represent).
     """
-    if iterations < 0:
-        raise ValueError(f"iterations must be >= 0, got {iterations}")
+    check_solve_options(iterations=iterations, xi=xi, chunk_size=chunk_size, grad_tol=grad_tol,
+                        f_target=f_target, rel_decrease_tol=rel_decrease_tol)
     config = MMConfig(method=method, restart=restart, xi=xi, subproblem=subproblem or SubproblemConfig())
     t0 = time.perf_counter()
     part = robots if isinstance(robots, Partition) else partition(graph, robots)
-    X0 = initialize(graph, init, initial=initial, robots=part)
-    problem = MMProblem.build(part, xi)
+    X0 = initialize(graph, init, initial=initial, robots=part, fixed=fixed)
+    problem = MMProblem.build(part, xi, fixed=fixed)
     state = init_state(problem, part.scatter(X0), config)
     start = jax.device_get(evaluate(problem, state))
+    check_finite(np.atleast_1d(start.f), np.atleast_1d(start.grad_norm), 0)
     init_seconds = time.perf_counter() - t0
 
     fs, gs, rs = [np.atleast_1d(start.f)], [np.atleast_1d(start.grad_norm)], [start.restarted[None]]
@@ -137,7 +151,7 @@ def solve(
                 stop_reason = reason
                 break
     history = History(np.concatenate(fs), np.concatenate(gs), np.concatenate(rs))
-    poses = part.gather(unstack(state.X))
+    poses = output_frame(part.gather(unstack(state.X)), fixed, frame)
     return SolveResult(
         poses=poses,
         history=history,
@@ -151,7 +165,62 @@ def solve(
     )
 
 
+class NonFiniteError(ValueError):
+    """f or its gradient became NaN or infinite during a solve (no result is returned)."""
+
+
+def check_finite(f: np.ndarray, grad_norm: np.ndarray, first_iteration: int) -> None:
+    """Raise :class:`NonFiniteError` at the first non-finite f or ||grad F|| of a chunk."""
+    bad = ~(np.isfinite(f) & np.isfinite(grad_norm))
+    if bad.any():
+        k = int(np.flatnonzero(bad)[0])
+        what = "f" if not np.isfinite(f[k]) else "||grad F||"
+        value = f[k] if what == "f" else grad_norm[k]
+        at = "at the start" if first_iteration + k == 0 else f"after iteration {first_iteration + k}"
+        raise NonFiniteError(
+            f"{what} = {value} {at}: the data's weights or measurements are too large or too small "
+            "for the floating-point precision in use; nothing was written"
+        )
+
+
+def _finite_number(name: str, value, *, low: float, inclusive: bool = True, optional: bool = False) -> None:
+    if value is None and optional:
+        return
+    ok = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
+    ok = ok and np.isfinite(value) and (value >= low if inclusive else value > low)
+    if not ok:
+        bound = f">= {low:g}" if inclusive else f"> {low:g}"
+        raise ValueError(f"{name} must be a finite number {bound}{' or None' if optional else ''}, got {value!r}")
+
+
+def check_solve_options(*, iterations, xi, chunk_size, grad_tol=None, f_target=None, rel_decrease_tol=None) -> None:
+    """ValueError naming the parameter and its allowed range (shared by solve and solve_sharded)."""
+    if isinstance(iterations, bool) or not isinstance(iterations, (int, np.integer)) or iterations < 0:
+        raise ValueError(f"iterations must be an integer >= 0, got {iterations!r}")
+    if isinstance(chunk_size, bool) or not isinstance(chunk_size, (int, np.integer)) or chunk_size < 1:
+        raise ValueError(f"chunk_size must be an integer >= 1, got {chunk_size!r}")
+    _finite_number("xi", xi, low=0.0)
+    _finite_number("grad_tol", grad_tol, low=0.0, inclusive=False, optional=True)
+    if f_target is not None and not (isinstance(f_target, (int, float, np.number)) and np.isfinite(f_target)):
+        raise ValueError(f"f_target must be a finite number or None, got {f_target!r}")
+    _finite_number("rel_decrease_tol", rel_decrease_tol, low=0.0, optional=True)
+
+
+def output_frame(poses: Poses, fixed: FixedPoses | None, frame) -> Poses:
+    """The frame a result is reported in (see :func:`solve`)."""
+    if isinstance(frame, str):
+        if frame != "raw":
+            raise ValueError(f"frame must be a FixedPoses, 'raw' or None, got {frame!r}")
+        return poses
+    if frame is None:
+        if fixed is not None:
+            return poses  # the fixed poses hold the gauge
+        frame = FixedPoses.identity([0], poses.dim)
+    return express_in_frame(poses, frame)
+
+
 def _stop_reason(fs, gs, grad_tol, f_target, rel_decrease_tol) -> str | None:
+    check_finite(fs[-1], gs[-1], sum(len(f) for f in fs[:-1]))
     if grad_tol is not None and gs[-1][-1] <= grad_tol:
         return "grad_tol"
     if f_target is not None and fs[-1][-1] <= f_target:
@@ -172,6 +241,8 @@ def centralized_optimum(
     max_iterations: int = 5000,
     xi: float = 1e-6,
     subproblem: SubproblemConfig | None = None,
+    fixed: FixedPoses | None = None,
+    frame: FixedPoses | Literal["raw"] | None = None,
 ) -> SolveResult:
     """Centralized mode: one robot (A = 1) and MM run to a tight gradient tolerance.
 
@@ -182,7 +253,9 @@ def centralized_optimum(
     default, 20 CG iterations) needs thousands on ill-conditioned files (parking-garage: its
     rotation weights span 9 decades). In float32, which stalls far above ``grad_tol``, it also stops
     once 25 iterations lower f by less than a relative 1e-7. Used by the benchmarks as f*; check a
-    result with :func:`~mmpgo_jax.certify`. ``init`` / ``initial``: as for :func:`solve`.
+    result with :func:`~mmpgo_jax.certify`. ``init`` / ``initial`` / ``fixed`` / ``frame``: as for
+    :func:`solve` (with two or more fixed poses the optimum is a constrained one, which the
+    certificate does not cover).
     """
     # float32 cannot resolve a 1e-8 residual: CG would always run to its cap
     tol = 1e-8 if float64_enabled() else 1e-4
@@ -200,4 +273,6 @@ def centralized_optimum(
         grad_tol=grad_tol,
         # float32 stalls far above grad_tol: stop once a chunk no longer lowers f
         rel_decrease_tol=None if float64_enabled() else 1e-7,
+        fixed=fixed,
+        frame=frame,
     )

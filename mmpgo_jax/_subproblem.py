@@ -187,8 +187,12 @@ def _truncated_cg(hess, precond, grad, config: SubproblemConfig):
     return jax.lax.while_loop(cond, body, state)[1]
 
 
-def solve_subproblem(gamma, preconditioner, start, center, g, config: SubproblemConfig):
+def solve_subproblem(gamma, preconditioner, start, center, g, config: SubproblemConfig, free=None):
     """Decrease G^alpha(. | center) from ``start`` (on the manifold). Returns (Y, G(Y) - const).
+
+    ``free`` (n,) bool, optional: slots that may move; the others (fixed poses) keep their value
+    in ``start`` exactly (their tangent space is {0}, so the Newton system is solved on the free
+    slots only and the step is zero elsewhere).
 
     Pose arrays are stacked (n, d, d+1); ``g`` is the (possibly extrapolated) Euclidean gradient
     of F at ``center``; ``gamma`` is Gamma^alpha (``GammaOperator`` or its ``GammaSoA`` form) and
@@ -204,15 +208,19 @@ def solve_subproblem(gamma, preconditioner, start, center, g, config: Subproblem
     def newton_step(_, carry):
         Y, G_Y = carry
         egrad = gamma(Y - center) + g
-        rgrad = _tangent_soa(Y, egrad)
+
+        def tangent(V):
+            return _tangent_soa(Y, V) if free is None else jnp.where(free, _tangent_soa(Y, V), 0.0)
+
+        rgrad = tangent(egrad)
         weingarten = _sym0(soa_bmm(soa_T(Y[:, 1:]), egrad[:, 1:]))
 
         def hess(V):
             HV = gamma(V)
-            return _tangent_soa(Y, HV.at[:, 1:].add(-soa_bmm(V[:, 1:], weingarten)))
+            return tangent(HV.at[:, 1:].add(-soa_bmm(V[:, 1:], weingarten)))
 
         def precond(V):
-            return _tangent_soa(Y, precond_soa(V))
+            return tangent(precond_soa(V))
 
         V = _truncated_cg(hess, precond, rgrad, config)
 
@@ -223,6 +231,8 @@ def solve_subproblem(gamma, preconditioner, start, center, g, config: Subproblem
         def bt_body(state):
             k, Ybest, Gbest, _ = state
             Yc = _retract_soa(Y, (0.5**k) * V)
+            if free is not None:  # re-projecting a fixed rotation would change its last bits
+                Yc = jnp.where(free, Yc, Y)
             Gc = _value_soa(gamma, Yc, center, g)
             ok = Gc <= G_Y
             return k + 1, jnp.where(ok, Yc, Ybest), jnp.where(ok, Gc, Gbest), ok

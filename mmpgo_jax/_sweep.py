@@ -44,12 +44,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._gauge import FixedPoses
 from ._initialization import initialize
 from ._majorization import build_gamma_operator, stack, unstack
 from ._metrics import absolute_trajectory_error, relative_pose_error
 from ._mm import MMConfig, MMProblem, evaluate, init_state, run
 from ._partition import Partition, partition
 from ._pose_graph import PoseGraph, Poses
+from ._solve import NonFiniteError, output_frame
 from ._subproblem import SubproblemConfig
 
 __all__ = ["sweep", "SweepResult", "reference_optimum", "TRACE_COUNTS", "default_max_batch_bytes"]
@@ -207,8 +209,8 @@ def _write_csv(path, columns, rows) -> None:
 # ----------------------------------------------------------------------------------------------
 
 
-def _normalize_graphs(graphs) -> tuple[list[str], list[PoseGraph], dict[str, Poses]]:
-    """-> names, graphs, ground truths found on SyntheticDataset-like inputs."""
+def _normalize_graphs(graphs) -> tuple[list[str], list[PoseGraph], dict[str, Poses], dict[str, FixedPoses | None]]:
+    """-> names, graphs, ground truths and fixed poses found on dataset-like inputs."""
     if isinstance(graphs, Mapping):
         items = list(graphs.items())
     else:
@@ -217,14 +219,16 @@ def _normalize_graphs(graphs) -> tuple[list[str], list[PoseGraph], dict[str, Pos
         items = []
         for k, g in enumerate(graphs):
             items.append((getattr(g, "name", None) or f"graph{k}", g))
-    names, out, gts = [], [], {}
+    names, out, gts, fixed = [], [], {}, {}
     for name, g in items:
         name = str(name)
         if name in names:
             raise ValueError(f"duplicate graph name {name!r}")
+        fixed[name] = None
         if hasattr(g, "graph") and isinstance(g.graph, PoseGraph):
             if getattr(g, "ground_truth", None) is not None:
                 gts[name] = g.ground_truth
+            fixed[name] = getattr(g, "fixed_poses", None)
             g = g.graph
         if not isinstance(g, PoseGraph):
             raise TypeError(f"graph {name!r}: expected a PoseGraph (or a dataset with .graph), got {type(g).__name__}")
@@ -235,7 +239,7 @@ def _normalize_graphs(graphs) -> tuple[list[str], list[PoseGraph], dict[str, Pos
     dims = {g.dim for g in out}
     if len(dims) > 1:
         raise ValueError(f"all graphs of a sweep must have the same dimension d, got {sorted(dims)}")
-    return names, out, gts
+    return names, out, gts, fixed
 
 
 def _per_graph(value, names, what):
@@ -290,6 +294,7 @@ def sweep(
     chunk_size: int = 50,
     group_by: Literal["method", "robots"] = "method",
     progress=None,
+    fixed: Mapping[str, FixedPoses] | Sequence[FixedPoses] | FixedPoses | None = None,
 ) -> SweepResult:
     """Run every (graph, robot count) configuration of each method as one batched computation.
 
@@ -304,14 +309,24 @@ def sweep(
     count) or "robots" (one per (method, robot count)). ``progress(message)`` is called with a
     line of text after each batch.
 
+    ``fixed``: per-graph :class:`~mmpgo_jax.FixedPoses` held by the start and every iteration
+    (default: a dataset's own ``fixed_poses``, e.g. a :class:`~mmpgo_jax.G2OFile`'s FIX lines).
+    Final poses are in the frame :func:`~mmpgo_jax.solve` reports by default.
+
     Equivalent, configuration by configuration, to ``solve(graph, robots, method=..., iterations,
-    init, xi, restart, subproblem)``.
+    init, xi, restart, subproblem, fixed)``.
     """
     if iterations < 0:
         raise ValueError(f"iterations must be >= 0, got {iterations}")
     if group_by not in ("method", "robots"):
         raise ValueError(f"group_by must be 'method' or 'robots', got {group_by!r}")
-    names, glist, gts = _normalize_graphs(graphs)
+    names, glist, gts, fixed_of = _normalize_graphs(graphs)
+    if fixed is not None:
+        fixed_of = _per_graph(fixed, names, "fixed")
+    for name, g in zip(names, glist):
+        if fixed_of.get(name) is not None:
+            fixed_of[name].check(g.num_poses, g.dim)
+    any_fixed = any(v is not None for v in fixed_of.values())
     d = glist[0].dim
     robots = [int(robots)] if np.ndim(robots) == 0 else list(dict.fromkeys(int(a) for a in robots))
     methods = [methods] if isinstance(methods, str) else list(dict.fromkeys(methods))
@@ -346,10 +361,11 @@ def sweep(
     starts: dict[int, Poses] = {}
 
     def start_of(gi: int, a: int) -> Poses:
+        fix = fixed_of[names[gi]]
         if isinstance(init, str) and init == "distributed-chordal":
-            return initialize(glist[gi], init, robots=a)
+            return initialize(glist[gi], init, robots=a, fixed=fix)
         if gi not in starts:
-            starts[gi] = initialize(glist[gi], init)
+            starts[gi] = initialize(glist[gi], init, fixed=fix)
         return starts[gi]
 
     histories: dict[tuple[str, int, str], np.ndarray] = {}
@@ -370,7 +386,10 @@ def sweep(
             def build(gi: int, a: int):
                 g = glist[gi]
                 part = partition(g, a, min_max_poses=n_max, min_max_edges=e_max, num_robots=A)
-                problem = MMProblem.build(part, xi, min_couplings=kc)
+                fix = fixed_of[names[gi]]
+                if fix is None and any_fixed:  # one pytree structure per batch: an all-free mask
+                    fix = np.zeros(g.num_poses, dtype=bool)
+                problem = MMProblem.build(part, xi, min_couplings=kc, fixed=fix)
                 return part, problem
 
             def batchable(problem: MMProblem, n_common: int) -> MMProblem:
@@ -387,7 +406,7 @@ def sweep(
                     num_poses=n_common,
                 )
                 return MMProblem(common, problem.gamma, problem.chain, problem.block_jacobi,
-                                 problem.gamma_soa, problem.block_jacobi_soa, problem.xi)
+                                 problem.gamma_soa, problem.block_jacobi_soa, problem.free, problem.xi)
 
             n_common = max(glist[k[0]].num_poses for k in gkeys)
             # bytes of one configuration (all have the same padded shape)
@@ -452,9 +471,12 @@ def sweep(
                     name = names[gi]
                     key = (name, a, method)
                     f = f_all[c]
+                    if not np.isfinite(f).all():
+                        raise NonFiniteError(f"sweep: f became non-finite for graph {name!r}, {a} robots, {method} "
+                                             f"(after iteration {int(np.flatnonzero(~np.isfinite(f))[0])})")
                     histories[key] = f
                     Xc = unstack(jnp.asarray(X_final[c]))
-                    poses = parts[c].gather(Xc)
+                    poses = output_frame(parts[c].gather(Xc), fixed_of[name], None)
                     final_poses[key] = poses
                     fs_ = fstars.get(name)
                     row = dict(graph=name, robots=a, method=method, iterations=iterations,

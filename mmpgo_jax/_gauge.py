@@ -1,0 +1,119 @@
+"""Fixed poses and the frame of a result.
+
+PGO is invariant to one rigid motion applied to all poses (the gauge). Two things pin it:
+
+* **Fixed poses** (g2o ``FIX`` lines, :class:`FixedPoses`): constraints. Every initialization
+  puts them at their values, and every solver keeps them there (their tangent space is {0}: the
+  inner solver never moves them). One fixed pose only fixes the gauge, so the optimum is the
+  unconstrained one; two or more constrain the problem itself.
+* **The frame of the result** (:func:`express_in_frame`): without fixed poses, the solvers'
+  iterates live in an arbitrary gauge (the start's). Results are moved rigidly so that one
+  reference pose takes a given value: for g2o files, the first pose at its VERTEX value (the
+  identity when it has none), so a solved trajectory overlays its input. The cost is unchanged.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import jax.numpy as jnp
+import numpy as np
+
+from ._pose_graph import Poses
+
+__all__ = ["FixedPoses", "express_in_frame"]
+
+
+@dataclass(frozen=True, eq=False)
+class FixedPoses:
+    """Poses held at given values: internal indices ``index`` (k,) ascending, ``R`` (k, d, d), ``t`` (k, d)."""
+
+    index: np.ndarray
+    R: np.ndarray
+    t: np.ndarray
+
+    def __post_init__(self):
+        index = np.asarray(self.index, dtype=np.int64).reshape(-1)
+        R = np.asarray(self.R, dtype=np.float64)
+        t = np.asarray(self.t, dtype=np.float64)
+        k = index.shape[0]
+        if R.ndim != 3 or R.shape[0] != k or R.shape[1] != R.shape[2] or t.shape != (k, R.shape[-1]):
+            raise ValueError(f"FixedPoses: need R (k, d, d) and t (k, d) for k = {k} indices, got {R.shape} and {t.shape}")
+        if k == 0:
+            raise ValueError("FixedPoses: at least one pose index is needed")
+        if np.unique(index).shape[0] != k or np.any(index < 0):
+            raise ValueError("FixedPoses: indices must be distinct and non-negative")
+        if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
+            raise ValueError("FixedPoses: values must be finite")
+        order = np.argsort(index)
+        object.__setattr__(self, "index", index[order])
+        object.__setattr__(self, "R", R[order])
+        object.__setattr__(self, "t", t[order])
+
+    @staticmethod
+    def identity(index, dim: int) -> "FixedPoses":
+        """``index`` held at R = I, t = 0."""
+        index = np.atleast_1d(np.asarray(index, dtype=np.int64))
+        k = index.shape[0]
+        return FixedPoses(index, np.broadcast_to(np.eye(dim), (k, dim, dim)).copy(), np.zeros((k, dim)))
+
+    @staticmethod
+    def from_poses(index, poses: Poses) -> "FixedPoses":
+        """``index`` held at their values in ``poses`` (n poses)."""
+        index = np.atleast_1d(np.asarray(index, dtype=np.int64))
+        return FixedPoses(index, np.asarray(poses.R, np.float64)[index], np.asarray(poses.t, np.float64)[index])
+
+    @property
+    def dim(self) -> int:
+        return self.R.shape[-1]
+
+    def __len__(self) -> int:
+        return self.index.shape[0]
+
+    def check(self, num_poses: int, dim: int) -> "FixedPoses":
+        """Validate against a graph of ``num_poses`` poses in dimension ``dim``; returns self."""
+        if self.dim != dim:
+            raise ValueError(f"fixed poses are {self.dim}D, the graph is {dim}D")
+        if self.index[-1] >= num_poses:
+            raise ValueError(f"fixed pose index {int(self.index[-1])} is out of range for {num_poses} poses")
+        return self
+
+    def mask(self, num_poses: int) -> np.ndarray:
+        """(n,) bool, True at the fixed poses."""
+        out = np.zeros(num_poses, dtype=bool)
+        out[self.index] = True
+        return out
+
+    def restrict(self, keep: np.ndarray) -> "FixedPoses | None":
+        """Re-indexed to the poses ``keep`` (ascending old indices) of a sub-graph; None if none is kept."""
+        keep = np.asarray(keep, dtype=np.int64)
+        new_index = np.full(int(max(keep.max(initial=-1), self.index.max())) + 1, -1)
+        new_index[keep] = np.arange(keep.shape[0])
+        mapped = new_index[self.index]
+        sel = mapped >= 0
+        if not sel.any():
+            return None
+        return FixedPoses(mapped[sel], self.R[sel], self.t[sel])
+
+    def apply(self, poses: Poses) -> Poses:
+        """``poses`` with the fixed poses set to their values (same dtype)."""
+        R = jnp.asarray(poses.R)
+        t = jnp.asarray(poses.t)
+        return Poses(R.at[self.index].set(jnp.asarray(self.R, R.dtype)), t.at[self.index].set(jnp.asarray(self.t, t.dtype)))
+
+
+def express_in_frame(poses: Poses, frame: FixedPoses) -> Poses:
+    """``poses`` moved rigidly (g -> T g) so that pose ``frame.index[0]`` equals its value in ``frame``.
+
+    T = g_ref_target g_ref^-1; the PGO cost is invariant to it. Computed in float64 on the host.
+    """
+    R = np.asarray(poses.R, dtype=np.float64)
+    t = np.asarray(poses.t, dtype=np.float64)
+    k = int(frame.index[0])
+    # T = (Ra, ta) with Ra R_k = R_target, Ra t_k + ta = t_target
+    Ra = frame.R[0] @ R[k].T
+    ta = frame.t[0] - Ra @ t[k]
+    R_new = np.einsum("ab,nbc->nac", Ra, R)
+    t_new = t @ Ra.T + ta
+    dt = jnp.asarray(poses.R).dtype
+    return Poses(jnp.asarray(R_new, dt), jnp.asarray(t_new, dt))
