@@ -2,7 +2,7 @@
 
 Public API (the private modules are implementation details):
 
-* data: :class:`PoseGraph`, :class:`Poses`, :func:`read_g2o`, :func:`write_g2o`, :func:`write_tum`,
+* data: :class:`PoseGraph`, :class:`Poses`, :func:`read_g2o`, :func:`read_g2o_poses`, :func:`write_g2o`, :func:`write_tum`,
   :func:`find_benchmark`, :data:`BENCHMARKS`, :func:`cube_dataset`, :func:`grid_2d_dataset`
 * objective: :func:`cost` (f = 2F), :func:`objective` (F), gradients, :func:`data_matrix`
 * gauge: :class:`FixedPoses` (g2o FIX), :func:`express_in_frame`, :func:`output_frame`
@@ -22,7 +22,7 @@ from ._certificate import OptimalityCertificate, certificate_matrix, certify
 from ._datasets import BENCHMARKS, DatasetNotFoundError, available_benchmarks, benchmark_info, data_dir, find_benchmark
 from ._distributed_chordal import distributed_chordal_initialization
 from ._gauge import FixedPoses, express_in_frame
-from ._g2o import G2OFile, G2OFormatError, read_g2o, write_g2o, write_tum
+from ._g2o import G2OFile, G2OFormatError, G2OPoses, G2OWarning, read_g2o, read_g2o_poses, write_g2o, write_tum
 from ._geometry import project_to_so, quaternion_to_rotation, rotation_2d
 from ._initialization import chordal_initialization, initialize, load_poses, odometry_initialization
 from ._metrics import (
@@ -86,6 +86,8 @@ __all__ = [
     "float64_enabled",
     "G2OFile",
     "G2OFormatError",
+    "G2OPoses",
+    "G2OWarning",
     "grid_2d_dataset",
     "History",
     "init_state",
@@ -109,6 +111,7 @@ __all__ = [
     "project_to_so",
     "quaternion_to_rotation",
     "read_g2o",
+    "read_g2o_poses",
     "reference_optimum",
     "relative_pose_error",
     "RelativePoseError",

@@ -7,43 +7,121 @@ Supported lines (anything else is an error):
 - ``EDGE_SE3:QUAT i j x y z qx qy qz qw`` + the 21 entries of the upper triangle of the 6x6
   information matrix, row by row (translation block first, then rotation)
 - ``VERTEX_SE3:QUAT id x y z qx qy qz qw``
-- ``FIX id ...``, blank lines, and comment lines starting with ``#``.
+- ``FIX id ...``, blank lines, and comment lines (first field starts with ``#``).
 
-Measurement weights follow SE-Sync (NOTES §1): for SE2, tau = 2 / tr(inv(I[:2, :2])) and
-kappa = I33; for SE3, tau = 3 / tr(inv(I[:3, :3])) and kappa = 3 / (2 tr(inv(I[3:, 3:]))).
+Measurement weights follow SE-Sync's convention (SE-Sync's g2o reader, ``read_g2o_file`` in
+``C++/SE-Sync/src/SESync_utils.cpp`` of github.com/david-m-rosen/SE-Sync; Rosen, Carlone, Bandeira
+and Leonard, "SE-Sync: a certifiably correct algorithm for synchronization over the special
+Euclidean group", IJRR 38(2-3), 2019): for SE2, tau = 2 / tr(inv(I[:2, :2]))
+and kappa = I33; for SE3, tau = 3 / tr(inv(I[:3, :3])) and kappa = 3 / (2 tr(inv(I[3:, 3:]))).
 Vertex ids are remapped to 0..n-1 in ascending order of the original id; the original ids are
 kept in :attr:`G2OFile.vertex_ids` and written back by :func:`write_g2o`.
 
+Input rules
+-----------
+
+Lines and fields
+
+- The file is read as bytes; a UTF-8 byte order mark at the start is skipped. Lines end with
+  LF or CRLF. Fields are separated by ASCII whitespace only (space, tab, CR, VT, FF): other
+  (Unicode) spaces are part of a field.
+- Blank lines and lines whose first field starts with ``#`` are ignored. Any other line must
+  start with one of the tags above and have exactly that tag's number of fields. 2D and 3D
+  tags cannot be mixed.
+
+Numbers (the syntax of C ``strtod`` / ``strtol``, ASCII only, as read by SE-Sync's
+C++ stream extraction in the C locale)
+
+- Values: ``[+-]?([0-9]+(\\.[0-9]*)?|\\.[0-9]+)([eE][+-]?[0-9]+)?``. Refused, as "not a
+  number": digit-group underscores (``1_016.030``), non-ASCII digits (fullwidth ``１``,
+  Arabic-Indic ``٣``), hexadecimal, and everything else. ``nan`` and ``inf`` / ``infinity``
+  (any case, signed) are refused as "not finite"; a number whose magnitude overflows float64
+  (``1e400``) is refused as "out of range". Values that underflow read as 0 or a subnormal
+  (allowed in measurements and VERTEX values; information entries have their own rule below).
+- Vertex ids (edges, VERTEX and FIX lines): ASCII integers ``[+-]?digits``; an id outside the
+  int64 range is refused as "out of range", anything else as "not an integer vertex id".
+- Fields quoted in messages are shortened to their first 40 characters, followed by ``…`` and
+  their length.
+
+Values
+
+- Edges: no self-loops (i == j). Duplicate edges are kept. Duplicate VERTEX ids are refused.
+  FIX ids must name a vertex that has a VERTEX or EDGE line.
+- Quaternions (edges and VERTEX_SE3:QUAT) are normalised without overflow or underflow: divided
+  by their largest absolute component first, then by their norm (so a quaternion scaled by 1e200
+  reads as the unscaled one). A quaternion whose norm (computed that way) is below
+  ``QUATERNION_NORM_MIN`` = 1e-12, all-subnormal ones included, is refused as "zero norm".
+- Translations: refused when ``|t|^2`` (VERTEX and edge) or ``tau |t|^2`` (edge; and, in
+  :func:`read_g2o`, a VERTEX translation with the tau of every edge at that vertex) is not
+  representable (larger than the float dtype's maximum): the squared residuals must be
+  representable.
+- Information matrices (SE-Sync's convention, which uses them as they are even when they are
+  indefinite, as about 30 % of the 3D benchmark "cubicle"'s are). An edge is accepted when
+
+  1. every diagonal entry is positive;
+  2. every nonzero entry has a magnitude between ``INFORMATION_MIN`` = 1e-300 and
+     ``INFORMATION_MAX`` = 1e300 (subnormal entries and entries so large that products in the
+     weights or the weighted squared residuals overflow are refused);
+  3. the translation block (and, in 3D, the rotation block) has a finite inverse, and the
+     weights kappa and tau computed from it are positive, finite and between ``WEIGHT_MIN`` =
+     1e-300 and ``WEIGHT_MAX`` = 1e300 (and, for a float32 graph, within float32's normal
+     range). A 2D block with I12^2 >= I11 I22 gives tau <= 0 or a singular block and is refused.
+
+  The matrices that pass but are not positive definite (smallest eigenvalue <= k eps |largest|
+  for a k x k matrix) are counted in :attr:`G2OFile.num_indefinite_information`, and
+  :func:`read_g2o` emits one :class:`G2OWarning` per file saying how many. With
+  ``read_g2o(path, strict_information=True)`` every such matrix is refused instead ("information
+  matrix is not positive definite").
+
 Parsing tokenises each line once in Python and converts and checks the numbers with vectorised
-numpy operations; per-line work is only done to locate the offending line when a check fails.
-Every malformed input raises :class:`G2OFormatError` with the file, the 1-based line number and a
-specific description of the problem.
+numpy operations (one C-level character-set check per group of lines and ``float``/``int``
+conversions; the regular expressions are only used on the slow path that locates the offending
+field); per-line work is only done to locate the offending line when a check fails. Every
+malformed input raises :class:`G2OFormatError` with the file, the 1-based line number and a
+specific description of the problem: the earliest line with a problem, and on that line the
+first failing check (in the order: field syntax, finite values, self-loop, quaternion, |t|^2,
+information diagonal, information entry range, positive definiteness when strict, tau, kappa,
+tau |t|^2).
 """
 
 from __future__ import annotations
 
+import math
 import os
+import re
+import warnings
 from dataclasses import dataclass
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
 from ._atomic import atomic_write
-from ._geometry import quaternion_to_rotation, rotation_2d, rotation_to_quaternion
+from ._geometry import rotation_to_quaternion
+from ._gauge import FixedPoses
 from ._pose_graph import PoseGraph, Poses
 
 __all__ = [
     "G2OFile",
     "G2OFormatError",
+    "G2OPoses",
+    "G2OWarning",
     "information_from_weights",
     "read_g2o",
+    "read_g2o_poses",
     "write_g2o",
     "write_tum",
 ]
 
 # Quaternions with a norm below this cannot be normalised meaningfully.
 QUATERNION_NORM_MIN = 1e-12
+# Nonzero information entries must lie in this magnitude range (no subnormals, no overflow).
+INFORMATION_MIN = 1e-300
+INFORMATION_MAX = 1e300
+# The weights kappa and tau must lie in this range.
+WEIGHT_MIN = 1e-300
+WEIGHT_MAX = 1e300
+# Fields quoted in error messages are shortened to this many characters.
+_SHOW_MAX = 40
 
 
 class G2OFormatError(ValueError):
@@ -65,6 +143,10 @@ class G2OFormatError(ValueError):
         return (type(self), (self.path, self.line, self.problem))
 
 
+class G2OWarning(UserWarning):
+    """A g2o file that is read, but with a caveat (e.g. indefinite information matrices)."""
+
+
 @dataclass(frozen=True, eq=False)
 class G2OFile:
     """The content of a g2o file.
@@ -73,7 +155,11 @@ class G2OFile:
     internal pose k (ascending). ``information`` holds the full symmetric information matrices as
     read ((m, 3, 3) for SE2, (m, 6, 6) for SE3). ``initial`` holds the VERTEX estimates when every
     pose has a VERTEX line (else None; ``has_vertex`` says which do). ``fixed`` marks poses named
-    in FIX lines.
+    in FIX lines. ``num_indefinite_information`` counts the information matrices that are not
+    positive definite (accepted under SE-Sync's convention, see the module docstring).
+    ``vertex_R`` (n, d, d) and ``vertex_t`` (n, d), float64, hold the VERTEX value of every pose
+    that has a VERTEX line, and the identity / zero for the others (always filled by
+    :func:`read_g2o`).
     """
 
     path: str | None
@@ -84,6 +170,9 @@ class G2OFile:
     initial: Poses | None
     has_vertex: np.ndarray
     fixed: np.ndarray
+    num_indefinite_information: int = 0
+    vertex_R: np.ndarray | None = None
+    vertex_t: np.ndarray | None = None
 
     @property
     def num_poses(self) -> int:
@@ -92,6 +181,49 @@ class G2OFile:
     @property
     def num_edges(self) -> int:
         return self.graph.num_edges
+
+    def _vertex_values(self) -> tuple[np.ndarray, np.ndarray]:
+        n, d = self.num_poses, self.dim
+        if self.vertex_R is not None:
+            return self.vertex_R, self.vertex_t
+        return np.broadcast_to(np.eye(d), (n, d, d)), np.zeros((n, d))
+
+    @property
+    def fixed_poses(self) -> FixedPoses | None:
+        """The FIX poses at their VERTEX values (the identity where a FIX pose has none), or None."""
+        if not self.fixed.any():
+            return None
+        R, t = self._vertex_values()
+        idx = np.flatnonzero(self.fixed)
+        return FixedPoses(idx, R[idx], t[idx])
+
+    @property
+    def frame(self) -> FixedPoses:
+        """The frame results are expressed in: the FIX poses if any, else the first pose (smallest
+        id) at its VERTEX value, or at the identity when it has no VERTEX line."""
+        fixed = self.fixed_poses
+        if fixed is not None:
+            return fixed
+        R, t = self._vertex_values()
+        return FixedPoses([0], R[:1], t[:1])
+
+
+@dataclass(frozen=True, eq=False)
+class G2OPoses:
+    """The VERTEX lines of a g2o file (:func:`read_g2o_poses`).
+
+    ``vertex_ids`` (k,) int64 ascending, ``R`` (k, d, d) and ``t`` (k, d) float64.
+    """
+
+    path: str
+    dim: int
+    vertex_ids: np.ndarray
+    R: np.ndarray
+    t: np.ndarray
+
+    @property
+    def num_poses(self) -> int:
+        return int(self.vertex_ids.shape[0])
 
 
 # ----------------------------------------------------------------------------------------------
@@ -113,6 +245,11 @@ class _Format:
     def num_ids(self) -> int:
         return 2 if self.is_edge else 1
 
+    @property
+    def information_start(self) -> int:
+        """Index (among the values, ids excluded) of I11 (edges only)."""
+        return 3 if self.dim == 2 else 7
+
 
 _FORMATS = {
     f.tag: f
@@ -125,6 +262,7 @@ _FORMATS = {
         _Format("VERTEX_SE3:QUAT", 3, False, ("id", "x", "y", "z", "qx", "qy", "qz", "qw")),
     )
 }
+_FORMATS_BYTES = {tag.encode("ascii"): f for tag, f in _FORMATS.items()}
 _EDGE_TAG = {2: "EDGE_SE2", 3: "EDGE_SE3:QUAT"}
 _VERTEX_TAG = {2: "VERTEX_SE2", 3: "VERTEX_SE3:QUAT"}
 _KNOWN = ", ".join(_FORMATS) + " or FIX"
@@ -153,19 +291,8 @@ def _full_to_upper(full: np.ndarray) -> np.ndarray:
 # Weights
 
 
-def _weights(info: np.ndarray, dim: int) -> tuple[np.ndarray, np.ndarray]:
-    """SE-Sync's (kappa, tau) from full information matrices (NOTES §1)."""
-    if dim == 2:
-        tau = 2.0 / np.trace(np.linalg.inv(info[:, :2, :2]), axis1=1, axis2=2)
-        kappa = info[:, 2, 2].copy()
-    else:
-        tau = 3.0 / np.trace(np.linalg.inv(info[:, :3, :3]), axis1=1, axis2=2)
-        kappa = 3.0 / (2.0 * np.trace(np.linalg.inv(info[:, 3:, 3:]), axis1=1, axis2=2))
-    return kappa, tau
-
-
 def information_from_weights(kappa, tau, dim: int) -> np.ndarray:
-    """Isotropic information matrices that map back to (kappa, tau) under NOTES §1.
+    """Isotropic information matrices that map back to (kappa, tau) under SE-Sync's convention.
 
     SE2: diag(tau, tau, kappa), shape (m, 3, 3). SE3: diag(tau, tau, tau, 2 kappa, 2 kappa,
     2 kappa), shape (m, 6, 6).
@@ -187,67 +314,121 @@ def information_from_weights(kappa, tau, dim: int) -> np.ndarray:
     return info
 
 
+def _inverse_trace(blocks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """tr(inv(B)) of a stack of square blocks, and a mask of the blocks whose inverse is not finite.
+
+    ``np.linalg.inv`` (LAPACK LU, as Eigen's inverse in SE-Sync) on the whole stack; only when
+    some block is exactly singular are those found (zero or non-finite determinant) and replaced
+    by the identity, so that the others are still inverted in one call.
+    """
+    bad = np.zeros(blocks.shape[0], dtype=bool)
+    try:
+        inv = np.linalg.inv(blocks)
+    except np.linalg.LinAlgError:
+        det = np.linalg.det(blocks)
+        bad = ~(np.isfinite(det) & (det != 0))
+        blocks = np.where(bad[:, None, None], np.eye(blocks.shape[-1]), blocks)
+        try:
+            inv = np.linalg.inv(blocks)
+        except np.linalg.LinAlgError:  # a zero pivot that the determinant did not show
+            inv = np.empty_like(blocks)
+            for r in range(blocks.shape[0]):
+                try:
+                    inv[r] = np.linalg.inv(blocks[r])
+                except np.linalg.LinAlgError:
+                    inv[r] = np.eye(blocks.shape[-1])
+                    bad[r] = True
+    bad |= ~np.isfinite(inv).all(axis=(1, 2))
+    return np.trace(inv, axis1=1, axis2=2), bad
+
+
 # ----------------------------------------------------------------------------------------------
-# Reader
+# Reader: tokens and numbers
+
+# (unambiguous, with possessive quantifiers: linear time even on a field of megabytes)
+_NUMBER_RE = re.compile(rb"[+-]?(?:[0-9]++(?:\.[0-9]*+)?|\.[0-9]++)(?:[eE][+-]?[0-9]++)?")
+_NONFINITE_RE = re.compile(rb"[+-]?(?:nan|inf|infinity)", re.IGNORECASE)
+_INTEGER_RE = re.compile(rb"[+-]?[0-9]++")
+# The characters of ASCII numbers / integers (and the space that joins tokens): a group of lines
+# whose joined fields contain nothing else takes the fast path (float / int of each field, which
+# on these characters accept exactly the syntax of _NUMBER_RE / _INTEGER_RE).
+_NUMBER_CHARS = b"0123456789+-.eE "
+_INTEGER_CHARS = b"0123456789+- "
+_INT64_MIN, _INT64_MAX = -(2**63), 2**63 - 1
+
+
+def _show(tok) -> str:
+    """A field for a message: its repr, shortened to its first characters (and its length) if long."""
+    s = tok.decode("utf-8", errors="replace") if isinstance(tok, (bytes, bytearray)) else str(tok)
+    if len(s) <= _SHOW_MAX:
+        return repr(s)
+    return f"{s[:_SHOW_MAX]!r}… ({len(s)} characters)"
+
+
+def _parse_id(tok: bytes) -> int | str:
+    """An ASCII int64 vertex id, or the problem with it ("is ...")."""
+    if not _INTEGER_RE.fullmatch(tok):
+        return f"is not an integer vertex id: {_show(tok)}"
+    if len(tok.lstrip(b"+-").lstrip(b"0")) <= 19:
+        v = int(tok)
+        if _INT64_MIN <= v <= _INT64_MAX:
+            return v
+    return f"is out of range: {_show(tok)} (vertex ids must fit in a signed 64-bit integer)"
 
 
 class _Group:
-    """The lines of one tag: line numbers and token lists (tag excluded)."""
+    """The lines of one tag: line numbers and token lists (tag excluded), then the checked arrays."""
 
-    __slots__ = ("fmt", "lines", "rows", "ids", "vals", "ok")
+    __slots__ = ("fmt", "ids", "info", "kappa", "lines", "ok", "pd", "quat", "rows", "tau", "tn2", "vals")
 
     def __init__(self, fmt: _Format):
         self.fmt = fmt
         self.lines: list[int] = []
-        self.rows: list[list[str]] = []
-
-
-def _is_int_token(tok: str) -> bool:
-    try:
-        int(tok)
-    except ValueError:
-        return False
-    return True
+        self.rows: list[list[bytes]] = []
 
 
 def _convert(group: _Group, problems: list) -> None:
     """Convert a group's tokens to ids (int64) and values (float64), vectorised.
 
-    Rows that cannot be converted are reported in ``problems`` and masked out in ``group.ok``.
+    The first row that cannot be converted is reported in ``problems``; it and the rows after it
+    are masked out in ``group.ok`` (any problem there is on a later line).
     """
     fmt = group.fmt
     k = len(group.rows)
     nid, nval = fmt.num_ids, len(fmt.fields) - fmt.num_ids
     group.ok = np.ones(k, dtype=bool)
-    try:
-        ids = np.fromiter(map(int, (t for r in group.rows for t in r[:nid])), np.int64, k * nid)
-        vals = np.fromiter(map(float, (t for r in group.rows for t in r[nid:])), np.float64, k * nval)
-        group.ids = ids.reshape(k, nid)
-        group.vals = vals.reshape(k, nval)
-        return
-    except (ValueError, OverflowError):
-        pass
-    # Slow path: locate the offending rows.
+    id_toks = [t for r in group.rows for t in r[:nid]]
+    val_toks = [t for r in group.rows for t in r[nid:]]
+    if not b" ".join(id_toks).translate(None, _INTEGER_CHARS) and not b" ".join(val_toks).translate(
+        None, _NUMBER_CHARS
+    ):
+        try:
+            group.ids = np.fromiter(map(int, id_toks), np.int64, k * nid).reshape(k, nid)
+            group.vals = np.fromiter(map(float, val_toks), np.float64, k * nval).reshape(k, nval)
+            return
+        except (ValueError, OverflowError):
+            pass
+    # Slow path: locate the first offending field.
     ids = np.zeros((k, nid), dtype=np.int64)
     vals = np.zeros((k, nval), dtype=np.float64)
     for r, (line, row) in enumerate(zip(group.lines, group.rows)):
         for f, tok in enumerate(row):
-            name = fmt.fields[f]
+            where = f"{fmt.tag}: field {f + 1} ({fmt.fields[f]})"
             if f < nid:
-                try:
-                    ids[r, f] = int(tok)
+                v = _parse_id(tok)
+                if isinstance(v, int):
+                    ids[r, f] = v
                     continue
-                except (ValueError, OverflowError):
-                    kind = "not an integer" if not _is_int_token(tok) else "out of range"
-                    problems.append((line, f"{fmt.tag}: field {f + 1} ({name}) is {kind} vertex id: {tok!r}"))
+                problem = f"{where} {v}"
+            elif _NUMBER_RE.fullmatch(tok) or _NONFINITE_RE.fullmatch(tok):
+                vals[r, f - nid] = float(tok)  # non-finite values are reported by _check_values
+                continue
             else:
-                try:
-                    vals[r, f - nid] = float(tok)
-                    continue
-                except ValueError:
-                    problems.append((line, f"{fmt.tag}: field {f + 1} ({name}) is not a number: {tok!r}"))
-            group.ok[r] = False
-            break
+                problem = f"{where} is not a number: {_show(tok)}"
+            problems.append((line, problem))
+            group.ok[r:] = False
+            group.ids, group.vals = ids, vals
+            return
     group.ids, group.vals = ids, vals
 
 
@@ -256,128 +437,297 @@ def _first(mask: np.ndarray) -> int | None:
     return int(idx[0]) if idx.size else None
 
 
-def _check_values(group: _Group, problems: list) -> None:
-    """Non-finite values, self-loops, zero quaternions, non-positive-definite information."""
-    fmt, ok, vals = group.fmt, group.ok, group.vals
-    nid = fmt.num_ids
+def _g(x) -> str:
+    return f"{float(x):.6g}"
+
+
+# ----------------------------------------------------------------------------------------------
+# Reader: checks
+
+
+@dataclass(frozen=True)
+class _Limits:
+    """What the float dtype of the result can represent (squared residuals, weights)."""
+
+    dtype_name: str
+    square_max: float  # |t|^2 and tau |t|^2 must not exceed this
+    weight_min: float
+    weight_max: float
+
+    @staticmethod
+    def of(dtype) -> _Limits:
+        fi = np.finfo(dtype)
+        return _Limits(
+            np.dtype(dtype).name,
+            float(fi.max),
+            max(WEIGHT_MIN, float(fi.tiny)),
+            min(WEIGHT_MAX, float(fi.max)),
+        )
+
+
+def _check_values(group: _Group, problems: list, strict: bool, limits: _Limits) -> None:
+    """Value checks of one group (vectorised); fills the group's quaternions, weights, ...
+
+    In each line the checks run in this order and only the first failure is reported: finite
+    values, self-loop, quaternion norm, |t|^2, information diagonal, information entry range,
+    positive definiteness (``strict`` only), translation-block inverse and tau, rotation-block
+    inverse and kappa, tau |t|^2.
+    """
+    fmt, vals = group.fmt, group.vals
+    nid, d = fmt.num_ids, fmt.dim
     k = vals.shape[0]
+    ok = group.ok
+    lines = group.lines
     if k == 0:
+        ksz = _info_size(d)
+        group.quat, group.tn2, group.info = np.zeros((0, 4)), np.zeros(0), np.zeros((0, ksz, ksz))
+        group.kappa, group.tau, group.pd = np.zeros(0), np.zeros(0), np.ones(0, dtype=bool)
         return
 
     def report(bad: np.ndarray, message) -> None:
-        r = _first(bad & ok)
+        nonlocal ok
+        bad = bad & ok
+        r = _first(bad)
         if r is not None:
-            problems.append((group.lines[r], message(r)))
+            problems.append((lines[r], f"{fmt.tag}: {message(r)}"))
+            ok = ok & ~bad  # later checks are meaningless on such rows
 
-    finite = np.isfinite(vals)
-    if not finite.all():
-        bad_rows = ~finite.all(axis=1)
-        r = _first(bad_rows & ok)
-        if r is not None:
-            f = int(np.flatnonzero(~finite[r])[0])
-            problems.append(
-                (group.lines[r], f"{fmt.tag}: field {f + nid + 1} ({fmt.fields[f + nid]}) is not finite: {float(vals[r, f])!r}")
+    def name(v: int) -> str:  # value index -> field name
+        return fmt.fields[v + nid]
+
+    def token(r: int, v: int) -> bytes:
+        return group.rows[r][v + nid]
+
+    with np.errstate(all="ignore"):
+        finite = np.isfinite(vals)
+
+        def nonfinite_message(r: int) -> str:
+            v = int(np.flatnonzero(~finite[r])[0])
+            tok = token(r, v)
+            if _NUMBER_RE.fullmatch(tok):
+                return f"field {v + nid + 1} ({name(v)}) is out of range (its magnitude overflows float64): {_show(tok)}"
+            return f"field {v + nid + 1} ({name(v)}) is not finite: {float(vals[r, v])!r}"
+
+        report(~finite.all(axis=1), nonfinite_message)
+        vals = np.where(ok[:, None], vals, 0.0)
+        if fmt.is_edge:
+            report(group.ids[:, 0] == group.ids[:, 1], lambda r: f"self-loop edge (i == j == {group.ids[r, 0]})")
+
+        # quaternions: divide by the largest |component|, then by the norm
+        if d == 3:
+            q = vals[:, 3:7]
+            scale = np.abs(q).max(axis=1)
+            qs = q / np.where(scale > 0, scale, 1.0)[:, None]
+            qn = np.sqrt(np.einsum("ka,ka->k", qs, qs))  # in [1, 2] when scale > 0
+            qnorm = scale * qn
+            report(
+                ~(qnorm >= QUATERNION_NORM_MIN),
+                lambda r: (
+                    f"quaternion (qx, qy, qz, qw) has zero norm "
+                    f"(|q| = {qnorm[r]:.3g} < {QUATERNION_NORM_MIN:g}), cannot be normalised"
+                ),
             )
-        ok = ok & ~bad_rows  # later checks are meaningless on such rows
-    if fmt.is_edge:
-        report(
-            group.ids[:, 0] == group.ids[:, 1],
-            lambda r: f"{fmt.tag}: self-loop edge (i == j == {group.ids[r, 0]})",
-        )
-    if fmt.dim == 3:
-        qnorm = np.linalg.norm(vals[:, 3:7], axis=1)  # x y z qx qy qz qw, edges and vertices
-        report(
-            qnorm < QUATERNION_NORM_MIN,
-            lambda r: (
-                f"{fmt.tag}: quaternion (qx, qy, qz, qw) has zero norm "
-                f"(|q| = {qnorm[r]:.3g} < {QUATERNION_NORM_MIN:g}), cannot be normalised"
-            ),
-        )
-    if fmt.is_edge:
-        ksz = _info_size(fmt.dim)
-        start = 3 if fmt.dim == 2 else 7
-        info = _upper_to_full(np.where(ok[:, None], vals[:, start:], 0.0), ksz)
+            group.quat = qs / np.where(qn > 0, qn, 1.0)[:, None]
+
+        # translations: the squared norm must be representable
+        t = vals[:, :d]
+        tn2 = np.einsum("ka,ka->k", t, t)
+        names = ", ".join(fmt.fields[nid : nid + d])
+
+        def too_large(r: int, what: str) -> str:
+            return (
+                f"translation ({names}) is too large: {what} overflows {limits.dtype_name} "
+                f"(|t| = {math.hypot(*t[r].tolist()):.3g}"
+            )
+
+        report(~(tn2 <= limits.square_max), lambda r: too_large(r, f"|t|^2 = {tn2[r]:.3g}") + ")")
+        group.tn2 = tn2
+        if not fmt.is_edge:
+            group.ok = ok
+            return
+
+        # information matrices
+        ksz = _info_size(d)
+        start = fmt.information_start
+        upper = vals[:, start:]
+        diag_pos = np.array([v for v, (r, c) in enumerate(zip(*np.triu_indices(ksz))) if r == c])
+        diag = upper[:, diag_pos]
+
+        def diag_message(r: int) -> str:
+            c = int(np.flatnonzero(~(diag[r] > 0))[0])
+            v = start + int(diag_pos[c])
+            tok = token(r, v)
+            mantissa = tok.lower().split(b"e")[0]
+            under = " (it underflows to 0)" if diag[r, c] == 0 and re.search(rb"[1-9]", mantissa) else ""
+            return (
+                f"information matrix is not positive definite: diagonal entry {name(v)} = "
+                f"{float(diag[r, c])!r} is not positive{under}"
+            )
+
+        report(~(diag > 0).all(axis=1), diag_message)
+        mag = np.abs(upper)
+        small = (mag != 0) & (mag < INFORMATION_MIN)
+        large = mag > INFORMATION_MAX
+
+        def range_message(r: int) -> str:
+            c = int(np.flatnonzero(small[r] | large[r])[0])
+            x = float(upper[r, c])
+            if small[r, c]:
+                why = f"is nonzero but below {INFORMATION_MIN:g} in magnitude (subnormal or underflowing)"
+            else:
+                why = f"is above {INFORMATION_MAX:g} in magnitude (the weights or the weighted squared residuals overflow)"
+            return f"information entry {name(start + c)} = {x!r} {why}"
+
+        report((small | large).any(axis=1), range_message)
+        info = _upper_to_full(np.where(ok[:, None], upper, 0.0), ksz)
         info[~ok] = np.eye(ksz)
         eig = np.linalg.eigvalsh(info)
         tol = ksz * np.finfo(np.float64).eps * np.abs(eig).max(axis=1)
+        not_pd = ~(eig[:, 0] > tol)
+        if strict:
+            report(
+                not_pd,
+                lambda r: (
+                    f"information matrix is not positive definite "
+                    f"(eigenvalues {np.array2string(eig[r], precision=4, separator=', ')})"
+                ),
+            )
+
+        def weight_checks(weight, bad_inverse, symbol: str, formula: str, block: str) -> None:
+            report(
+                bad_inverse,
+                lambda r: (
+                    f"the block {block} of the information matrix is singular or its inverse is not "
+                    f"representable (not positive definite): {symbol} = {formula} is undefined"
+                ),
+            )
+            report(
+                ~(weight > 0),
+                lambda r: (
+                    f"SE-Sync weight {symbol} = {formula} = {_g(weight[r])} is not positive "
+                    f"(the information matrix is not positive definite)"
+                ),
+            )
+            report(
+                ~((weight >= limits.weight_min) & (weight <= limits.weight_max)),
+                lambda r: (
+                    f"SE-Sync weight {symbol} = {formula} = {_g(weight[r])} is not representable: weights "
+                    f"must be finite and between {limits.weight_min:g} and {limits.weight_max:g} "
+                    f"({limits.dtype_name})"
+                ),
+            )
+
+        tr_t, bad_t = _inverse_trace(info[:, :d, :d])
+        tau = d / tr_t
+        weight_checks(tau, bad_t, "tau", f"{d} / tr(inv(I[:{d}, :{d}]))", f"I[:{d}, :{d}]")
+        if d == 2:
+            kappa = info[:, 2, 2].copy()
+            weight_checks(kappa, np.zeros(k, bool), "kappa", "I33", "I33")
+        else:
+            tr_r, bad_r = _inverse_trace(info[:, 3:, 3:])
+            kappa = 3.0 / (2.0 * tr_r)
+            weight_checks(kappa, bad_r, "kappa", "3 / (2 tr(inv(I[3:, 3:])))", "I[3:, 3:]")
+        wt = tau * tn2
         report(
-            ~(eig[:, 0] > tol),
-            lambda r: (
-                f"{fmt.tag}: information matrix is not positive definite "
-                f"(eigenvalues {np.array2string(eig[r], precision=4, separator=', ')})"
-            ),
+            ~(wt <= limits.square_max),
+            lambda r: too_large(r, f"tau |t|^2 = {wt[r]:.3g}") + f", tau = {_g(tau[r])})",
         )
+    group.info, group.kappa, group.tau = info, kappa, tau
+    group.pd = ~not_pd
     group.ok = ok
 
 
-def read_g2o(path, *, dtype=None) -> G2OFile:
-    """Read a 2D (SE2) or 3D (SE3:QUAT) g2o file; raises :class:`G2OFormatError` on bad input.
+# ----------------------------------------------------------------------------------------------
+# Reader: files
 
-    Float arrays of the graph and the initial poses use the JAX default float dtype unless
-    ``dtype`` is given; ``information`` is always float64.
-    """
-    spath = os.fspath(path)
+
+def _read_bytes(spath: str) -> bytes:
     try:
         with open(spath, "rb") as fh:
-            data = fh.read()
+            return fh.read()
     except FileNotFoundError:
         raise G2OFormatError(spath, None, "file not found") from None
     except IsADirectoryError:
         raise G2OFormatError(spath, None, "is a directory, not a g2o file") from None
     except OSError as exc:
         raise G2OFormatError(spath, None, f"cannot read file: {exc.strerror or exc}") from None
-    text = data.decode("utf-8-sig", errors="replace")
 
-    groups = {tag: _Group(fmt) for tag, fmt in _FORMATS.items()}
-    fix_lines: list[tuple[int, list[str]]] = []
+
+def _tokenise(spath: str, data: bytes):
+    """Split into lines and ASCII-whitespace fields; check tags, field counts and mixed dimensions.
+
+    Returns ``(groups, fix_lines, dim)`` (``dim`` None when there are no VERTEX / EDGE lines).
+    """
+    if data.startswith(b"\xef\xbb\xbf"):
+        data = data[3:]
+    groups = {tag: _Group(fmt) for tag, fmt in _FORMATS_BYTES.items()}
+    fix_lines: list[tuple[int, list[bytes]]] = []
     dim = None
     dim_first: tuple[int, str] | None = None  # (line, tag) of the first pose line
-    # ---- tokenise (and check tags, field counts and mixed dimensions) in file order
-    for lineno, raw in enumerate(text.split("\n"), 1):
+    for lineno, raw in enumerate(data.split(b"\n"), 1):
         toks = raw.split()
         if not toks:
             continue
         tag = toks[0]
-        if tag[0] == "#":
+        if tag[0] == 0x23:  # '#'
             continue
         group = groups.get(tag)
         if group is None:
-            if tag == "FIX":
+            if tag == b"FIX":
                 if len(toks) < 2:
                     raise G2OFormatError(spath, lineno, "FIX line names no vertex id")
                 fix_lines.append((lineno, toks[1:]))
                 continue
-            raise G2OFormatError(spath, lineno, f"unknown tag {tag!r} (expected {_KNOWN})")
+            raise G2OFormatError(spath, lineno, f"unknown tag {_show(tag)} (expected {_KNOWN})")
         fmt = group.fmt
         if len(toks) - 1 != len(fmt.fields):
             raise G2OFormatError(
                 spath,
                 lineno,
-                f"wrong number of fields for {tag}: expected {len(fmt.fields)} after the tag, got {len(toks) - 1}",
+                f"wrong number of fields for {fmt.tag}: expected {len(fmt.fields)} after the tag, got {len(toks) - 1}",
             )
         if dim != fmt.dim:
             if dim is None:
-                dim, dim_first = fmt.dim, (lineno, tag)
+                dim, dim_first = fmt.dim, (lineno, fmt.tag)
             else:
                 raise G2OFormatError(
                     spath,
                     lineno,
-                    f"mixed 2D and 3D tags: {tag} here, but {dim_first[1]} on line {dim_first[0]}",
+                    f"mixed 2D and 3D tags: {fmt.tag} here, but {dim_first[1]} on line {dim_first[0]}",
                 )
         group.lines.append(lineno)
         group.rows.append(toks[1:])
+    return groups, fix_lines, dim
 
+
+@dataclass
+class _Parsed:
+    dim: int
+    edges: _Group
+    vertices: _Group
+    vertex_ids: np.ndarray  # sorted unique ids of all VERTEX and EDGE lines
+    fixed: np.ndarray  # (n,) bool
+
+
+def _parse(spath: str, *, need: str, strict: bool, limits: _Limits) -> _Parsed:
+    """Read, tokenise, convert and check a g2o file; raise the earliest problem.
+
+    ``need`` is "edges" (:func:`read_g2o`) or "vertices" (:func:`read_g2o_poses`).
+    """
+    groups, fix_lines, dim = _tokenise(spath, _read_bytes(spath))
     if dim is None:
         raise G2OFormatError(spath, None, "empty file: no VERTEX or EDGE lines")
-    eg, vg = groups[_EDGE_TAG[dim]], groups[_VERTEX_TAG[dim]]
-    if not eg.rows:
+    eg, vg = groups[_EDGE_TAG[dim].encode()], groups[_VERTEX_TAG[dim].encode()]
+    if need == "edges" and not eg.rows:
         raise G2OFormatError(spath, None, f"no edges: the file has no {eg.fmt.tag} lines")
+    if need == "vertices" and not vg.rows:
+        raise G2OFormatError(spath, None, f"no poses: the file has no {vg.fmt.tag} lines")
 
     # ---- convert and check (vectorised); report the earliest problem in the file
     problems: list[tuple[int, str]] = []
     for g in (eg, vg):
         _convert(g, problems)
-        _check_values(g, problems)
+        _check_values(g, problems, strict, limits)
     if vg.rows:
         vid = vg.ids[:, 0]
         if np.unique(vid).shape[0] < vid.shape[0]:
@@ -391,104 +741,174 @@ def read_g2o(path, *, dtype=None) -> G2OFile:
                     )
                     break
                 seen[v] = r
+    if eg.rows and vg.rows:
+        _check_vertex_residuals(eg, vg, problems, limits)
+    fix_ids: list[tuple[int, list[int]]] = []
     for lineno, toks in fix_lines:
+        ids = []
         for f, tok in enumerate(toks):
-            if not _is_int_token(tok):
-                problems.append((lineno, f"FIX: field {f + 1} is not an integer vertex id: {tok!r}"))
+            v = _parse_id(tok)
+            if isinstance(v, str):
+                problems.append((lineno, f"FIX: field {f + 1} {v}"))
                 break
+            ids.append(v)
+        fix_ids.append((lineno, ids))
     if problems:
         line, problem = min(problems, key=lambda p: p[0])
         raise G2OFormatError(spath, line, problem)
 
-    # ---- remap ids
-    edge_ids = eg.ids
-    vertex_ids = np.unique(np.concatenate([edge_ids.ravel(), vg.ids[:, 0] if vg.rows else np.zeros(0, np.int64)]))
+    # ---- ids
+    vertex_ids = np.unique(np.concatenate([eg.ids.ravel(), vg.ids[:, 0]]))
     n = vertex_ids.shape[0]
-    ei = np.searchsorted(vertex_ids, edge_ids[:, 0])
-    ej = np.searchsorted(vertex_ids, edge_ids[:, 1])
     fixed = np.zeros(n, dtype=bool)
-    for lineno, toks in fix_lines:
-        for tok in toks:
-            v = int(tok)
+    for lineno, ids in fix_ids:
+        for v in ids:
             k = int(np.searchsorted(vertex_ids, v))
             if k >= n or vertex_ids[k] != v:
                 raise G2OFormatError(spath, lineno, f"FIX names vertex id {v}, which has no VERTEX or EDGE line")
             fixed[k] = True
+    return _Parsed(dim, eg, vg, vertex_ids.astype(np.int64), fixed)
+
+
+def _check_vertex_residuals(eg: _Group, vg: _Group, problems: list, limits: _Limits) -> None:
+    """A VERTEX translation t must keep tau |t|^2 representable for every edge at that vertex."""
+    vok = np.flatnonzero(vg.ok)
+    eok = np.flatnonzero(eg.ok)
+    if not vok.size or not eok.size:
+        return
+    vid = vg.ids[vok, 0]
+    order = np.argsort(vid, kind="stable")
+    svid = vid[order]
+    worst: tuple[int, int, int] | None = None  # (vertex line, vertex row, edge row)
+    with np.errstate(all="ignore"):
+        for end in (0, 1):
+            e_ids = eg.ids[eok, end]
+            pos = np.minimum(np.searchsorted(svid, e_ids), svid.size - 1)
+            found = svid[pos] == e_ids
+            vrow = vok[order[pos]]
+            bad = found & ~(eg.tau[eok] * vg.tn2[vrow] <= limits.square_max)
+            if bad.any():
+                b = np.flatnonzero(bad)
+                best = b[np.argmin(np.asarray(vg.lines)[vrow[b]])]
+                cand = (vg.lines[vrow[best]], int(vrow[best]), int(eok[best]))
+                worst = cand if worst is None or cand[0] < worst[0] else worst
+    if worst is None:
+        return
+    line, r, e = worst
+    d = vg.fmt.dim
+    t = vg.vals[r, :d]
+    names = ", ".join(vg.fmt.fields[1 : 1 + d])
+    tau = float(eg.tau[e])
+    problems.append(
+        (
+            line,
+            (
+                f"{vg.fmt.tag}: translation ({names}) is too large: tau |t|^2 = {tau * float(vg.tn2[r]):.3g} "
+                f"overflows {limits.dtype_name} for the edge on line {eg.lines[e]} "
+                f"(|t| = {math.hypot(*t.tolist()):.3g}, tau = {_g(tau)})"
+            ),
+        )
+    )
+
+
+def _rotations(group: _Group) -> np.ndarray:
+    """float64 rotation matrices of a checked group: from angles [2D] or normalised quaternions [3D].
+
+    The same formulas as ``_geometry.rotation_2d`` / ``quaternion_to_rotation``, in numpy.
+    """
+    if group.fmt.dim == 2:
+        theta = group.vals[:, 2]
+        c, s = np.cos(theta), np.sin(theta)
+        return np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
+    x, y, z, w = group.quat.T
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
+            np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
+            np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        -2,
+    )
+
+
+def read_g2o(path, *, dtype=None, strict_information: bool = False) -> G2OFile:
+    """Read a 2D (SE2) or 3D (SE3:QUAT) g2o file; raises :class:`G2OFormatError` on bad input.
+
+    Float arrays of the graph and the initial poses use the JAX default float dtype unless
+    ``dtype`` is given; ``information``, ``vertex_R`` and ``vertex_t`` are always float64. The
+    input rules are those of the module docstring: information matrices that are not positive
+    definite but give positive, finite SE-Sync weights are accepted, counted in
+    ``num_indefinite_information`` and reported by one :class:`G2OWarning`; with
+    ``strict_information=True`` they are refused.
+    """
+    spath = os.fspath(path)
+    fdt = dtype or jnp.asarray(0.0).dtype
+    p = _parse(spath, need="edges", strict=strict_information, limits=_Limits.of(fdt))
+    dim, eg, vg, vertex_ids = p.dim, p.edges, p.vertices, p.vertex_ids
+    n = vertex_ids.shape[0]
 
     # ---- measurements and weights
-    ev = eg.vals
-    vv = vg.vals if vg.rows else np.zeros((0, len(vg.fmt.fields) - 1))
-    m = ev.shape[0]
-    ksz = _info_size(dim)
-    if dim == 2:
-        t_meas = ev[:, 0:2]
-        rots = _rotations(2, np.concatenate([ev[:, 2], vv[:, 2]]))
-        info = _upper_to_full(ev[:, 3:], ksz)
-    else:
-        t_meas = ev[:, 0:3]
-        rots = _rotations(3, np.concatenate([ev[:, 3:7], vv[:, 3:7]]))
-        info = _upper_to_full(ev[:, 7:], ksz)
-    R_meas = rots[:m]
-    kappa, tau = _weights(info, dim)
-    fdt = dtype or jnp.asarray(0.0).dtype
-    graph = PoseGraph.from_arrays(ei, ej, R_meas, t_meas, kappa, tau, num_poses=n, dtype=fdt)
+    ei = np.searchsorted(vertex_ids, eg.ids[:, 0])
+    ej = np.searchsorted(vertex_ids, eg.ids[:, 1])
+    m = ei.shape[0]
+    graph = PoseGraph.from_arrays(ei, ej, _rotations(eg), eg.vals[:, :dim], eg.kappa, eg.tau, num_poses=n, dtype=fdt)
 
-    # ---- initial estimates
+    # ---- VERTEX values
     has_vertex = np.zeros(n, dtype=bool)
-    initial = None
+    vertex_R = np.broadcast_to(np.eye(dim), (n, dim, dim)).copy()
+    vertex_t = np.zeros((n, dim))
     if vg.rows:
         k = np.searchsorted(vertex_ids, vg.ids[:, 0])
         has_vertex[k] = True
-        if has_vertex.all():
-            R0 = np.empty((n, dim, dim))
-            t0 = np.empty((n, dim))
-            R0[k] = rots[m:]
-            t0[k] = vv[:, 0:dim]
-            initial = Poses(jnp.asarray(R0, fdt), jnp.asarray(t0, fdt))
+        vertex_R[k] = _rotations(vg)
+        vertex_t[k] = vg.vals[:, :dim]
+    initial = None
+    if has_vertex.all():
+        initial = Poses(jnp.asarray(vertex_R, fdt), jnp.asarray(vertex_t, fdt))
 
+    num_indefinite = int(np.count_nonzero(~eg.pd))
+    if num_indefinite:
+        warnings.warn(
+            G2OWarning(
+                f"{spath}: {num_indefinite} of {m} information matrices are not positive definite; SE-Sync weights used"
+            ),
+            stacklevel=2,
+        )
     return G2OFile(
         path=spath,
         dim=dim,
         graph=graph,
-        vertex_ids=vertex_ids.astype(np.int64),
-        information=info,
+        vertex_ids=vertex_ids,
+        information=eg.info,
         initial=initial,
         has_vertex=has_vertex,
-        fixed=fixed,
+        fixed=p.fixed,
+        num_indefinite_information=num_indefinite,
+        vertex_R=vertex_R,
+        vertex_t=vertex_t,
     )
 
 
-_jit_rotation_2d = jax.jit(rotation_2d)
-_jit_quaternion_to_rotation = jax.jit(quaternion_to_rotation)
+def read_g2o_poses(path) -> G2OPoses:
+    """The VERTEX lines of a g2o file, e.g. an initial estimate or a ground truth.
 
-
-def _bucket(k: int) -> int:
-    """Pad batch sizes to powers of two (at least 64) so that compiled helpers are reused."""
-    return max(64, 1 << max(k - 1, 0).bit_length())
-
-
-def _rotations(dim: int, params: np.ndarray) -> np.ndarray:
-    """Rotation matrices from angles (k,) [2D] or (x, y, z, w) quaternions (k, 4) [3D].
-
-    Uses the geometry helpers (jitted, on the host CPU device, batch padded to a power of two so
-    that reading many files compiles only a handful of times). The result is float64 when x64 is
-    enabled, else float32 (the dtype the graph is built with anyway).
+    The same tokeniser and checks as :func:`read_g2o` (number syntax, duplicate ids, quaternions,
+    overflow, FIX lines); the file needs no EDGE lines, but EDGE lines that are there are
+    validated as by :func:`read_g2o` (no :class:`G2OWarning` is emitted for their information
+    matrices). A file without VERTEX lines is refused ("no poses"). Poses are returned in
+    ascending vertex-id order, in float64.
     """
-    k = params.shape[0]
-    size = _bucket(k)
-    if dim == 2:
-        padded = np.zeros(size)
-        padded[:k] = params
-        fn = _jit_rotation_2d
-    else:
-        padded = np.zeros((size, 4))
-        padded[:, 3] = 1.0
-        padded[:k] = params
-        fn = _jit_quaternion_to_rotation
-    cpu = jax.local_devices(backend="cpu")[0]
-    dt = jnp.float64 if jax.config.jax_enable_x64 else jnp.float32
-    out = fn(jax.device_put(padded.astype(dt), cpu))
-    return np.asarray(out)[:k]
+    spath = os.fspath(path)
+    p = _parse(spath, need="vertices", strict=False, limits=_Limits.of(np.float64))
+    vg = p.vertices
+    order = np.argsort(vg.ids[:, 0], kind="stable")
+    return G2OPoses(
+        path=spath,
+        dim=p.dim,
+        vertex_ids=vg.ids[order, 0].astype(np.int64),
+        R=_rotations(vg)[order],
+        t=np.ascontiguousarray(vg.vals[order, : p.dim]),
+    )
 
 
 # ----------------------------------------------------------------------------------------------
@@ -501,9 +921,10 @@ def _check_vertex_ids(vertex_ids, n: int) -> np.ndarray:
     ids = np.asarray(vertex_ids)
     if ids.shape != (n,):
         raise ValueError(f"vertex_ids must have shape ({n},), got {ids.shape}")
-    if not np.issubdtype(ids.dtype, np.integer):
-        if not np.all(np.asarray(ids, dtype=np.float64) == np.round(np.asarray(ids, dtype=np.float64))):
-            raise ValueError("vertex_ids must be integers")
+    if not np.issubdtype(ids.dtype, np.integer) and not np.all(
+        np.asarray(ids, dtype=np.float64) == np.round(np.asarray(ids, dtype=np.float64))
+    ):
+        raise ValueError("vertex_ids must be integers")
     ids = ids.astype(np.int64)
     if np.unique(ids).shape[0] != n:
         raise ValueError("vertex_ids must be unique")

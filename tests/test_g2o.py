@@ -37,7 +37,7 @@ BAD = DATA / "bad"
 
 
 def sesync_weights(info: np.ndarray, dim: int):
-    """NOTES §1, written out independently of the reader."""
+    """SE-Sync's convention, written out independently of the reader."""
     kappa, tau = [], []
     for I in info:
         if dim == 2:
@@ -65,8 +65,30 @@ BAD_CASES = {
     "non_integer_id.g2o": ("field 2 (j) is not an integer vertex id: '2.5'", 2),
     "nan_value.g2o": ("field 5 (dtheta) is not finite: nan", 3),
     "inf_value.g2o": ("VERTEX_SE2: field 2 (x) is not finite: inf", 2),
-    "not_pd_se2.g2o": ("EDGE_SE2: information matrix is not positive definite", 3),
-    "not_pd_se3.g2o": ("EDGE_SE3:QUAT: information matrix is not positive definite", 2),
+    # I12^2 > I11 I22 (2D) / an indefinite translation block with tr(inv) < 0 (3D): tau < 0
+    "not_pd_se2.g2o": (
+        (
+            "EDGE_SE2: SE-Sync weight tau = 2 / tr(inv(I[:2, :2])) = -300 is not positive "
+            "(the information matrix is not positive definite)"
+        ),
+        3,
+    ),
+    "not_pd_se3.g2o": ("EDGE_SE3:QUAT: SE-Sync weight tau = 3 / tr(inv(I[:3, :3])) = -52.9412 is not positive", 2),
+    "nonpositive_diagonal.g2o": (
+        "EDGE_SE3:QUAT: information matrix is not positive definite: diagonal entry I44 = 0.0 is not positive",
+        2,
+    ),
+    "information_subnormal.g2o": ("EDGE_SE2: information entry I11 = 1e-308 is nonzero but below 1e-300", 3),
+    "information_overflow.g2o": ("EDGE_SE2: information entry I11 = 1e+302 is above 1e+300 in magnitude", 3),
+    "underscore_number.g2o": ("EDGE_SE3:QUAT: field 3 (x) is not a number: '1_016.030'", 3),
+    "underscore_id.g2o": ("VERTEX_SE2: field 1 (id) is not an integer vertex id: '1_0'", 2),
+    "id_out_of_range.g2o": ("EDGE_SE2: field 2 (j) is out of range: '99999999999999999999'", 2),
+    "value_out_of_range.g2o": ("VERTEX_SE2: field 2 (x) is out of range (its magnitude overflows float64): '1e400'", 2),
+    "translation_overflow.g2o": ("EDGE_SE3:QUAT: translation (x, y, z) is too large: |t|^2 = inf overflows float64", 3),
+    "vertex_translation_overflow.g2o": (
+        "VERTEX_SE3:QUAT: translation (x, y, z) is too large: |t|^2 = inf overflows float64",
+        2,
+    ),
     "zero_quaternion.g2o": ("EDGE_SE3:QUAT: quaternion (qx, qy, qz, qw) has zero norm", 3),
     "zero_quaternion_vertex.g2o": ("VERTEX_SE3:QUAT: quaternion (qx, qy, qz, qw) has zero norm", 2),
     "self_loop.g2o": ("self-loop edge (i == j == 2)", 3),
@@ -348,7 +370,7 @@ def test_file_round_trip_is_exact(tmp_path, name):
 
 
 def test_write_defaults_and_text_format(tmp_path):
-    ids, graph, poses, _ = random_problem(3, 2, 3, 4)
+    _, graph, poses, _ = random_problem(3, 2, 3, 4)
     out = tmp_path / "plain.g2o"
     write_g2o(out, graph, poses)  # ids 0..n-1, isotropic information
     lines = out.read_text().splitlines()
@@ -379,7 +401,7 @@ def test_writer_validates_arguments(tmp_path):
 
 
 def test_tum_3d(tmp_path):
-    ids, graph, poses, _ = random_problem(5, 3, 6, 3)
+    ids, _, poses, _ = random_problem(5, 3, 6, 3)
     out = tmp_path / "traj.txt"
     write_tum(out, poses, vertex_ids=ids)
     rows = [ln.split() for ln in out.read_text().splitlines()]
@@ -418,17 +440,15 @@ def test_tum_2d_with_timestamps(tmp_path):
 def test_atomic_write_failure_keeps_target(tmp_path):
     target = tmp_path / "out.g2o"
     target.write_text("old content\n")
-    with pytest.raises(RuntimeError, match="boom"):
-        with atomic_write(target) as f:
-            f.write("partial new content")
-            raise RuntimeError("boom")
+    with pytest.raises(RuntimeError, match="boom"), atomic_write(target) as f:
+        f.write("partial new content")
+        raise RuntimeError("boom")
     assert target.read_text() == "old content\n"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out.g2o"]
     # a failing write to a new target leaves nothing
-    with pytest.raises(RuntimeError):
-        with atomic_write(tmp_path / "new.g2o", "wb") as f:
-            f.write(b"x")
-            raise RuntimeError("boom")
+    with pytest.raises(RuntimeError), atomic_write(tmp_path / "new.g2o", "wb") as f:
+        f.write(b"x")
+        raise RuntimeError("boom")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out.g2o"]
 
 
@@ -444,9 +464,8 @@ def test_atomic_write_success_replaces_and_keeps_mode(tmp_path):
         f.write(b"\x00\x01")
     assert (tmp_path / "b.bin").read_bytes() == b"\x00\x01"
     assert temp_files(tmp_path) == []
-    with pytest.raises(ValueError):
-        with atomic_write(target, "a"):
-            pass
+    with pytest.raises(ValueError), atomic_write(target, "a"):
+        pass
 
 
 def test_write_g2o_failure_mid_write_keeps_target(tmp_path, monkeypatch):
@@ -467,7 +486,7 @@ def test_write_g2o_failure_mid_write_keeps_target(tmp_path, monkeypatch):
             yield Failing(f)
 
     monkeypatch.setattr(g2o_mod, "atomic_write", failing_atomic_write)
-    ids, graph, poses, _ = random_problem(1, 3, 4, 6)
+    _, graph, poses, _ = random_problem(1, 3, 4, 6)
     with pytest.raises(OSError, match="No space left"):
         write_g2o(target, graph, poses)
     with pytest.raises(OSError, match="No space left"):

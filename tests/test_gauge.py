@@ -213,3 +213,22 @@ def test_poses_are_matched_by_vertex_id(tmp_path):
     np.savez(path, R=np.asarray(X.R), t=np.asarray(X.t), vertex_ids=np.append(ids[:-1], 999))
     with pytest.raises(ValueError, match=r"missing vertex ids 49; vertex ids not in the graph 999"):
         load_poses(g, path, vertex_ids=ids)
+
+
+DATA = __import__("pathlib").Path(__file__).parent / "data"
+
+
+def test_g2o_fix_lines_and_frame():
+    f = mm.read_g2o(DATA / "fix2d.g2o")
+    fixed = f.fixed_poses
+    assert fixed.index.tolist() == [5] and f.vertex_ids[5] == 110
+    np.testing.assert_allclose(fixed.R, f.vertex_R[[5]], atol=0)
+    assert f.frame is not None and f.frame.index.tolist() == [5]
+    res = mm.solve(f.graph, 3, iterations=40, fixed=fixed, frame=f.frame)
+    _assert_fixed(res.poses, fixed)
+    g = mm.read_g2o(DATA / "frame2d.g2o")
+    assert g.fixed_poses is None and g.frame.index.tolist() == [0]
+    res = mm.solve(g.graph, 3, iterations=40, frame=g.frame)
+    # the result overlays the input: its first pose is at its VERTEX value (2, 1, 0.5 rad)
+    np.testing.assert_allclose(np.asarray(res.poses.t)[0], [2.0, 1.0], atol=1e-12)
+    np.testing.assert_allclose(np.asarray(res.poses.R)[0], np.asarray(mm.rotation_2d(0.5)), atol=1e-12)
