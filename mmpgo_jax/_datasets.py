@@ -10,27 +10,34 @@ The benchmark files themselves are not part of the package.  They are looked up 
 precedence: an explicit directory (``data=`` / the CLI's ``--data``), the environment variable
 ``MMPGO_DATA``, and ``<repo>/../shared/datasets`` when it exists (repo = the folder holding the
 ``mmpgo_jax`` package).  See ``datasets/README.md`` in the repository.
+
+Names and paths are never substituted for one another (:func:`find_benchmark`): an argument with
+a directory part, starting with ``~`` or ``.``, or existing in the file system is a path and only
+that; only a bare name (a registered benchmark or a file name absent from the working directory)
+is looked up in the data folder.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import re
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
 from types import MappingProxyType
-from typing import Mapping
 
 __all__ = [
-    "BenchmarkInfo",
     "BENCHMARKS",
+    "ENV_VAR",
+    "BenchmarkInfo",
     "DatasetNotFoundError",
-    "data_dir",
-    "find_benchmark",
     "available_benchmarks",
     "benchmark_info",
-    "ENV_VAR",
+    "data_dir",
+    "find_benchmark",
+    "names_a_path",
 ]
 
 ENV_VAR = "MMPGO_DATA"
@@ -82,8 +89,8 @@ class BenchmarkInfo:
         return self.sesync_fstar if self.sesync_fstar is not None else self.paper_fstar
 
     def path(self, data: str | os.PathLike | None = None) -> Path:
-        """Location of this benchmark's file (raises :class:`DatasetNotFoundError`)."""
-        return find_benchmark(self.file, data)
+        """Location of this benchmark's file in the data folder (raises :class:`DatasetNotFoundError`)."""
+        return _find_in_data(self.file, data)
 
 
 class DatasetNotFoundError(FileNotFoundError):
@@ -154,8 +161,11 @@ def data_dir(explicit: str | os.PathLike | None = None) -> Path | None:
 def _lookup_in(directory: Path, filename: str) -> Path | None:
     """``directory / filename``, matching the file name case-insensitively."""
     cand = directory / filename
-    if cand.is_file():
-        return cand
+    try:
+        if cand.is_file():
+            return cand
+    except OSError:  # e.g. a name too long for the file system: not there
+        return None
     if not directory.is_dir():
         return None
     low = filename.lower()
@@ -167,30 +177,61 @@ def _lookup_in(directory: Path, filename: str) -> Path | None:
 
 def _where(directory: Path | None, explicit) -> str:
     if directory is None:
-        return (f"no data directory is configured ({ENV_VAR} is unset and the default "
-                f"{_DEFAULT_DIR} does not exist)")
+        return f"no data folder is configured (${ENV_VAR} is unset and the default {_DEFAULT_DIR} does not exist)"
     if explicit is not None and str(explicit) != "":
-        how = "given explicitly"
+        how = "--data"
     elif os.environ.get(ENV_VAR, "").strip():
-        how = f"from ${ENV_VAR}"
+        how = f"${ENV_VAR}"
     else:
-        how = "the default <repo>/../shared/datasets"
-    state = "" if directory.is_dir() else ", which does not exist"
+        how = "the default"
+    state = "" if directory.is_dir() else "; it does not exist"
     return f"searched {directory} ({how}{state})"
 
 
-def find_benchmark(name_or_file: str | os.PathLike, data: str | os.PathLike | None = None) -> Path:
-    """Path of a benchmark file.
+def names_a_path(query: str | os.PathLike) -> bool:
+    """Whether a file argument is a path (and nothing else) rather than a benchmark name.
 
-    Accepts the paper's name, the file name or its stem, case-insensitively ("MITb", "MIT",
-    "mit.g2o"), any other file name present in the data folder, or a path to an existing file.
-    The data folder is :func:`data_dir(data) <data_dir>`.  Raises :class:`DatasetNotFoundError`
-    with the folder searched, how to configure it and where the file can be obtained.
+    A path has a directory part (contains ``/`` or the OS separator), starts with ``~`` or ``.``,
+    or exists in the file system (relative to the working directory).  Everything else is a bare
+    name, looked up in the data folder.
     """
-    query = str(name_or_file).strip()
-    qpath = Path(query).expanduser()
-    if (os.sep in query or "/" in query) and qpath.is_file():
-        return qpath
+    text = os.fspath(query)
+    if not isinstance(text, str):
+        text = os.fsdecode(text)
+    seps = {"/", os.sep} | ({os.altsep} if os.altsep else set())
+    if any(sep in text for sep in seps) or text.startswith(("~", ".")):
+        return True
+    return text != "" and os.path.lexists(text)
+
+
+def find_benchmark(name_or_file: str | os.PathLike, data: str | os.PathLike | None = None) -> Path:
+    """Path of a g2o file given as a path or as a benchmark name; never substitutes one for the other.
+
+    * A path (see :func:`names_a_path`: it has a directory part, starts with ``~`` or ``.``, or
+      exists) is returned as given (``~`` expanded) if it is a file; otherwise
+      :class:`DatasetNotFoundError` ("PATH: file not found") or :class:`IsADirectoryError`
+      ("PATH: is a directory, not a g2o file") is raised.  The data folder is not consulted.
+    * A bare name is looked up in the data folder :func:`data_dir(data) <data_dir>`: the paper's
+      name, the file name or its stem of a registered benchmark, case-insensitively ("MITb",
+      "MIT", "mit.g2o", "garage"), or any other file name present there (with or without
+      ``.g2o``).  If it is not there, :class:`DatasetNotFoundError` says which folder was searched,
+      how to configure it and where the file can be obtained.
+    """
+    query = os.fspath(name_or_file)
+    if not isinstance(query, str):
+        query = os.fsdecode(query)
+    if names_a_path(query):
+        path = Path(query).expanduser()
+        if path.is_dir():
+            raise IsADirectoryError(f"{query}: is a directory, not a g2o file")
+        if not path.exists():
+            raise DatasetNotFoundError(f"{query}: file not found")
+        return path
+    return _find_in_data(query.strip(), data)
+
+
+def _find_in_data(query: str, data: str | os.PathLike | None) -> Path:
+    """``query`` (a bare benchmark name or file name) in the data folder."""
     directory = data_dir(data)
     info = benchmark_info(query)
     names = [info.file] if info is not None else [query, query + ".g2o"]
@@ -199,25 +240,22 @@ def find_benchmark(name_or_file: str | os.PathLike, data: str | os.PathLike | No
             hit = _lookup_in(directory, os.path.basename(fname))
             if hit is not None:
                 return hit
-    if info is None and qpath.is_file():
-        return qpath
 
-    configure = (f"Set the environment variable {ENV_VAR}=/path/to/folder, or pass --data "
-                 f"/path/to/folder on the command line (data=... in Python), pointing at a folder "
-                 f"that holds the .g2o files.")
+    configure = f"set ${ENV_VAR} or --data (data= in Python) to a folder holding it"
     if info is not None:
         label = info.file if info.name == info.file.rsplit(".", 1)[0] else f"{info.file} (\"{info.name}\")"
-        msg = [f"Benchmark file {label} not found: {_where(directory, data)}.", configure,
-               f"Where to obtain it: {info.source}."]
-        if info.availability == "unavailable":
-            msg.append("Note: this file is not available in this workplace's snapshots; "
-                       "see datasets/README.md.")
-        if info.notes:
-            msg.append(info.notes)
+        # the source's clause with the link, short commit hashes (the full text: datasets/README.md)
+        clauses = info.source.split("; ")
+        source = next((c for c in clauses if "://" in c), clauses[0])
+        source = re.sub(r"\b([0-9a-f]{7})[0-9a-f]{33}\b", r"\1", source)
+        source = re.sub(r" \((also|git blob) [^)]*\)", "", source)
+        msg = [f"benchmark file {label} not found: {_where(directory, data)}; {configure}.",
+               f"Source: {source}" + (" (not available here)." if info.availability == "unavailable"
+                                      else ".")]
     else:
         known = ", ".join(sorted(BENCHMARKS, key=str.lower))
-        msg = [f"Unknown benchmark {query!r} and no such file: {_where(directory, data)}.", configure,
-               f"Registered benchmarks: {known}. Sources are listed in datasets/README.md."]
+        msg = [f"{query!r} is neither a file here nor a registered benchmark: {_where(directory, data)};",
+               f"registered: {known}."]
     raise DatasetNotFoundError(" ".join(msg))
 
 

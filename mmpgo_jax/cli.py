@@ -1,13 +1,32 @@
-"""The ``mmpgo`` command line: ``info``, ``solve``, ``demo`` and ``bench``.
+"""The ``mmpgo`` command line: ``info``, ``solve``, ``optimum``, ``demo`` and ``bench``.
 
 Bad input never ends in a traceback: g2o format problems, missing files and invalid options are
-reported as ``mmpgo: error: ...`` (naming file and line where there is one) with exit status 2.
+reported as ONE line ``mmpgo: error: ...`` (naming file and line where there is one; at most about
+300 characters, long tokens shortened in the middle with "…") with exit status 2. Input rules:
+
+* FILE is a path when it has a directory part, starts with ``~`` or ``.``, or exists; a path is
+  never replaced by a benchmark of the same name. Only a bare name (``MITb``, ``city``, a file
+  name absent from the working directory) is looked up in the data folder, and the command then
+  prints ``using PATH (benchmark NAME)``.
+* Every numeric option is checked when it is parsed (range in the message, exit status 2).
+* The output files (--out, --tum, --history, --plot) are checked before anything is read or
+  solved (folder exists and is writable, not a directory, no two the same file), and written
+  all-or-none: each to a temporary file, renamed into place only when all succeeded. Writing
+  through a symbolic link replaces the link's target and keeps the link.
+* Warnings of the reader (``G2OWarning``) and other ``UserWarning``s of mmpgo_jax are shown as one
+  line ``mmpgo: warning: ...`` on stderr.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import math
+import os
+import re
 import sys
+import warnings
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +36,143 @@ from ._progress import progress_bar
 
 class CLIError(Exception):
     """An error to report to the user without a traceback."""
+
+
+# ------------------------------------------------------------------------------------------------
+# One-line messages
+# ------------------------------------------------------------------------------------------------
+
+MAX_MESSAGE = 300  # characters of an error or warning message (after "mmpgo: error: ")
+MAX_TOKEN = 120  # longer words (paths, file content) are shortened in the middle
+_CONTROL = re.compile(r"[\x00-\x1f\x7f-\x9f]")
+
+
+def _shorten(text: str, limit: int) -> str:
+    if len(text) <= limit:
+        return text
+    head = (limit - 1) // 2
+    return text[:head] + "…" + text[len(text) - (limit - 1 - head):]
+
+
+def one_line(message, limit: int = MAX_MESSAGE) -> str:
+    """``message`` as one line of at most ``limit`` characters: whitespace runs (newlines included)
+    become one space, control characters '?', words longer than :data:`MAX_TOKEN` and then the
+    whole text are shortened in the middle with "…"."""
+    text = str(message)
+    words = [_shorten(_CONTROL.sub("?", w), MAX_TOKEN) for w in text.split()]
+    return _shorten(" ".join(words), limit)
+
+
+def print_error(message) -> None:
+    print(f"mmpgo: error: {one_line(message)}", file=sys.stderr, flush=True)
+
+
+def _is_mmpgo_warning(category, filename) -> bool:
+    if not issubclass(category, UserWarning):
+        return False
+    if any(c.__name__ == "G2OWarning" for c in category.__mro__):
+        return True
+    package = os.path.dirname(os.path.abspath(__file__)) + os.sep
+    return os.path.abspath(str(filename)).startswith(package)
+
+
+@contextlib.contextmanager
+def cli_warnings():
+    """Show the reader's ``G2OWarning`` and any other ``UserWarning`` raised from inside mmpgo_jax
+    as one line ``mmpgo: warning: ...`` on stderr (no source line); other warnings as usual."""
+    with warnings.catch_warnings():
+        original = warnings.showwarning
+
+        def show(message, category, filename, lineno, file=None, line=None):
+            if _is_mmpgo_warning(category, filename):
+                print(f"mmpgo: warning: {one_line(message)}", file=sys.stderr, flush=True)
+            else:
+                original(message, category, filename, lineno, file, line)
+
+        warnings.showwarning = show
+        yield
+
+
+def _exit_status(exc: SystemExit) -> int:
+    if exc.code is None:
+        return 0
+    return exc.code if isinstance(exc.code, int) else 2
+
+
+# ------------------------------------------------------------------------------------------------
+# Option types: every number is checked when it is parsed
+# ------------------------------------------------------------------------------------------------
+
+INT_MAX = 2**31 - 1  # iteration counts end up in int32 arrays in float32 mode
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line errors (``mmpgo: error: argument --chunk: ...``, exit status 2).
+
+    Values such as ``-1e-3`` or ``-inf`` are taken as (negative) numbers, not as options, so that
+    the option's own check reports them with its range.
+    """
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self._negative_number_matcher = re.compile(
+            r"^-(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?$|^-(inf|infinity|nan)$", re.IGNORECASE)
+
+    def error(self, message):
+        print_error(f"{message} (see '{self.prog} --help')")
+        self.exit(2)
+
+
+def _range_text(low, high, *, strict_low: bool = False) -> str:
+    if high is None:
+        return f"{'>' if strict_low else '>='} {low:g}" if isinstance(low, float) else f">= {low}"
+    return f"between {low} and {high}"
+
+
+def int_in(low: int, high: int | None = None):
+    """argparse ``type``: an integer with ``low <= value (<= high)``."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text, 10)
+        except (TypeError, ValueError):
+            value = None
+        if value is None or value < low or (high is not None and value > high):
+            raise argparse.ArgumentTypeError(f"must be an integer {_range_text(low, high)}, got {text!r}")
+        return value
+
+    parse.__name__ = "integer"
+    return parse
+
+
+def finite_float(low: float, *, strict: bool = False):
+    """argparse ``type``: a finite number ``>= low`` (``> low`` with ``strict``)."""
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except (TypeError, ValueError):
+            value = math.nan
+        if not math.isfinite(value) or value < low or (strict and value == low):
+            raise argparse.ArgumentTypeError(
+                f"must be a finite number {_range_text(float(low), None, strict_low=strict)}, got {text!r}")
+        return value
+
+    parse.__name__ = "number"
+    return parse
+
+
+def host_port(text: str) -> str:
+    """argparse ``type``: ``HOST:PORT`` with a port between 1 and 65535."""
+    host, sep, port = text.rpartition(":")
+    ok = bool(sep and host.strip("[]") and port.isdigit() and 1 <= int(port) <= 65535)
+    if not ok:
+        raise argparse.ArgumentTypeError(f"must be HOST:PORT with PORT between 1 and 65535, got {text!r}")
+    return text
+
+
+ROBOTS = int_in(1)
+ITERATIONS = int_in(0, INT_MAX)
 
 
 def _add_common(p: argparse.ArgumentParser) -> None:
@@ -30,9 +186,10 @@ def _add_common(p: argparse.ArgumentParser) -> None:
 
 
 def _add_solver_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--robots", "-A", type=int, default=10, help="number of robots (contiguous blocks; default 10)")
+    p.add_argument("--robots", "-A", type=ROBOTS, default=10,
+                   help="number of robots, >= 1 and at most the number of poses (contiguous blocks; default 10)")
     p.add_argument("--method", choices=("amm", "mm"), default="amm", help="AMM-PGO (default) or MM-PGO")
-    p.add_argument("--iterations", "-n", type=int, default=1000, help="outer iterations (default 1000)")
+    p.add_argument("--iterations", "-n", type=ITERATIONS, default=1000, help="outer iterations, >= 0 (default 1000)")
     p.add_argument(
         "--init",
         default="chordal",
@@ -40,20 +197,31 @@ def _add_solver_options(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--restart", choices=("adaptive", "average", "paper"), default="adaptive",
                    help="AMM restart rule (default adaptive; see README)")
-    p.add_argument("--xi", type=float, default=1e-3, help="proximal weight xi of Eq. (13) (default 1e-3)")
-    p.add_argument("--grad-tol", type=float, default=None, help="stop when ||grad F|| falls below this")
-    p.add_argument("--chunk", type=int, default=50, help="iterations per compiled chunk (progress granularity)")
+    p.add_argument("--xi", type=finite_float(0.0), default=1e-3,
+                   help="proximal weight xi of Eq. (13), finite and >= 0 (default 1e-3)")
+    p.add_argument("--grad-tol", type=finite_float(0.0, strict=True), default=None,
+                   help="stop when ||grad F|| falls below this (finite, > 0)")
+    p.add_argument("--chunk", type=int_in(1, INT_MAX), default=50,
+                   help="iterations per compiled chunk, >= 1 (progress granularity; default 50)")
     p.add_argument("--largest-component", action="store_true", help="solve only the largest connected component")
     p.add_argument("--no-progress", action="store_true", help="do not show a progress bar")
 
 
+def _add_strict(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--strict-information", action="store_true",
+                   help="refuse information matrices that are not positive definite (default: warn and use "
+                        "SE-Sync's isotropic weights)")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="mmpgo", description="Distributed PGO by majorization minimization (JAX)")
+    parser = _Parser(prog="mmpgo", description="Distributed PGO by majorization minimization (JAX)")
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("info", help="describe a pose graph and its partition among robots")
     p.add_argument("file", help="g2o file, or a benchmark name (e.g. MITb, city10000)")
-    p.add_argument("--robots", "-A", type=int, default=None, help="also describe the split among A robots")
+    p.add_argument("--robots", "-A", type=ROBOTS, default=None,
+                   help="also describe the split among A robots (1 .. number of poses)")
+    _add_strict(p)
     _add_common(p)
 
     p = sub.add_parser("solve", help="run MM-PGO / AMM-PGO on a g2o file")
@@ -72,6 +240,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--ground-truth",
         help="poses to compare with (.g2o VERTEX lines or .npz with R, t): reports ATE and RPE after rigid alignment",
     )
+    _add_strict(p)
     _add_common(p)
     from .sharding import add_cli_options
 
@@ -80,28 +249,30 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("optimum", help="centralized optimum f* of a g2o file, with its global-optimality certificate")
     p.add_argument("file", help="g2o file, or a benchmark name (e.g. MITb, city10000)")
     p.add_argument("--init", default="chordal", help="start: chordal (default), vertices, odometry, or a .g2o/.npz file")
-    p.add_argument("--grad-tol", type=float, default=1e-6, help="stop when ||grad F|| falls below this (default 1e-6)")
-    p.add_argument("--max-iterations", type=int, default=5000)
+    p.add_argument("--grad-tol", type=finite_float(0.0, strict=True), default=1e-6,
+                   help="stop when ||grad F|| falls below this (finite, > 0; default 1e-6)")
+    p.add_argument("--max-iterations", type=int_in(1, INT_MAX), default=5000, help="at most this many iterations, >= 1 (default 5000)")
     p.add_argument("--no-certify", action="store_true", help="skip the dual certificate")
     p.add_argument("--out", "-o", help="write the optimum as g2o (VERTEX lines + the original edges)")
     p.add_argument("--tum", help="write the optimum as a TUM trajectory")
     p.add_argument("--largest-component", action="store_true", help="solve only the largest connected component")
+    _add_strict(p)
     _add_common(p)
 
     p = sub.add_parser("demo", help="run AMM-PGO on a generated Cube dataset (no download needed)")
     p.add_argument("--out-dir", default="mmpgo-demo", help="folder for the plots and results (default ./mmpgo-demo)")
-    p.add_argument("--poses", type=int, default=1000, help="poses of the generated Cube dataset (default 1000)")
-    p.add_argument("--robots", "-A", type=int, default=10)
-    p.add_argument("--iterations", "-n", type=int, default=300)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--poses", type=int_in(2, INT_MAX), default=1000, help="poses of the generated Cube dataset, >= 2 (default 1000)")
+    p.add_argument("--robots", "-A", type=ROBOTS, default=10, help="robots, 1 .. --poses (default 10)")
+    p.add_argument("--iterations", "-n", type=ITERATIONS, default=300, help="outer iterations, >= 0 (default 300)")
+    p.add_argument("--seed", type=int_in(0), default=0, help="seed of the generated dataset, >= 0 (default 0)")
     p.add_argument("--no-progress", action="store_true")
     _add_common(p)
 
     p = sub.add_parser("bench", help="reproduce the paper's Tables I/II on the available datasets")
     p.add_argument("--quick", action="store_true", help="a small run for CI: one small dataset, few iterations")
     p.add_argument("--datasets", nargs="*", help="benchmark names (default: all available)")
-    p.add_argument("--iterations", "-n", type=int, default=1000)
-    p.add_argument("--robots", "-A", type=int, default=10)
+    p.add_argument("--iterations", "-n", type=int_in(1, INT_MAX), default=1000, help="outer iterations, >= 1 (default 1000)")
+    p.add_argument("--robots", "-A", type=ROBOTS, default=10, help="robots, >= 1 (default 10)")
     p.add_argument("--out-dir", default="bench-results", help="folder for the Markdown, CSV and JSON tables")
     p.add_argument("--no-progress", action="store_true")
     _add_common(p)
@@ -109,7 +280,19 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    """``mmpgo`` with ``argv`` (default ``sys.argv[1:]``); returns the exit status (0, 2 for bad
+    input or options, 130 when interrupted)."""
+    try:
+        args = build_parser().parse_args(argv)
+    except SystemExit as exc:  # --help, or a bad option (reported in one line by _Parser.error)
+        return _exit_status(exc)
+    # numpy's floating-point warnings would add lines to the one-line errors: non-finite values are
+    # checked explicitly (the reader's representability rules, the solvers' NonFiniteError)
+    with cli_warnings(), np.errstate(all="ignore"):
+        return _run(args, argv)
+
+
+def _run(args, argv) -> int:
     if args.precision == "float64":
         from ._precision import enable_float64
 
@@ -139,7 +322,7 @@ def main(argv: list[str] | None = None) -> int:
 
             return run_bench(args)
     except (G2OFormatError, DatasetNotFoundError, CLIError, ValueError, OSError) as err:
-        print(f"mmpgo: error: {err}", file=sys.stderr)
+        print_error(err)
         return 2
     except KeyboardInterrupt:
         print("mmpgo: interrupted", file=sys.stderr)
@@ -147,13 +330,66 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def _resolve_file(name: str, data: str | None) -> Path:
-    p = Path(name)
-    if p.is_file():
-        return p
-    from ._datasets import find_benchmark
+def _resolve_file(name: str, data: str | None, *, announce: bool = True) -> Path:
+    """The g2o file of a FILE argument (see :func:`~mmpgo_jax._datasets.find_benchmark`: a path
+    is only a path; a bare name is looked up in the data folder). ``announce``: print ``using
+    PATH (benchmark NAME)`` when the data folder supplied the file."""
+    from ._datasets import benchmark_info, find_benchmark, names_a_path
 
-    return find_benchmark(name, data)
+    path = find_benchmark(name, data)
+    if announce and not names_a_path(name):
+        info = benchmark_info(name)
+        print(f"using {path} ({f'benchmark {info.name}' if info is not None else 'from the data folder'})", flush=True)
+    return path
+
+
+def read_input(path, args=None):
+    """``read_g2o(path)`` of the FILE argument, refusing indefinite information matrices with
+    ``--strict-information``."""
+    from ._g2o import read_g2o
+
+    return read_g2o(path, strict_information=bool(getattr(args, "strict_information", False)))
+
+
+_OUTPUTS = (("out", "--out"), ("tum", "--tum"), ("history", "--history"), ("plot", "--plot"))
+
+
+def check_outputs(args) -> None:
+    """Refuse unusable output paths before any work: for each of --out, --tum, --history, --plot
+    that is set, its folder must exist and be writable, the path must not be a directory (nor a
+    device or other non-regular file), and no two may be the same file (symbolic links resolved)."""
+    from ._atomic import resolve_target
+
+    seen: dict = {}
+    for attr, flag in _OUTPUTS:
+        value = getattr(args, attr, None)
+        if value is None:
+            continue
+        value = os.fspath(value)
+        if value == "":
+            raise CLIError(f"{flag}: empty file name")
+        target = resolve_target(value)
+        shown = f"{flag} {value}"
+        if os.path.isdir(target):
+            raise CLIError(f"{shown}: is a directory")
+        if os.path.exists(target) and not os.path.isfile(target):
+            raise CLIError(f"{shown}: not a regular file (outputs replace the file as a whole)")
+        folder = os.path.dirname(target)
+        named = folder if os.path.islink(value) else (os.path.dirname(value) or ".")
+        if not os.path.exists(folder):
+            raise CLIError(f"{shown}: folder {named!r} does not exist")
+        if not os.path.isdir(folder):
+            raise CLIError(f"{shown}: {named!r} is not a folder")
+        if not os.access(folder, os.W_OK | os.X_OK):
+            raise CLIError(f"{shown}: folder {named!r} is not writable")
+        keys = [target]
+        with contextlib.suppress(OSError):
+            st = os.stat(target)
+            keys.append((st.st_dev, st.st_ino))  # hard links to one file
+        for key in keys:
+            if key in seen:
+                raise CLIError(f"{seen[key]} and {shown}: the same file")
+            seen[key] = shown
 
 
 def _describe_components(graph, vertex_ids=None) -> tuple[list[np.ndarray], str]:
@@ -169,12 +405,13 @@ def _describe_components(graph, vertex_ids=None) -> tuple[list[np.ndarray], str]
 
 
 def _cmd_info(args) -> int:
-    from ._g2o import read_g2o
     from ._partition import contiguous_robots, partition_stats
 
     path = _resolve_file(args.file, args.data)
-    g2o = read_g2o(path)
+    g2o = read_input(path, args)
     g = g2o.graph
+    if args.robots is not None and not 1 <= args.robots <= g.num_poses:
+        raise CLIError(f"--robots must be between 1 and the number of poses ({g.num_poses}), got {args.robots}")
     kappa, tau = np.asarray(g.kappa), np.asarray(g.tau)
     _, conn = _describe_components(g, g2o.vertex_ids)
     ids = g2o.vertex_ids
@@ -197,12 +434,49 @@ def _cmd_info(args) -> int:
     return 0
 
 
-def _largest_component(g2o):
-    """Restrict a G2OFile's graph to its largest connected component."""
-    from ._pose_graph import PoseGraph, Poses, connected_components
+@dataclass(frozen=True, eq=False)
+class LoadedInput:
+    """The FILE of ``solve`` / ``optimum``, ready to solve: the graph (its largest component with
+    --largest-component), the original ids and information, the VERTEX estimates, the FIX poses and
+    the frame results are written in (the FIX pose, else the first pose at its VERTEX value)."""
+
+    path: Path
+    g2o: object  # the G2OFile as read
+    keep: np.ndarray | None  # the poses kept (--largest-component), None: all
+    graph: object
+    vertex_ids: np.ndarray
+    information: np.ndarray
+    initial: object
+    fixed: object  # FixedPoses | None
+    frame: object  # FixedPoses
+    components: list
+
+    @property
+    def fixed_mask(self) -> np.ndarray:
+        return np.zeros(self.graph.num_poses, bool) if self.fixed is None else self.fixed.mask(self.graph.num_poses)
+
+    def poses_file(self, file, what: str):
+        """Poses of a --init / --ground-truth file, matched to this graph by vertex id."""
+        from ._initialization import load_poses
+        from ._pose_graph import Poses
+
+        full = load_poses(self.g2o.graph, file, vertex_ids=self.g2o.vertex_ids, what=what)
+        return full if self.keep is None else Poses(full.R[self.keep], full.t[self.keep])
+
+    def start(self, init: str, methods: tuple[str, ...]):
+        """``init`` for the solver: a method name, or the poses of a file."""
+        if init in methods:
+            return init
+        if not Path(init).is_file():
+            raise CLIError(f"--init {init!r}: not a known method ({', '.join(methods)}) nor a file")
+        return self.poses_file(init, "--init file")
+
+
+def _largest_component(g2o, comp: np.ndarray):
+    """A G2OFile's graph, information and VERTEX estimates restricted to the poses ``comp``."""
+    from ._pose_graph import PoseGraph, Poses
 
     g = g2o.graph
-    comp = connected_components(g.num_poses, np.asarray(g.i), np.asarray(g.j))[0]
     new_index = np.full(g.num_poses, -1)
     new_index[comp] = np.arange(len(comp))
     keep = new_index[np.asarray(g.i)] >= 0
@@ -219,128 +493,148 @@ def _largest_component(g2o):
     initial = None
     if g2o.initial is not None:
         initial = Poses(g2o.initial.R[comp], g2o.initial.t[comp])
-    return sub, g2o.vertex_ids[comp], g2o.information[keep], initial
+    return sub, g2o.information[keep], initial
 
 
-def _load_for_solve(args, *, announce: bool = True):
-    """(path, graph, vertex_ids, information, initial, components) of ``args.file``; refuses a
-    disconnected graph unless ``--largest-component``. ``announce``: print the component note."""
-    from ._g2o import read_g2o
+def _load_for_solve(args, *, announce: bool = True) -> LoadedInput:
+    """The :class:`LoadedInput` of ``args.file``; refuses a disconnected graph unless
+    ``--largest-component``. ``announce``: print the component note."""
+    from ._gauge import FixedPoses
 
-    path = _resolve_file(args.file, args.data)
-    g2o = read_g2o(path)
+    path = _resolve_file(args.file, args.data, announce=False)
+    g2o = read_input(path, args)
     comps, conn = _describe_components(g2o.graph, g2o.vertex_ids)
-    if len(comps) > 1:
-        if not args.largest_component:
-            raise CLIError(
-                f"{path}: the pose graph is {conn}. Each component is only determined up to its own "
-                "rigid transform, so the problem is ill-posed; pass --largest-component to solve the "
-                "largest one (the others are left out of the result)."
-            )
-        graph, vertex_ids, information, initial = _largest_component(g2o)
-        if announce:
-            print(f"note: solving the largest component only ({graph.num_poses} of {g2o.graph.num_poses} poses)")
-    else:
-        graph, vertex_ids, information, initial = g2o.graph, g2o.vertex_ids, g2o.information, g2o.initial
-    return path, graph, vertex_ids, information, initial, comps
+    if len(comps) == 1:
+        return LoadedInput(path, g2o, None, g2o.graph, g2o.vertex_ids, g2o.information, g2o.initial,
+                           g2o.fixed_poses, g2o.frame, comps)
+    if not args.largest_component:
+        raise CLIError(
+            f"{path}: the pose graph is {conn}. Each component is only determined up to its own "
+            "rigid transform, so the problem is ill-posed; pass --largest-component to solve the "
+            "largest one (the others are left out of the result)."
+        )
+    keep = np.asarray(comps[0])
+    graph, information, initial = _largest_component(g2o, keep)
+    fixed = None if g2o.fixed_poses is None else g2o.fixed_poses.restrict(keep)
+    frame = fixed or FixedPoses([0], g2o.vertex_R[keep[:1]], g2o.vertex_t[keep[:1]])
+    if announce:
+        print(f"note: solving the largest component only ({graph.num_poses} of {g2o.graph.num_poses} poses)")
+    return LoadedInput(path, g2o, keep, graph, g2o.vertex_ids[keep], information, initial, fixed, frame, comps)
+
+
+_SOLVE_STARTS = ("chordal", "distributed-chordal", "vertices", "odometry")
+_OPTIMUM_STARTS = ("chordal", "vertices", "odometry")
 
 
 def _cmd_solve(args) -> int:
     from ._datasets import benchmark_info
     from ._solve import solve
 
-    path, graph, vertex_ids, information, initial, comps = _load_for_solve(args)
-    if not 1 <= args.robots <= graph.num_poses:
-        raise CLIError(f"--robots must be between 1 and the number of poses ({graph.num_poses}), got {args.robots}")
-    ground_truth = None
-    if args.ground_truth:
-        if len(comps) > 1:
-            raise CLIError("--ground-truth cannot be combined with --largest-component (pose indices differ)")
-        from ._initialization import load_poses
-
-        ground_truth = load_poses(graph, args.ground_truth, what="ground-truth file")
-    init = args.init
-    if init not in ("chordal", "distributed-chordal", "vertices", "odometry") and not Path(init).is_file():
-        raise CLIError(f"--init {init!r}: not a known method (chordal, distributed-chordal, vertices, odometry) nor a file")
+    args.file = str(_resolve_file(args.file, args.data))
+    check_outputs(args)
+    data = _load_for_solve(args)
+    if not 1 <= args.robots <= data.graph.num_poses:
+        raise CLIError(f"--robots must be between 1 and the number of poses ({data.graph.num_poses}), got {args.robots}")
+    ground_truth = data.poses_file(args.ground_truth, "--ground-truth file") if args.ground_truth else None
+    init = data.start(args.init, _SOLVE_STARTS)
 
     with progress_bar(f"{args.method.upper()}-PGO", args.iterations, disable=args.no_progress) as progress:
         result = solve(
-            graph,
+            data.graph,
             args.robots,
             method=args.method,
             iterations=args.iterations,
             init=init,
-            initial=initial,
+            initial=data.initial,
             xi=args.xi,
             restart=args.restart,
             chunk_size=args.chunk,
             grad_tol=args.grad_tol,
             callback=progress,
             ground_truth=ground_truth,
+            fixed=data.fixed,
+            frame=data.frame,
         )
-    info = benchmark_info(path.name)
+    info = benchmark_info(data.path.name)
     fstar = info.fstar if info is not None else None
     _print_summary(result, fstar)
-    finish_solve(args, path, graph, result, fstar, vertex_ids, information)
+    finish_solve(args, data, result, fstar)
     return 0
 
 
-def _print_certificate(graph, poses, *, hint: bool) -> None:
+def _print_certificate(data: LoadedInput, poses, *, hint: bool) -> None:
     from ._certificate import certify
 
-    cert = certify(graph, poses)
+    if data.fixed is not None and len(data.fixed) > 1:
+        print(f"certificate not applicable: {len(data.fixed)} FIX poses constrain the problem "
+              "(the dual certificate covers PGO with at most one fixed pose)")
+        return
+    cert = certify(data.graph, poses)
     print(f"certificate {cert.summary()}")
     if hint and not cert.certified:
         print("            (the certificate decides only at a critical point: run to a tight --grad-tol, e.g. --robots 1)")
 
 
-def _write_estimate(args, graph, poses, vertex_ids, information) -> None:
-    """--out (g2o) and --tum files of an estimate."""
+def _write_estimate(args, data: LoadedInput, poses) -> list[str]:
+    """--out (g2o, with the FIX lines) and --tum files of an estimate; returns the paths written."""
     from ._g2o import write_g2o, write_tum
 
+    written = []
     if args.out:
-        write_g2o(args.out, graph, poses, vertex_ids=vertex_ids, information=information)
-        print(f"wrote {args.out}")
+        write_g2o(args.out, data.graph, poses, vertex_ids=data.vertex_ids, information=data.information,
+                  fixed=data.fixed_mask)
+        written.append(args.out)
     if args.tum:
-        write_tum(args.tum, poses, vertex_ids=vertex_ids)
-        print(f"wrote {args.tum}")
+        write_tum(args.tum, poses, vertex_ids=data.vertex_ids)
+        written.append(args.tum)
+    return written
 
 
-def finish_solve(args, path, graph, result, fstar, vertex_ids, information) -> None:
-    """After a solve (single- or multi-device): --certify, then the --out/--tum/--history/--plot files."""
+def finish_solve(args, data: LoadedInput, result, fstar) -> None:
+    """After a solve (single- or multi-device): --certify, then the --out/--tum/--history/--plot
+    files, all or none (:func:`~mmpgo_jax._atomic.atomic_group`)."""
+    from ._atomic import atomic_group
+
     if args.certify:
-        _print_certificate(graph, result.poses, hint=True)
-    _write_estimate(args, graph, result.poses, vertex_ids, information)
-    if args.history:
-        write_history_csv(args.history, result)
-        print(f"wrote {args.history}")
-    if args.plot:
-        from ._plotting import save_solve_figure
+        _print_certificate(data, result.poses, hint=True)
+    with atomic_group():
+        written = _write_estimate(args, data, result.poses)
+        if args.history:
+            write_history_csv(args.history, result)
+            written.append(args.history)
+        if args.plot:
+            from ._plotting import save_solve_figure
 
-        save_solve_figure(args.plot, graph, result, fstar=fstar, title=path.name)
-        print(f"wrote {args.plot}")
+            save_solve_figure(args.plot, data.graph, result, fstar=fstar, title=data.path.name)
+            written.append(args.plot)
+    for path in written:  # only now are they in place
+        print(f"wrote {path}")
 
 
 def _cmd_optimum(args) -> int:
+    from ._atomic import atomic_group
     from ._datasets import benchmark_info
     from ._solve import centralized_optimum
 
-    path, graph, vertex_ids, information, initial, _ = _load_for_solve(args)
-    init = args.init
-    if init not in ("chordal", "vertices", "odometry") and not Path(init).is_file():
-        raise CLIError(f"--init {init!r}: not a known method (chordal, vertices, odometry) nor a file")
-    res = centralized_optimum(graph, init=init, initial=initial, grad_tol=args.grad_tol,
-                              max_iterations=args.max_iterations)
+    args.file = str(_resolve_file(args.file, args.data))
+    check_outputs(args)
+    data = _load_for_solve(args)
+    init = data.start(args.init, _OPTIMUM_STARTS)
+    res = centralized_optimum(data.graph, init=init, initial=data.initial, grad_tol=args.grad_tol,
+                              max_iterations=args.max_iterations, fixed=data.fixed, frame=data.frame)
     h = res.history
     total = res.init_seconds + res.compile_seconds + res.solve_seconds
     print(f"f* = 2F      {res.f:.10g} ({res.iterations} iterations, {res.stop_reason}, ||grad F|| = {h.grad_norm[-1]:.2e}, "
           f"{total:.1f} s)")
-    info = benchmark_info(path.name)
+    info = benchmark_info(data.path.name)
     if info is not None and info.fstar is not None:
         print(f"published   {info.fstar:.6g} ({info.name}); relative difference {(res.f - info.fstar) / info.fstar:+.1e}")
     if not args.no_certify:
-        _print_certificate(graph, res.poses, hint=False)
-    _write_estimate(args, graph, res.poses, vertex_ids, information)
+        _print_certificate(data, res.poses, hint=False)
+    with atomic_group():
+        written = _write_estimate(args, data, res.poses)
+    for path in written:
+        print(f"wrote {path}")
     return 0
 
 

@@ -57,7 +57,8 @@ from ._mm import Collectives, IterationRecord, MMConfig, MMProblem, evaluate, in
 from ._partition import Partition, contiguous_robots, partition, partition_stats
 from ._progress import progress_bar
 from ._pose_graph import PoseGraph, Poses
-from ._solve import History, SolveResult, _stop_reason
+from ._gauge import FixedPoses
+from ._solve import History, SolveResult, _stop_reason, check_finite, check_solve_options, output_frame
 from ._subproblem import SubproblemConfig
 
 AXIS = "robots"
@@ -345,6 +346,8 @@ def solve_sharded(
     callback: Callable[[int, np.ndarray], bool | None] | None = None,
     reorder: bool | None = None,
     exchange: Literal["halo", "all_gather"] = "halo",
+    fixed: FixedPoses | None = None,
+    frame: FixedPoses | Literal["raw"] | None = None,
 ) -> SolveResult:
     """:func:`mmpgo_jax.solve` with the robots sharded over the devices of a 1-D mesh.
 
@@ -357,8 +360,8 @@ def solve_sharded(
     the sharded (renumbered, padded) partition. In a multi-process run every process must call
     this with the same arguments; the callback's stop decision is taken from process 0.
     """
-    if iterations < 0:
-        raise ValueError(f"iterations must be >= 0, got {iterations}")
+    check_solve_options(iterations=iterations, xi=xi, chunk_size=chunk_size, grad_tol=grad_tol,
+                        f_target=f_target, rel_decrease_tol=rel_decrease_tol)
     if mesh is None:
         mesh = make_mesh(devices)
     elif devices is not None:
@@ -383,10 +386,11 @@ def solve_sharded(
         else:
             part = partition(graph, plan.sharded_robot_of_pose, num_robots=plan.padded_robots)
         init_robots = user_part
-        X0 = _initial_poses(graph, init, initial, init_robots, multiprocess)
-        problem = MMProblem.build(part, xi)
+        X0 = _initial_poses(graph, init, initial, init_robots, multiprocess, fixed)
+        problem = MMProblem.build(part, xi, fixed=fixed)
         state0 = init_state(problem, part.scatter(X0), config)
         start = jax.device_get(evaluate(problem, state0))
+    check_finite(np.atleast_1d(start.f), np.atleast_1d(start.grad_norm), 0)
     problem_specs = _problem_specs(problem)
     state_specs = _specs(state0, part.num_robots)
     problem = _shard(problem, problem_specs, mesh)
@@ -439,7 +443,7 @@ def solve_sharded(
     X = _to_host(state.X)
     history = History(np.concatenate(fs), np.concatenate(gs), np.concatenate(rs))
     return SolveResult(
-        poses=part.gather(unstack(jnp.asarray(X))),
+        poses=output_frame(part.gather(unstack(jnp.asarray(X))), fixed, frame),
         history=history,
         partition=user_part,
         config=config,
@@ -479,10 +483,10 @@ def _agree(reason: str | None) -> str | None:
     return _REASONS[int(code)] or None
 
 
-def _initial_poses(graph, init, initial, robots, multiprocess: bool) -> Poses:
+def _initial_poses(graph, init, initial, robots, multiprocess: bool, fixed=None) -> Poses:
     from ._initialization import initialize
 
-    X0 = initialize(graph, init, initial=initial, robots=robots)
+    X0 = initialize(graph, init, initial=initial, robots=robots, fixed=fixed)
     if not multiprocess:
         return X0
     # Every process computes the same start; broadcast process 0's so that hosts with different
@@ -760,8 +764,12 @@ def run_multiprocess(
     if args and args[0] == "solve":
         args = args[1:]
     args = _strip_options(args, _LAUNCH_OPTIONS)
-    if processes < 1:
-        raise ValueError(f"processes must be >= 1, got {processes}")
+    if isinstance(processes, bool) or not isinstance(processes, (int, np.integer)) or processes < 1:
+        raise ValueError(f"processes must be an integer >= 1, got {processes!r}")
+    if isinstance(local_devices, bool) or not isinstance(local_devices, (int, np.integer)) or local_devices < 1:
+        raise ValueError(f"local_devices must be an integer >= 1, got {local_devices!r}")
+    if not (isinstance(timeout_s, (int, float, np.number)) and np.isfinite(timeout_s) and timeout_s > 0):
+        raise ValueError(f"timeout_s must be a finite number > 0, got {timeout_s!r}")
     coordinator = coordinator or f"127.0.0.1:{free_port()}"
     child_env = dict(os.environ if env is None else env)
     child_env["JAX_PLATFORMS"] = "cpu"
@@ -826,15 +834,23 @@ def run_multiprocess(
 
 
 def add_cli_options(p) -> None:
-    """Add the sharding / multi-process options to the ``mmpgo solve`` parser."""
+    """Add the sharding / multi-process options to the ``mmpgo solve`` parser (every number is
+    checked when it is parsed: see :func:`mmpgo_jax.cli.int_in`)."""
+    from .cli import finite_float, host_port, int_in
+
     g = p.add_argument_group("sharding over devices and processes")
-    g.add_argument("--devices", type=int, default=None, help="shard the robots over this many devices of this process (0: all)")
-    g.add_argument("--processes", type=int, default=None, help="run as P local CPU processes (jax.distributed on 127.0.0.1)")
-    g.add_argument("--coordinator", default=None, help="HOST:PORT of process 0 (multi-host runs; with --num-processes, --process-id)")
-    g.add_argument("--num-processes", type=int, default=None, help="number of processes of a multi-host run")
-    g.add_argument("--process-id", type=int, default=None, help="this process's index 0..P-1 (process 0 writes the outputs)")
-    g.add_argument("--local-devices", type=int, default=None, help="CPU devices per process (with JAX_PLATFORMS=cpu)")
-    g.add_argument("--timeout", type=float, default=600.0, help="seconds before launched processes are killed (default 600)")
+    g.add_argument("--devices", type=int_in(0), default=None,
+                   help="shard the robots over this many devices of this process, >= 0 (0: all)")
+    g.add_argument("--processes", type=int_in(1), default=None,
+                   help="run as P >= 1 local CPU processes (jax.distributed on 127.0.0.1)")
+    g.add_argument("--coordinator", type=host_port, default=None,
+                   help="HOST:PORT of process 0, PORT 1..65535 (multi-host runs; with --num-processes, --process-id)")
+    g.add_argument("--num-processes", type=int_in(1), default=None, help="number of processes of a multi-host run, >= 1")
+    g.add_argument("--process-id", type=int_in(0), default=None,
+                   help="this process's index 0..P-1 (process 0 writes the outputs)")
+    g.add_argument("--local-devices", type=int_in(1), default=None, help="CPU devices per process, >= 1 (with JAX_PLATFORMS=cpu)")
+    g.add_argument("--timeout", type=finite_float(0.0, strict=True), default=600.0,
+                   help="seconds before launched processes are killed, > 0 (default 600)")
     g.add_argument("--exchange", choices=("halo", "all_gather"), default="halo",
                    help="per-iteration pose exchange between devices: neighbour poses only (default) or all poses")
 
@@ -851,12 +867,15 @@ def cli_solve(args, argv: Sequence[str] | None = None) -> int:
     status; ``--coordinator/--num-processes/--process-id`` joins a multi-process run; ``--devices``
     alone shards over this process's devices. ``argv``: the full command line (default sys.argv).
     """
-    from .cli import CLIError
+    from .cli import CLIError, _resolve_file, check_outputs
 
+    if args.process_id in (None, 0):  # the process that writes (or launches the one that does)
+        check_outputs(args)
     if args.processes is not None and args.num_processes is None:
         if args.processes < 1:
             raise CLIError(f"--processes must be >= 1, got {args.processes}")
         if args.processes > 1:
+            _resolve_file(args.file, args.data, announce=False)  # fail before launching; process 0 announces
             argv = list(sys.argv[1:] if argv is None else argv)
             run = run_multiprocess(argv, args.processes, local_devices=args.local_devices or 1, timeout_s=args.timeout, capture=False)
             if run.timed_out:
@@ -868,7 +887,7 @@ def cli_solve(args, argv: Sequence[str] | None = None) -> int:
         if not 0 <= args.process_id < args.num_processes:
             raise CLIError(f"--process-id must be between 0 and {args.num_processes - 1}, got {args.process_id}")
         initialize_distributed(args.coordinator, args.num_processes, args.process_id, local_devices=args.local_devices,
-                               timeout_s=int(min(args.timeout, 600)))
+                               timeout_s=max(1, int(min(args.timeout, 600))))
         try:
             return _cli_solve_sharded(args)
         finally:
@@ -882,9 +901,11 @@ def _cli_solve_sharded(args) -> int:
     from ._datasets import benchmark_info
 
     writer = jax.process_index() == 0
-    path, graph, vertex_ids, information, initial, _ = cli._load_for_solve(args, announce=writer)
-    if not 1 <= args.robots <= graph.num_poses:
-        raise cli.CLIError(f"--robots must be between 1 and the number of poses ({graph.num_poses}), got {args.robots}")
+    args.file = str(cli._resolve_file(args.file, args.data, announce=writer))
+    data = cli._load_for_solve(args, announce=writer)
+    if not 1 <= args.robots <= data.graph.num_poses:
+        raise cli.CLIError(f"--robots must be between 1 and the number of poses ({data.graph.num_poses}), got {args.robots}")
+    init = data.start(args.init, cli._SOLVE_STARTS)
     local = jax.local_devices()
     if args.devices:
         if args.devices > len(local):
@@ -895,29 +916,31 @@ def _cli_solve_sharded(args) -> int:
 
     with progress_bar(f"{args.method.upper()}-PGO", args.iterations, disable=(not writer) or args.no_progress) as progress:
         result = solve_sharded(
-            graph,
+            data.graph,
             args.robots,
             devices=devices,
             method=args.method,
             iterations=args.iterations,
-            init=args.init,
-            initial=initial,
+            init=init,
+            initial=data.initial,
             xi=args.xi,
             restart=args.restart,
             chunk_size=args.chunk,
             grad_tol=args.grad_tol,
             callback=progress,
             exchange=args.exchange,
+            fixed=data.fixed,
+            frame=data.frame,
         )
     if not writer:
         return 0
-    info = benchmark_info(path.name)
+    info = benchmark_info(data.path.name)
     fstar = info.fstar if info is not None else None
     cli._print_summary(result, fstar)
     halo = f", halo of {result.extra['halo_size']} poses per device pair" if result.extra["halo_size"] else ""
     print(f"sharding    {result.extra['devices']} devices, {result.extra['processes']} processes, "
           f"{result.extra['exchange']} exchange{halo}")
-    cli.finish_solve(args, path, graph, result, fstar, vertex_ids, information)
+    cli.finish_solve(args, data, result, fstar)
     return 0
 
 
@@ -934,21 +957,28 @@ def build_parser():
 
 def main(argv: Sequence[str] | None = None) -> int:
     """``python -m mmpgo_jax.sharding solve FILE [options]``: one process of a sharded solve."""
-    from .cli import CLIError
     from ._datasets import DatasetNotFoundError
     from ._g2o import G2OFormatError
+    from .cli import CLIError, _exit_status, cli_warnings, print_error
 
     argv = list(sys.argv[1:] if argv is None else argv)
     if not argv or argv[0] != "solve":
         argv = ["solve", *argv]
-    args = build_parser().parse_args(argv)
+    try:
+        args = build_parser().parse_args(argv)
+    except SystemExit as exc:  # --help, or a bad option (reported in one line)
+        return _exit_status(exc)
     if args.precision == "float64":
         jax.config.update("jax_enable_x64", True)
-    try:
-        return cli_solve(args, argv)
-    except (G2OFormatError, DatasetNotFoundError, CLIError, ValueError, OSError) as err:
-        print(f"mmpgo: error: {err}", file=sys.stderr)
-        return 2
+    with cli_warnings():
+        try:
+            return cli_solve(args, argv)
+        except (G2OFormatError, DatasetNotFoundError, CLIError, ValueError, OSError) as err:
+            print_error(err)
+            return 2
+        except KeyboardInterrupt:
+            print("mmpgo: interrupted", file=sys.stderr)
+            return 130
 
 
 if __name__ == "__main__":

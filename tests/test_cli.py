@@ -45,6 +45,7 @@ def _env(**extra) -> dict:
 def mmpgo(*args, cwd=None, env=None, timeout=300) -> subprocess.CompletedProcess:
     return subprocess.run(
         [sys.executable, "-m", "mmpgo_jax.cli", *map(str, args)],
+        check=False,
         cwd=cwd or REPO,
         env=env or _env(),
         capture_output=True,
@@ -301,7 +302,7 @@ def test_demo_without_data(tmp_path):
     env = _env(MMPGO_DATA=str(empty))
     env.pop("PYTHONPATH", None)
     where = subprocess.run([sys.executable, "-c", "import mmpgo_jax; print(mmpgo_jax.__file__)"],
-                           cwd=repo, env=env, capture_output=True, text=True, timeout=120)
+                           cwd=repo, env=env, capture_output=True, text=True, timeout=120, check=False)
     assert Path(where.stdout.strip()).resolve() == (repo / "mmpgo_jax" / "__init__.py").resolve(), where
     assert not (tmp_path / "shared").exists()
 
@@ -354,10 +355,10 @@ def test_solve_reports_accuracy_with_ground_truth(tmp_path):
     out = tmp_path / "est.g2o"
     proc = mmpgo("solve", problem, "--robots", 3, "--iterations", 10, "--no-progress", "--ground-truth", truth, "--out", out)
     _ok(proc)
-    ate = float(re.search(r"^ATE\s+(\S+) RMSE", proc.stdout, re.M).group(1))
+    ate = float(re.search(r"^ATE\s+(\S+) RMSE", proc.stdout, re.MULTILINE).group(1))
     est = read_g2o(out).initial
     assert ate == pytest.approx(mm.trajectory_accuracy(est, data.ground_truth).ate, rel=1e-5)
-    assert re.search(r"^RPE\s+\S+ translation", proc.stdout, re.M)
+    assert re.search(r"^RPE\s+\S+ translation", proc.stdout, re.MULTILINE)
 
     small = tmp_path / "small.g2o"
     sub = mm.cube_dataset(2, num_poses=60, grid=3)
@@ -378,7 +379,7 @@ def test_solve_certify_reports_global_optimum(tmp_path):
     write_g2o(problem, data.graph, None)
     proc = mmpgo("solve", problem, "--robots", 1, "--iterations", 300, "--grad-tol", "1e-7", "--no-progress", "--certify")
     _ok(proc)
-    line = re.search(r"^certificate (.*)$", proc.stdout, re.M).group(1)
+    line = re.search(r"^certificate (.*)$", proc.stdout, re.MULTILINE).group(1)
     assert line.startswith("global optimum (certified)"), proc.stdout
     lam = float(re.search(r"lambda_min\(S\) = (\S+) ", line).group(1))
     eta = float(re.search(r"eta = ([0-9.e+-]+)", line).group(1))
@@ -396,7 +397,7 @@ def test_optimum_command_writes_certified_optimum(tmp_path):
     write_g2o(problem, data.graph, data.ground_truth)
     proc = mmpgo("optimum", problem, "--init", "vertices", "--out", out)
     _ok(proc)
-    f = float(re.search(r"^f\* = 2F\s+(\S+) ", proc.stdout, re.M).group(1))
+    f = float(re.search(r"^f\* = 2F\s+(\S+) ", proc.stdout, re.MULTILINE).group(1))
     assert "global optimum (certified)" in proc.stdout
     ref = mm.centralized_optimum(data.graph)
     assert f == pytest.approx(ref.f, rel=1e-9)

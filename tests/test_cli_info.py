@@ -3,10 +3,9 @@
 import re
 
 import pytest
+from conftest import data_dir
 
 from mmpgo_jax.cli import main
-
-from conftest import data_dir
 
 
 def _readme_table():

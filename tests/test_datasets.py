@@ -194,10 +194,81 @@ def test_missing_file_message(fake_data):
         find_benchmark("M3500", data=fake_data)
     with pytest.raises(DatasetNotFoundError, match="not available"):
         find_benchmark("rim", data=fake_data)
-    with pytest.raises(DatasetNotFoundError, match="Unknown benchmark 'bogus'.*MITb"):
+    with pytest.raises(DatasetNotFoundError, match="'bogus' is neither a file here nor a registered benchmark.*MITb"):
         find_benchmark("bogus", data=fake_data)
     with pytest.raises(DatasetNotFoundError, match="does not exist"):
         find_benchmark("MITb", data=fake_data / "missing")
+
+
+def test_missing_file_messages_are_short(fake_data):
+    """The messages fit on one line of about 300 characters (the CLI prints them as they are)."""
+    for name in list(BENCHMARKS) + ["bogus"]:
+        if (fake_data / BENCHMARKS[name].file).is_file() if name in BENCHMARKS else False:
+            continue
+        with pytest.raises(DatasetNotFoundError) as exc:
+            find_benchmark(name, data=fake_data / "missing")
+        msg = str(exc.value)
+        assert "\n" not in msg and len(msg) - len(str(fake_data)) <= 300, msg
+
+
+# ------------------------------------------------------------- names vs paths: no substitution
+
+
+@pytest.mark.parametrize("form", ["{d}/nowhere/MIT.g2o", "./MIT.g2o", "~/no-such-dir-mmpgo/MIT.g2o", ".MIT.g2o"])
+def test_missing_path_is_not_replaced_by_the_benchmark(fake_data, monkeypatch, tmp_path, form):
+    """A path (directory part, leading ~ or .) is only a path, even when its name is a benchmark's."""
+    work = tmp_path / "work"
+    work.mkdir()
+    monkeypatch.chdir(work)
+    query = form.format(d=fake_data)
+    with pytest.raises(DatasetNotFoundError) as exc:
+        find_benchmark(query, data=fake_data)
+    assert str(exc.value) == f"{query}: file not found"
+
+
+def test_directory_is_not_replaced_by_the_benchmark(fake_data, tmp_path, monkeypatch):
+    folder = tmp_path / "dir" / "intel.g2o"
+    folder.mkdir(parents=True)
+    (fake_data / "intel.g2o").write_text("# fake\n")
+    with pytest.raises(IsADirectoryError) as exc:
+        find_benchmark(str(folder), data=fake_data)
+    assert str(exc.value) == f"{folder}: is a directory, not a g2o file"
+    # a bare name that exists here as a directory is a path too
+    monkeypatch.chdir(tmp_path / "dir")
+    with pytest.raises(IsADirectoryError, match="^intel.g2o: is a directory"):
+        find_benchmark("intel.g2o", data=fake_data)
+    # ... while the name alone (no such entry here) is the benchmark
+    assert find_benchmark("intel", data=fake_data) == fake_data / "intel.g2o"
+
+
+def test_existing_bare_file_is_a_path(fake_data, tmp_path, monkeypatch):
+    """A bare file name that exists in the working directory is that file, not the benchmark."""
+    work = tmp_path / "work"
+    work.mkdir()
+    (work / "MIT.g2o").write_text("# mine\n")
+    monkeypatch.chdir(work)
+    assert find_benchmark("MIT.g2o", data=fake_data) == Path("MIT.g2o")
+    assert find_benchmark("./MIT.g2o", data=fake_data) == Path("MIT.g2o")
+    # names that do not exist here go to the data folder
+    assert find_benchmark("MITb", data=fake_data) == fake_data / "MIT.g2o"
+    assert find_benchmark("mit", data=fake_data) == fake_data / "MIT.g2o"
+    # the registry's own lookup ignores the working directory
+    assert BENCHMARKS["MITb"].path(fake_data) == fake_data / "MIT.g2o"
+
+
+def test_names_a_path(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "x.g2o").write_text("")
+    (tmp_path / "sub").mkdir()
+    for path in ("a/b.g2o", "/x", "~/x", "~", "./x", ".x", "../x", "x.g2o", "sub", Path("x.g2o")):
+        assert dsm.names_a_path(path), path
+    for name in ("MITb", "city", "garage", "y.g2o", "intel.g2o"):
+        assert not dsm.names_a_path(name), name
+
+
+def test_tilde_path_is_expanded(fake_data, monkeypatch):
+    monkeypatch.setenv("HOME", str(fake_data))
+    assert find_benchmark("~/MIT.g2o") == fake_data / "MIT.g2o"
 
 
 def test_no_data_dir_message(monkeypatch, tmp_path):

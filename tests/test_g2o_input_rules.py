@@ -585,8 +585,8 @@ def random_file(seed: int, dim: int, n: int, m: int) -> list[list[str]]:
             meas = [*t, *rotation_to_quaternion(R)]
             rows.append(["EDGE_SE3:QUAT", str(ids[i]), str(ids[j]), *map(repr, map(float, meas + up))])
     rng.shuffle(rows)
-    if rng.random() < 0.5:
-        rows.append(["FIX", str(ids[rng.integers(n)])])
+    if rng.random() < 0.5:  # FIX a pose that has a VERTEX or EDGE line
+        rows.append(["FIX", rows[int(rng.integers(len(rows)))][1]])
     return rows
 
 
