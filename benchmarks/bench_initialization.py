@@ -41,16 +41,16 @@ jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
 
-import mmpgo_jax._distributed_chordal as dc  # noqa: E402
+import mmpgo_jax._init.distributed_chordal as dc  # noqa: E402
 from mmpgo_jax import cost  # noqa: E402
-from mmpgo_jax._g2o import read_g2o  # noqa: E402
-from mmpgo_jax._initialization import (  # noqa: E402
+from mmpgo_jax._init.chordal import (  # noqa: E402
     chordal_initialization,
     chordal_relaxed_rotations,
     relaxed_rotation_cost,
     relaxed_translation_cost,
     translations_given_rotations,
 )
+from mmpgo_jax._io.g2o import read_g2o  # noqa: E402
 
 # paper name -> (file, f = 2F at the centralized chordal start from NOTES §5)
 DATASETS = {

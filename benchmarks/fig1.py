@@ -7,10 +7,10 @@ Paper settings (Section VIII.A, Fig. 1 caption, NOTES §8): Cube datasets (seeds
 12 x 12 x 12 grid of 1 m cells, 3600 poses, loop-closure probability 0.1, sigma_t = 0.02 m,
 sigma_R = 0.02 pi rad; 5, 10 and 50 robots (contiguous blocks); centralized chordal start;
 1000 iterations; f = 2F. f* per dataset is our centralized optimum
-(:func:`mmpgo_jax._sweep.reference_optimum`, i.e. ``centralized_optimum`` run until
+(:func:`mmpgo_jax._experiments.sweep.reference_optimum`, i.e. ``centralized_optimum`` run until
 ||grad F|| <= 1e-5; the paper uses SE-Sync's certified optimum).
 
-All configurations run through :func:`mmpgo_jax._sweep.sweep` (one compiled executable per
+All configurations run through :func:`mmpgo_jax._experiments.sweep.sweep` (one compiled executable per
 (method, robot count), reused for every dataset; ``--group-by method`` pads everything to 50 robots and compiles once per
 method, which is about 20x slower on this problem, see the sweep module).
 
@@ -39,9 +39,9 @@ import numpy as np  # noqa: E402
 
 import mmpgo_jax  # noqa: E402
 from mmpgo_jax import cube_dataset  # noqa: E402
-from mmpgo_jax._initialization import chordal_initialization  # noqa: E402
-from mmpgo_jax._pose_graph import cost  # noqa: E402
-from mmpgo_jax._sweep import reference_optimum, sweep  # noqa: E402
+from mmpgo_jax._core.pose_graph import cost  # noqa: E402
+from mmpgo_jax._experiments.sweep import reference_optimum, sweep  # noqa: E402
+from mmpgo_jax._init.chordal import chordal_initialization  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
 CHECKPOINTS = (100, 250, 1000)
@@ -130,7 +130,7 @@ def main(argv=None) -> int:
     ap.add_argument("--methods", nargs="+", default=["mm", "amm"], choices=["mm", "amm"])
     ap.add_argument("--group-by", default="robots", choices=["robots", "method"],
                     help="sweep batching: one compiled executable per (method, robots) [default] or per method")
-    ap.add_argument("--max-batch-bytes", type=float, default=None, help="see mmpgo_jax._sweep.sweep")
+    ap.add_argument("--max-batch-bytes", type=float, default=None, help="see mmpgo_jax._experiments.sweep.sweep")
     ap.add_argument("--batch-configs", type=int, default=None,
                     help="configurations per vmap batch (default: 1 on a CPU, where bigger batches leave the "
                          "cache and run slower per configuration; all on an accelerator)")

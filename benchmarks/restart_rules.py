@@ -25,8 +25,8 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np  # noqa: E402
 
 import mmpgo_jax as mm  # noqa: E402
-from mmpgo_jax._atomic import atomic_write  # noqa: E402
-from mmpgo_jax._bench import command_line, machine_info  # noqa: E402
+from mmpgo_jax._io.atomic import atomic_write  # noqa: E402
+from mmpgo_jax.cli.bench import command_line, machine_info  # noqa: E402
 
 RULES = ("adaptive", "average", "paper")
 DEFAULT_NAMES = ("MITb", "CSAIL", "intel", "M3500", "city", "sphere", "torus", "garage")

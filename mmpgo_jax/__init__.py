@@ -18,25 +18,10 @@ Public API (the private modules are implementation details):
 * precision: :func:`enable_float64`
 """
 
-from ._certificate import OptimalityCertificate, certificate_matrix, certify
-from ._datasets import BENCHMARKS, DatasetNotFoundError, available_benchmarks, benchmark_info, data_dir, find_benchmark
-from ._distributed_chordal import distributed_chordal_initialization
-from ._gauge import FixedPoses, express_in_frame
-from ._g2o import G2OFile, G2OFormatError, G2OPoses, G2OWarning, read_g2o, read_g2o_poses, write_g2o, write_tum
-from ._geometry import project_to_so, quaternion_to_rotation, rotation_2d
-from ._initialization import chordal_initialization, initialize, load_poses, odometry_initialization
-from ._metrics import (
-    RelativePoseError,
-    TrajectoryAccuracy,
-    absolute_trajectory_error,
-    align_poses,
-    relative_pose_error,
-    rigid_alignment,
-    trajectory_accuracy,
-)
-from ._mm import MMConfig, MMProblem, MMState, init_state, run, step
-from ._partition import Partition, contiguous_robots, partition, partition_stats
-from ._pose_graph import (
+from ._core.gauge import FixedPoses, express_in_frame
+from ._core.geometry import project_to_so, quaternion_to_rotation, rotation_2d
+from ._core.partition import Partition, contiguous_robots, partition, partition_stats
+from ._core.pose_graph import (
     PoseGraph,
     Poses,
     connected_components,
@@ -50,11 +35,55 @@ from ._pose_graph import (
     riemannian_gradient,
     riemannian_gradient_norm,
 )
-from ._precision import default_float_dtype, enable_float64, float64_enabled
-from ._solve import History, NonFiniteError, SolveResult, centralized_optimum, output_frame, solve
-from ._subproblem import SubproblemConfig
-from ._sweep import SweepResult, reference_optimum, sweep
-from ._synthetic import SyntheticDataset, cube_dataset, grid_2d_dataset
+from ._core.precision import default_float_dtype, enable_float64, float64_enabled
+from ._experiments.certificate import OptimalityCertificate, certificate_matrix, certify
+from ._experiments.metrics import (
+    RelativePoseError,
+    TrajectoryAccuracy,
+    absolute_trajectory_error,
+    align_poses,
+    relative_pose_error,
+    rigid_alignment,
+    trajectory_accuracy,
+)
+from ._experiments.sweep import SweepResult, reference_optimum, sweep
+from ._experiments.synthetic import SyntheticDataset, cube_dataset, grid_2d_dataset
+from ._init.chordal import (
+    chordal_initialization,
+    initialize,
+    load_poses,
+    odometry_initialization,
+)
+from ._init.distributed_chordal import distributed_chordal_initialization
+from ._io.datasets import (
+    BENCHMARKS,
+    DatasetNotFoundError,
+    available_benchmarks,
+    benchmark_info,
+    data_dir,
+    find_benchmark,
+)
+from ._io.g2o import (
+    G2OFile,
+    G2OFormatError,
+    G2OPoses,
+    G2OWarning,
+    read_g2o,
+    read_g2o_poses,
+    write_g2o,
+    write_tum,
+)
+from ._mm.driver import RESULTS, Termination
+from ._mm.outer import MMConfig, MMProblem, MMState, init_state, run, step
+from ._mm.solve import (
+    History,
+    NonFiniteError,
+    SolveResult,
+    centralized_optimum,
+    output_frame,
+    solve,
+)
+from ._mm.subproblem import SubproblemConfig
 
 __version__ = "0.1.0"
 
@@ -111,6 +140,7 @@ __all__ = [
     "project_to_so",
     "quaternion_to_rotation",
     "read_g2o",
+    "RESULTS",
     "read_g2o_poses",
     "reference_optimum",
     "relative_pose_error",
@@ -127,6 +157,7 @@ __all__ = [
     "sweep",
     "SweepResult",
     "SyntheticDataset",
+    "Termination",
     "trajectory_accuracy",
     "TrajectoryAccuracy",
     "write_g2o",

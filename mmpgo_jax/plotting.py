@@ -6,7 +6,7 @@ inter-robot edges dashed, 2D top view or 3D axes), :func:`plot_convergence` (f â
 ``mmpgo_jax/__init__`` so that importing the solver does not import matplotlib.
 """
 
-from ._plotting import (
+from ._experiments.plots import (
     RELATIVE_FLOOR,
     plot_convergence,
     plot_trajectory,

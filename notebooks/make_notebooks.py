@@ -202,7 +202,7 @@ def robot_sweeps() -> nbformat.NotebookNode:
             "Budget: `MMPGO_NOTEBOOK_ITERATIONS` (default 150)."),
         new_code_cell(SETUP.format(default=150) + "\n\nimport numpy as np\nimport matplotlib.pyplot as plt\n"
                       "from IPython.display import Markdown, display\n"
-                      "from mmpgo_jax import reference_optimum, sweep\nfrom mmpgo_jax._sweep import TRACE_COUNTS  # trace counter (shows the single compilation)\n\n"
+                      "from mmpgo_jax import reference_optimum, sweep\nfrom mmpgo_jax._experiments.sweep import TRACE_COUNTS  # trace counter (shows the single compilation)\n\n"
                       "ROBOTS = [5, 10, 20]\nNUM_DATASETS = 3"),
         new_code_cell(
             'datasets = {f"cube{s}": mm.cube_dataset(s, num_poses=600, grid=6) for s in range(NUM_DATASETS)}\n'

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-import mmpgo_jax._certificate as cert
+import mmpgo_jax._experiments.certificate as cert
 from mmpgo_jax import (
     PoseGraph,
     Poses,
@@ -16,7 +16,7 @@ from mmpgo_jax import (
     grid_2d_dataset,
     initialize,
 )
-from mmpgo_jax._geometry import random_rotations
+from mmpgo_jax._core.geometry import random_rotations
 
 
 @pytest.fixture(scope="module", params=["cube", "grid2d"])

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mmpgo_jax._g2o import read_g2o
+from mmpgo_jax._io.g2o import read_g2o
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = Path(__file__).resolve().parent / "data"
@@ -276,7 +276,7 @@ def test_bench_quick(tmp_path):
 
 def test_bench_quick_falls_back_to_cube(tmp_path):
     """With no benchmark data at all, --quick still exercises everything on a generated Cube dataset."""
-    from mmpgo_jax._datasets import available_benchmarks
+    from mmpgo_jax._io.datasets import available_benchmarks
 
     if not available_benchmarks():
         pytest.skip("no data here: test_bench_quick already ran the fallback")
@@ -345,7 +345,7 @@ def test_bench_demo_bad_arguments(capsys, tmp_path, argv, needle):
 def test_solve_reports_accuracy_with_ground_truth(tmp_path):
     """--ground-truth: ATE/RPE printed, equal to the library's; a wrong-size file is a clean error."""
     import mmpgo_jax as mm
-    from mmpgo_jax._g2o import write_g2o
+    from mmpgo_jax._io.g2o import write_g2o
 
     mm.enable_float64()
     data = mm.cube_dataset(2, num_poses=120, grid=3)
@@ -371,7 +371,7 @@ def test_solve_reports_accuracy_with_ground_truth(tmp_path):
 def test_solve_certify_reports_global_optimum(tmp_path):
     """--certify on a converged centralized run prints the dual certificate's verdict."""
     import mmpgo_jax as mm
-    from mmpgo_jax._g2o import write_g2o
+    from mmpgo_jax._io.g2o import write_g2o
 
     mm.enable_float64()
     data = mm.cube_dataset(2, num_poses=120, grid=3)
@@ -389,7 +389,7 @@ def test_solve_certify_reports_global_optimum(tmp_path):
 def test_optimum_command_writes_certified_optimum(tmp_path):
     """`mmpgo optimum`: centralized f*, its certificate, and the result file; bad --init is a clean error."""
     import mmpgo_jax as mm
-    from mmpgo_jax._g2o import write_g2o
+    from mmpgo_jax._io.g2o import write_g2o
 
     mm.enable_float64()
     data = mm.cube_dataset(4, num_poses=150, grid=3)

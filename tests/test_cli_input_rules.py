@@ -18,9 +18,9 @@ from pathlib import Path
 
 import pytest
 
-import mmpgo_jax._g2o as g2o_mod
+import mmpgo_jax._io.g2o as g2o_mod
 from mmpgo_jax import cli
-from mmpgo_jax._atomic import atomic_group, atomic_write
+from mmpgo_jax._io.atomic import atomic_group, atomic_write
 from mmpgo_jax.cli import main
 
 DATA = Path(__file__).resolve().parent / "data"
@@ -162,7 +162,7 @@ def _fake_reader(monkeypatch, category, message, *, filename=None):
         calls.append(kw)
         if not kw.get("strict_information"):
             warnings.warn_explicit(message.format(path=path), category, filename or g2o_mod.__file__, 1,
-                                   module="mmpgo_jax._g2o")
+                                   module="mmpgo_jax._io.g2o")
         return real(path, **{k: v for k, v in kw.items() if k != "strict_information"})
 
     monkeypatch.setattr(g2o_mod, "read_g2o", read_g2o)
@@ -565,7 +565,7 @@ def test_atomic_group_nested_and_rewrites(tmp_path):
 
 def test_atomic_group_commit_failure_restores(tmp_path, monkeypatch):
     """A rename failing half-way through the commit restores the targets already replaced."""
-    import mmpgo_jax._atomic as atomic_mod
+    import mmpgo_jax._io.atomic as atomic_mod
 
     a, b = tmp_path / "a", tmp_path / "b"
     a.write_text("old A")

@@ -5,8 +5,8 @@ from pathlib import Path
 
 import pytest
 
-import mmpgo_jax._datasets as dsm
-from mmpgo_jax._datasets import (
+import mmpgo_jax._io.datasets as dsm
+from mmpgo_jax._io.datasets import (
     BENCHMARKS,
     BenchmarkInfo,
     DatasetNotFoundError,

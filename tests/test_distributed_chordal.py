@@ -5,24 +5,23 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from test_initialization import dense_relaxed_rotations, random_graph
 
-import mmpgo_jax._distributed_chordal as dc
+import mmpgo_jax._init.distributed_chordal as dc
 from mmpgo_jax import PoseGraph, cost, read_g2o
-from mmpgo_jax._distributed_chordal import (
-    distributed_chordal_initialization,
-    distributed_relaxed_rotations,
-    distributed_translations,
-)
-from mmpgo_jax._initialization import (
+from mmpgo_jax._core.partition import partition
+from mmpgo_jax._init.chordal import (
     chordal_initialization,
     chordal_relaxed_rotations,
     relaxed_rotation_cost,
     relaxed_translation_cost,
     translations_given_rotations,
 )
-from mmpgo_jax._partition import partition
-
-from test_initialization import dense_relaxed_rotations, random_graph
+from mmpgo_jax._init.distributed_chordal import (
+    distributed_chordal_initialization,
+    distributed_relaxed_rotations,
+    distributed_translations,
+)
 
 # One budget per stage everywhere, so that the jitted loops compile once per graph shape.
 ROT_IT = 400

@@ -15,9 +15,11 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-import mmpgo_jax._g2o as g2o_mod
-from mmpgo_jax._atomic import atomic_write
-from mmpgo_jax._g2o import (
+import mmpgo_jax._io.g2o as g2o_mod
+from mmpgo_jax._core.geometry import random_rotations, rotation_2d
+from mmpgo_jax._core.pose_graph import PoseGraph, Poses, connected_components
+from mmpgo_jax._io.atomic import atomic_write
+from mmpgo_jax._io.g2o import (
     G2OFile,
     G2OFormatError,
     information_from_weights,
@@ -25,8 +27,6 @@ from mmpgo_jax._g2o import (
     write_g2o,
     write_tum,
 )
-from mmpgo_jax._geometry import random_rotations, rotation_2d
-from mmpgo_jax._pose_graph import PoseGraph, Poses, connected_components
 
 DATA = Path(__file__).resolve().parent / "data"
 BAD = DATA / "bad"
@@ -409,7 +409,7 @@ def test_tum_3d(tmp_path):
     assert [int(r[0]) for r in rows] == ids.tolist()
     vals = np.array([[float(x) for x in r[1:]] for r in rows])
     np.testing.assert_array_equal(vals[:, :3], np.asarray(poses.t))
-    from mmpgo_jax._geometry import quaternion_to_rotation
+    from mmpgo_jax._core.geometry import quaternion_to_rotation
 
     np.testing.assert_allclose(np.asarray(quaternion_to_rotation(vals[:, 3:])), np.asarray(poses.R), atol=1e-12)
     np.testing.assert_allclose(np.linalg.norm(vals[:, 3:], axis=1), 1.0, atol=1e-15)

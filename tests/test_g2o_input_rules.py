@@ -1,4 +1,4 @@
-"""The g2o reader's input rules (see the docstring of ``mmpgo_jax._g2o``).
+"""The g2o reader's input rules (see the docstring of ``mmpgo_jax._io.g2o``).
 
 Information matrices (SE-Sync's convention: indefinite matrices with positive weights are used,
 with one warning), the C strtod / strtol number syntax, overflow and underflow, poses-only files
@@ -18,19 +18,19 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from mmpgo_jax._g2o import (
+from mmpgo_jax._core.geometry import (
+    quaternion_to_rotation,
+    random_rotations,
+    rotation_2d,
+    rotation_to_quaternion,
+)
+from mmpgo_jax._io.g2o import (
     G2OFile,
     G2OFormatError,
     G2OPoses,
     G2OWarning,
     read_g2o,
     read_g2o_poses,
-)
-from mmpgo_jax._geometry import (
-    quaternion_to_rotation,
-    random_rotations,
-    rotation_2d,
-    rotation_to_quaternion,
 )
 
 DATA = Path(__file__).resolve().parent / "data"

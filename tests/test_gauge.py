@@ -1,4 +1,4 @@
-"""Fixed poses (g2o FIX) and the frame of results (mmpgo_jax._gauge).
+"""Fixed poses (g2o FIX) and the frame of results (mmpgo_jax._core.gauge).
 
 Independent references: the relaxed chordal problems' optimality conditions (autodiff gradient of
 the relaxed costs on the free blocks), the cost's invariance under rigid motions, and the
@@ -12,8 +12,11 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 import mmpgo_jax as mm
-from mmpgo_jax._geometry import random_rotations
-from mmpgo_jax._initialization import chordal_relaxed_rotations, translations_given_rotations
+from mmpgo_jax._core.geometry import random_rotations
+from mmpgo_jax._init.chordal import (
+    chordal_relaxed_rotations,
+    translations_given_rotations,
+)
 
 
 def _graph(d: int, n: int = 14, loops: int = 6, seed: int = 0) -> mm.PoseGraph:
@@ -197,7 +200,7 @@ def test_non_finite_objective_stops_with_a_clear_error():
 
 
 def test_poses_are_matched_by_vertex_id(tmp_path):
-    from mmpgo_jax._initialization import load_poses
+    from mmpgo_jax._init.chordal import load_poses
 
     g = _graph(2)
     X = mm.odometry_initialization(g)

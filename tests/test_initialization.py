@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from mmpgo_jax import PoseGraph, Poses, cost
-from mmpgo_jax._geometry import random_rotations
-from mmpgo_jax._initialization import (
+from mmpgo_jax._core.geometry import random_rotations
+from mmpgo_jax._init.chordal import (
     anchor_poses,
     chordal_initialization,
     chordal_relaxed_rotations,
@@ -252,7 +252,7 @@ def test_initialize_methods(tmp_path):
         q = initialize(g, path)
         np.testing.assert_allclose(np.asarray(q.t), tg)
     # .g2o file (VERTEX lines)
-    from mmpgo_jax._g2o import write_g2o
+    from mmpgo_jax._io.g2o import write_g2o
 
     gf = tmp_path / "init.g2o"
     write_g2o(gf, g, Poses(jnp.asarray(Rg), jnp.asarray(tg)))
@@ -299,7 +299,7 @@ def test_initialize_errors(tmp_path):
 
 
 def _check_chordal_f(path, name):
-    from mmpgo_jax._g2o import read_g2o
+    from mmpgo_jax._io.g2o import read_g2o
 
     g = read_g2o(path).graph
     f = float(cost(g, chordal_initialization(g)))

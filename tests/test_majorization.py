@@ -13,9 +13,18 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from mmpgo_jax import PoseGraph, Poses, data_matrix, edge_costs, matrix_to_poses, objective, poses_to_matrix
-from mmpgo_jax._geometry import random_rotations, rotation_2d
-from mmpgo_jax._majorization import (
+from mmpgo_jax import (
+    PoseGraph,
+    Poses,
+    data_matrix,
+    edge_costs,
+    matrix_to_poses,
+    objective,
+    poses_to_matrix,
+)
+from mmpgo_jax._core.geometry import random_rotations, rotation_2d
+from mmpgo_jax._core.partition import partition
+from mmpgo_jax._mm.majorization import (
     apply_gamma,
     build_gamma_operator,
     gamma_diagonal_blocks,
@@ -24,7 +33,6 @@ from mmpgo_jax._majorization import (
     stack,
     unstack,
 )
-from mmpgo_jax._partition import partition
 
 N = 12  # poses per test graph
 LOOPS = 8  # loop closures per test graph

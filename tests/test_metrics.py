@@ -9,8 +9,13 @@ import numpy as np
 import pytest
 
 import mmpgo_jax as mm
-from mmpgo_jax._geometry import rotation_2d
-from mmpgo_jax._metrics import absolute_trajectory_error, relative_pose_error, rigid_alignment
+from mmpgo_jax._core.geometry import rotation_2d
+from mmpgo_jax._experiments.metrics import (
+    absolute_trajectory_error,
+    relative_pose_error,
+    rigid_alignment,
+)
+
 
 def _random_rotations(rng, n, d):
     M = rng.standard_normal((n, d, d))

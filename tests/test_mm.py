@@ -15,11 +15,17 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from mmpgo_jax import PoseGraph, Poses, cost, riemannian_gradient_norm
-from mmpgo_jax._geometry import random_rotations, rotation_2d, sym
-from mmpgo_jax._majorization import gamma_diagonal_blocks, gradient_and_share, majorizer_decrease, stack, unstack
-from mmpgo_jax._mm import MMConfig, MMProblem, _mm_update, init_state, run
-from mmpgo_jax._partition import partition
-from mmpgo_jax._subproblem import SubproblemConfig, majorizer_value, solve_subproblem
+from mmpgo_jax._core.geometry import random_rotations, rotation_2d, sym
+from mmpgo_jax._core.partition import partition
+from mmpgo_jax._mm.majorization import (
+    gamma_diagonal_blocks,
+    gradient_and_share,
+    majorizer_decrease,
+    stack,
+    unstack,
+)
+from mmpgo_jax._mm.outer import MMConfig, MMProblem, _mm_update, init_state, run
+from mmpgo_jax._mm.subproblem import SubproblemConfig, majorizer_value, solve_subproblem
 
 N = 16  # poses of the main 2-D problem
 LOOPS = 8
@@ -443,7 +449,7 @@ def test_amm_average_bounded_and_faster(runs, problem2d):
 def test_amm_average_hard_and_soft_restarts(runs):
     """Hard restart (value above the slow average) takes the MM step; a soft restart keeps the
     momentum step Z but resets s to 1 after ``soft_restart_hits`` consecutive hits."""
-    from mmpgo_jax._mm import step
+    from mmpgo_jax._mm.outer import step
 
     r = runs.get("amm_average")
     cfg, problem = r["config"], r["problem"]

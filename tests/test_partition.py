@@ -14,11 +14,11 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-import mmpgo_jax._pose_graph as pg
-from mmpgo_jax._geometry import random_rotations
-from mmpgo_jax._majorization import gradient_and_share
-from mmpgo_jax._partition import contiguous_robots, partition, partition_stats
-from mmpgo_jax._pose_graph import PoseGraph, Poses
+import mmpgo_jax._core.pose_graph as pg
+from mmpgo_jax._core.geometry import random_rotations
+from mmpgo_jax._core.partition import contiguous_robots, partition, partition_stats
+from mmpgo_jax._core.pose_graph import PoseGraph, Poses
+from mmpgo_jax._mm.majorization import gradient_and_share
 
 SETTINGS = settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 

@@ -13,9 +13,16 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from scipy.linalg import expm
 
-import mmpgo_jax._pose_graph as pg
-from mmpgo_jax import PoseGraph, Poses, connected_components, data_matrix, matrix_to_poses, poses_to_matrix
-from mmpgo_jax._geometry import random_rotations
+import mmpgo_jax._core.pose_graph as pg
+from mmpgo_jax import (
+    PoseGraph,
+    Poses,
+    connected_components,
+    data_matrix,
+    matrix_to_poses,
+    poses_to_matrix,
+)
+from mmpgo_jax._core.geometry import random_rotations
 
 # Jitted once at module level: eager dispatch recompiles every primitive for each new shape.
 cost = jax.jit(pg.cost)

@@ -26,8 +26,19 @@ import textwrap
 import numpy as np
 import pytest
 
-from mmpgo_jax import contiguous_robots, cube_dataset, partition_stats, read_g2o, write_g2o
-from mmpgo_jax.sharding import communication_report, plan_shards, run_multiprocess, solve_sharded
+from mmpgo_jax import (
+    contiguous_robots,
+    cube_dataset,
+    partition_stats,
+    read_g2o,
+    write_g2o,
+)
+from mmpgo_jax.sharding import (
+    communication_report,
+    plan_shards,
+    run_multiprocess,
+    solve_sharded,
+)
 
 # Optimization level 0 of XLA's CPU backend: ~30 % less compile time, same arithmetic (no
 # fast-math either way); results are compared within one configuration.

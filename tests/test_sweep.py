@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import mmpgo_jax as mm
-from mmpgo_jax._sweep import TRACE_COUNTS, SweepResult, sweep
+from mmpgo_jax._experiments.sweep import TRACE_COUNTS, SweepResult, sweep
 
 ROBOTS = [5, 10, 20, 50]
 ITERATIONS = 25

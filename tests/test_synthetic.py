@@ -8,7 +8,7 @@ import pytest
 from scipy import integrate
 
 from mmpgo_jax import connected_components, cost
-from mmpgo_jax._synthetic import (
+from mmpgo_jax._experiments.synthetic import (
     _loop_closure_candidates,
     cube_dataset,
     expected_edge_cost,

@@ -94,14 +94,14 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import scipy.sparse as sp
 import scipy.linalg as sla
+import scipy.sparse as sp
 
-from ._geometry import project_to_so
-from ._gauge import FixedPoses
-from ._initialization import anchor_set
-from ._partition import Partition, partition as make_partition
-from ._pose_graph import PoseGraph, Poses
+from .._core.gauge import FixedPoses, anchor_set
+from .._core.geometry import project_to_so
+from .._core.partition import Partition
+from .._core.partition import partition as make_partition
+from .._core.pose_graph import PoseGraph, Poses
 
 __all__ = [
     "DEFAULT_ROTATION_ITERATIONS",

@@ -21,9 +21,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._geometry import bmm, mT
-from ._partition import RobotEdges
-from ._pose_graph import Poses
+from .._core.geometry import bmm, mT
+from .._core.partition import RobotEdges
+from .._core.pose_graph import Poses
 
 
 def _edge_residuals(edges: RobotEdges, Ri, ti, Rj, tj):

@@ -47,7 +47,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ._progress import progress_bar
+from .progress import progress_bar
 
 __all__ = ["run_bench", "machine_info", "command_line", "paper_rounding"]
 
@@ -209,7 +209,13 @@ class _Job:
 
 
 def _select(args, quick: bool) -> list[_Job]:
-    from ._datasets import DatasetNotFoundError, available_benchmarks, benchmark_info, data_dir, find_benchmark
+    from .._io.datasets import (
+        DatasetNotFoundError,
+        available_benchmarks,
+        benchmark_info,
+        data_dir,
+        find_benchmark,
+    )
 
     data = getattr(args, "data", None)
     names = [n for n in (getattr(args, "datasets", None) or []) if n]
@@ -225,8 +231,8 @@ def _select(args, quick: bool) -> list[_Job]:
         if avail:
             pick = next((b for b in avail if b.name == "MITb"), None) or min(avail, key=lambda b: b.num_poses)
             return [_Job(pick.name, pick.path(data), pick)]
-        from ._demo import demo_grid
-        from ._synthetic import cube_dataset
+        from .._experiments.synthetic import cube_dataset
+        from .demo import demo_grid
 
         ds = cube_dataset(0, num_poses=QUICK_CUBE_POSES, grid=demo_grid(QUICK_CUBE_POSES))
         return [_Job(f"cube_seed0_n{QUICK_CUBE_POSES}", None, None, synthetic=ds)]
@@ -279,12 +285,12 @@ def _table_value(info, column: str, k: int) -> float | None:
 
 
 def _bench_one(job: _Job, args, iterations: int, no_progress: bool) -> _Result:
-    from ._certificate import certify
-    from ._g2o import read_g2o
-    from ._initialization import initialize
-    from ._pose_graph import connected_components, cost
-    from ._precision import float64_enabled
-    from ._solve import centralized_optimum, solve
+    from .._core.pose_graph import connected_components, cost
+    from .._core.precision import float64_enabled
+    from .._experiments.certificate import certify
+    from .._init.chordal import initialize
+    from .._io.g2o import read_g2o
+    from .._mm.solve import centralized_optimum, solve
 
     if job.synthetic is not None:
         graph = job.synthetic.graph
@@ -513,7 +519,7 @@ def _json(results: list[_Result], meta: dict, done: bool) -> str:
 
 
 def _write_all(out: Path, results: list[_Result], meta: dict, done: bool) -> None:
-    from ._atomic import atomic_write
+    from .._io.atomic import atomic_write
 
     with atomic_write(out / "bench.md") as fh:
         fh.write(_markdown(results, meta, done))
@@ -524,7 +530,7 @@ def _write_all(out: Path, results: list[_Result], meta: dict, done: bool) -> Non
 
 
 def _figure(out: Path, res: _Result, info) -> str:
-    from ._plotting import save_convergence_figure
+    from .._experiments.plots import save_convergence_figure
 
     fname = "convergence_" + re.sub(r"[^A-Za-z0-9_.-]+", "_", res.name) + ".png"
     curves = {run["label"]: np.asarray(run["f_history"]) for run in res.runs.values()}

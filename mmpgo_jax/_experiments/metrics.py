@@ -20,7 +20,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ._pose_graph import Poses
+from .._core.pose_graph import Poses
 
 __all__ = [
     "absolute_trajectory_error",

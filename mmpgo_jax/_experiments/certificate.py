@@ -24,7 +24,7 @@ import scipy.linalg as sla
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from ._pose_graph import PoseGraph, Poses, data_matrix, poses_to_matrix
+from .._core.pose_graph import PoseGraph, Poses, data_matrix, poses_to_matrix
 
 __all__ = ["OptimalityCertificate", "certify", "certificate_matrix"]
 

@@ -24,7 +24,7 @@ from matplotlib.collections import LineCollection
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 
-from ._atomic import atomic_write
+from .._io.atomic import atomic_write
 
 __all__ = [
     "plot_trajectory",

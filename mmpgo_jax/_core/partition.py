@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._pose_graph import PoseGraph, Poses
+from .pose_graph import PoseGraph, Poses
 
 
 def contiguous_robots(num_poses: int, num_robots: int) -> np.ndarray:

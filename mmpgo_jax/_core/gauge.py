@@ -19,9 +19,9 @@ from dataclasses import dataclass
 import jax.numpy as jnp
 import numpy as np
 
-from ._pose_graph import Poses
+from .pose_graph import PoseGraph, Poses, connected_components
 
-__all__ = ["FixedPoses", "express_in_frame"]
+__all__ = ["FixedPoses", "anchor_poses", "anchor_set", "express_in_frame"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -117,3 +117,29 @@ def express_in_frame(poses: Poses, frame: FixedPoses) -> Poses:
     t_new = t @ Ra.T + ta
     dt = jnp.asarray(poses.R).dtype
     return Poses(jnp.asarray(R_new, dt), jnp.asarray(t_new, dt))
+
+
+def anchor_set(graph: PoseGraph, fixed: FixedPoses | None = None) -> FixedPoses:
+    """The poses the initializations hold: the ``fixed`` poses at their values, plus the first pose
+    of every connected component without a fixed pose, at R = I, t = 0 (pose 0 alone for a connected
+    graph without fixed poses)."""
+    d = graph.dim
+    comps = connected_components(graph.num_poses, np.asarray(graph.i), np.asarray(graph.j))
+    if fixed is None:
+        return FixedPoses.identity(np.array([c[0] for c in comps], dtype=np.int64), d)
+    fixed.check(graph.num_poses, d)
+    mask = fixed.mask(graph.num_poses)
+    free_comps = np.array([c[0] for c in comps if not mask[c].any()], dtype=np.int64)
+    if free_comps.size == 0:
+        return fixed
+    ident = FixedPoses.identity(free_comps, d)
+    return FixedPoses(
+        np.concatenate([fixed.index, ident.index]),
+        np.concatenate([fixed.R, ident.R]),
+        np.concatenate([fixed.t, ident.t]),
+    )
+
+
+def anchor_poses(graph: PoseGraph, fixed: FixedPoses | None = None) -> np.ndarray:
+    """Indices of :func:`anchor_set` (sorted ascending; ``[0]`` for a connected graph without fixed poses)."""
+    return anchor_set(graph, fixed).index

@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.sparse as sp
 
-from ._geometry import sym
+from .geometry import sym
 
 
 class Poses(eqx.Module):

@@ -1,8 +1,9 @@
 """The friendly entry point: ``solve(graph, robots=10, method="amm", ...)``.
 
-Builds the partition and the constant majorization data once, compiles one chunk of the outer
-loop, and runs it as many times as needed (progress callbacks and stopping tolerances are checked
-between chunks on the host; the compiled code is the same for every chunk).
+Builds the partition and the constant majorization data once, then hands the start state and one
+compiled chunk of the outer loop to the shared driver (:mod:`._mm.driver`: progress callbacks and
+stopping tolerances are checked between chunks on the host; the compiled code is the same for
+every chunk and every call with the same shapes).
 """
 
 from __future__ import annotations
@@ -12,50 +13,38 @@ from dataclasses import dataclass, field
 from typing import Callable, Literal
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
-from ._gauge import FixedPoses, express_in_frame
-from ._initialization import initialize
-from ._majorization import unstack
-from ._metrics import TrajectoryAccuracy, trajectory_accuracy
-from ._mm import MMConfig, MMProblem, evaluate, init_state, run
-from ._partition import Partition, partition
-from ._pose_graph import PoseGraph, Poses
-from ._precision import float64_enabled
-from ._subproblem import SubproblemConfig
+from .._core.gauge import FixedPoses, express_in_frame
+from .._core.partition import Partition, partition
+from .._core.pose_graph import PoseGraph, Poses
+from .._core.precision import float64_enabled
+from .._experiments.metrics import TrajectoryAccuracy, trajectory_accuracy
+from .._init.chordal import initialize
+from .driver import RESULTS, History, NonFiniteError, Termination, compile_once, drive
+from .majorization import unstack
+from .outer import MMConfig, MMProblem, evaluate, init_state, run
+from .subproblem import SubproblemConfig
 
-
-@dataclass(frozen=True)
-class History:
-    """Per-iteration history; index k is the state after k outer iterations (k = 0: the start)."""
-
-    f: np.ndarray  # (K+1,) f = 2F (the paper's tables)
-    grad_norm: np.ndarray  # (K+1,) ||grad F|| (Riemannian)
-    restarts: np.ndarray  # (K+1, A) bool: robot fell back to the MM step in iteration k
-
-    @property
-    def iterations(self) -> int:
-        return len(self.f) - 1
-
-    def first_below(self, target: float) -> int | None:
-        """First iteration k with f[k] <= target, or None."""
-        hit = np.flatnonzero(self.f <= target)
-        return int(hit[0]) if len(hit) else None
+__all__ = ["RESULTS", "History", "NonFiniteError", "SolveResult", "centralized_optimum", "output_frame", "solve"]
 
 
 @dataclass(frozen=True)
 class SolveResult:
-    poses: Poses  # final estimate, global order
+    """A solve's outcome, in the spirit of optimistix's ``Solution(value, result, stats)``: the
+    final poses (global order, in the requested frame), the history, why it stopped (``result``, a
+    :class:`RESULTS`; ``stop_reason`` is its short name) and ``stats`` (timings in seconds:
+    ``init_seconds``, ``compile_seconds``, ``solve_seconds`` = the compiled iterations alone; a
+    sharded run adds its mesh size, plan and exchange)."""
+
+    poses: Poses
     history: History
     partition: Partition
     config: MMConfig
-    init_seconds: float
-    compile_seconds: float
-    solve_seconds: float  # outer iterations only (compiled), excluding compilation
-    stop_reason: str
+    result: RESULTS
+    stats: dict = field(default_factory=dict)
     accuracy: TrajectoryAccuracy | None = None  # against ``ground_truth`` when one was given
-    extra: dict = field(default_factory=dict)
+    termination: Termination | None = None
 
     @property
     def f(self) -> float:
@@ -64,6 +53,32 @@ class SolveResult:
     @property
     def iterations(self) -> int:
         return self.history.iterations
+
+    @property
+    def stop_reason(self) -> str:
+        return self.result.value
+
+    @property
+    def stop_description(self) -> str:
+        """Why the run stopped, in words (e.g. "budget of 1000 iterations reached")."""
+        return self.result.describe(self.termination) if self.termination is not None else self.result.value
+
+    @property
+    def init_seconds(self) -> float:
+        return float(self.stats.get("init_seconds", 0.0))
+
+    @property
+    def compile_seconds(self) -> float:
+        return float(self.stats.get("compile_seconds", 0.0))
+
+    @property
+    def solve_seconds(self) -> float:
+        return float(self.stats.get("solve_seconds", 0.0))
+
+    @property
+    def extra(self) -> dict:
+        """``stats`` (the name of earlier versions)."""
+        return self.stats
 
     @property
     def ms_per_iteration(self) -> float:
@@ -110,10 +125,11 @@ def solve(
     own gauge. f and the history do not depend on it.
 
     Raises :class:`NonFiniteError` when f or its gradient stops being finite (data whose weights or
-    residuals float arithmetic cannot represent).
+    residuals float arithmetic cannot represent). Numbers are checked (ValueError naming the
+    parameter). A second call with the same shapes and configuration structure does not compile
+    again (:func:`~mmpgo_jax._mm.driver.compile_once`).
     """
-    check_solve_options(iterations=iterations, xi=xi, chunk_size=chunk_size, grad_tol=grad_tol,
-                        f_target=f_target, rel_decrease_tol=rel_decrease_tol)
+    termination = Termination(iterations, chunk_size, grad_tol, f_target, rel_decrease_tol)
     config = MMConfig(method=method, restart=restart, xi=xi, subproblem=subproblem or SubproblemConfig())
     t0 = time.perf_counter()
     part = robots if isinstance(robots, Partition) else partition(graph, robots)
@@ -121,89 +137,25 @@ def solve(
     problem = MMProblem.build(part, xi, fixed=fixed)
     state = init_state(problem, part.scatter(X0), config)
     start = jax.device_get(evaluate(problem, state))
-    check_finite(np.atleast_1d(start.f), np.atleast_1d(start.grad_norm), 0)
     init_seconds = time.perf_counter() - t0
 
-    fs, gs, rs = [np.atleast_1d(start.f)], [np.atleast_1d(start.grad_norm)], [start.restarted[None]]
-    compile_seconds = solve_seconds = 0.0
-    stop_reason = "iterations"
-    if iterations > 0:
-        length = min(chunk_size, iterations)
-        limit = jnp.asarray(iterations)
-        t = time.perf_counter()
-        compiled = run.lower(problem, config, state, length, limit).compile()
-        compile_seconds = time.perf_counter() - t
-        done = 0
-        while done < iterations:
-            t = time.perf_counter()
-            state, rec = compiled(problem, config, state, limit)
-            rec = jax.device_get(rec)
-            solve_seconds += time.perf_counter() - t
-            take = min(length, iterations - done)
-            fs.append(rec.f[:take])
-            gs.append(rec.grad_norm[:take])
-            rs.append(rec.restarted[:take])
-            done += take
-            reason = _stop_reason(fs, gs, grad_tol, f_target, rel_decrease_tol)
-            if callback is not None and callback(done, rec.f[:take]):
-                reason = reason or "callback"
-            if reason:
-                stop_reason = reason
-                break
-    history = History(np.concatenate(fs), np.concatenate(gs), np.concatenate(rs))
-    poses = output_frame(part.gather(unstack(state.X)), fixed, frame)
+    def compile_chunk(state, length, limit):
+        compiled = compile_once(run, problem, config, state, length, limit, static=(length,))
+        return lambda st, lim: compiled(problem, config, st, lim)
+
+    out = drive(compile_chunk, state, (start.f, start.grad_norm, start.restarted), termination,
+                fetch=lambda rec: jax.device_get((rec.f, rec.grad_norm, rec.restarted)), callback=callback)
+    poses = output_frame(part.gather(unstack(out.state.X)), fixed, frame)
     return SolveResult(
         poses=poses,
-        history=history,
+        history=out.history,
         partition=part,
         config=config,
-        init_seconds=init_seconds,
-        compile_seconds=compile_seconds,
-        solve_seconds=solve_seconds,
-        stop_reason=stop_reason,
+        result=out.result,
+        stats=dict(init_seconds=init_seconds, compile_seconds=out.compile_seconds, solve_seconds=out.solve_seconds),
         accuracy=None if ground_truth is None else trajectory_accuracy(poses, ground_truth),
+        termination=termination,
     )
-
-
-class NonFiniteError(ValueError):
-    """f or its gradient became NaN or infinite during a solve (no result is returned)."""
-
-
-def check_finite(f: np.ndarray, grad_norm: np.ndarray, first_iteration: int) -> None:
-    """Raise :class:`NonFiniteError` at the first non-finite f or ||grad F|| of a chunk."""
-    bad = ~(np.isfinite(f) & np.isfinite(grad_norm))
-    if bad.any():
-        k = int(np.flatnonzero(bad)[0])
-        what = "f" if not np.isfinite(f[k]) else "||grad F||"
-        value = f[k] if what == "f" else grad_norm[k]
-        at = "at the start" if first_iteration + k == 0 else f"after iteration {first_iteration + k}"
-        raise NonFiniteError(
-            f"{what} = {value} {at}: the data's weights or measurements are too large or too small "
-            "for the floating-point precision in use; nothing was written"
-        )
-
-
-def _finite_number(name: str, value, *, low: float, inclusive: bool = True, optional: bool = False) -> None:
-    if value is None and optional:
-        return
-    ok = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
-    ok = ok and np.isfinite(value) and (value >= low if inclusive else value > low)
-    if not ok:
-        bound = f">= {low:g}" if inclusive else f"> {low:g}"
-        raise ValueError(f"{name} must be a finite number {bound}{' or None' if optional else ''}, got {value!r}")
-
-
-def check_solve_options(*, iterations, xi, chunk_size, grad_tol=None, f_target=None, rel_decrease_tol=None) -> None:
-    """ValueError naming the parameter and its allowed range (shared by solve and solve_sharded)."""
-    if isinstance(iterations, bool) or not isinstance(iterations, (int, np.integer)) or iterations < 0:
-        raise ValueError(f"iterations must be an integer >= 0, got {iterations!r}")
-    if isinstance(chunk_size, bool) or not isinstance(chunk_size, (int, np.integer)) or chunk_size < 1:
-        raise ValueError(f"chunk_size must be an integer >= 1, got {chunk_size!r}")
-    _finite_number("xi", xi, low=0.0)
-    _finite_number("grad_tol", grad_tol, low=0.0, inclusive=False, optional=True)
-    if f_target is not None and not (isinstance(f_target, (int, float, np.number)) and np.isfinite(f_target)):
-        raise ValueError(f"f_target must be a finite number or None, got {f_target!r}")
-    _finite_number("rel_decrease_tol", rel_decrease_tol, low=0.0, optional=True)
 
 
 def output_frame(poses: Poses, fixed: FixedPoses | None, frame) -> Poses:
@@ -217,19 +169,6 @@ def output_frame(poses: Poses, fixed: FixedPoses | None, frame) -> Poses:
             return poses  # the fixed poses hold the gauge
         frame = FixedPoses.identity([0], poses.dim)
     return express_in_frame(poses, frame)
-
-
-def _stop_reason(fs, gs, grad_tol, f_target, rel_decrease_tol) -> str | None:
-    check_finite(fs[-1], gs[-1], sum(len(f) for f in fs[:-1]))
-    if grad_tol is not None and gs[-1][-1] <= grad_tol:
-        return "grad_tol"
-    if f_target is not None and fs[-1][-1] <= f_target:
-        return "f_target"
-    if rel_decrease_tol is not None and len(fs) > 1:
-        before = fs[-2][-1]
-        if before - fs[-1][-1] <= rel_decrease_tol * abs(before):
-            return "rel_decrease_tol"
-    return None
 
 
 def centralized_optimum(

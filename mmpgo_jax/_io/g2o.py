@@ -95,10 +95,10 @@ from dataclasses import dataclass
 import jax.numpy as jnp
 import numpy as np
 
-from ._atomic import atomic_write
-from ._geometry import rotation_to_quaternion
-from ._gauge import FixedPoses
-from ._pose_graph import PoseGraph, Poses
+from .._core.gauge import FixedPoses
+from .._core.geometry import rotation_to_quaternion
+from .._core.pose_graph import PoseGraph, Poses
+from .atomic import atomic_write
 
 __all__ = [
     "G2OFile",

@@ -44,15 +44,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._gauge import FixedPoses
-from ._initialization import initialize
-from ._majorization import build_gamma_operator, stack, unstack
-from ._metrics import absolute_trajectory_error, relative_pose_error
-from ._mm import MMConfig, MMProblem, evaluate, init_state, run
-from ._partition import Partition, partition
-from ._pose_graph import PoseGraph, Poses
-from ._solve import NonFiniteError, output_frame
-from ._subproblem import SubproblemConfig
+from .._core.gauge import FixedPoses
+from .._core.partition import Partition, partition
+from .._core.pose_graph import PoseGraph, Poses
+from .._init.chordal import initialize
+from .._mm.majorization import build_gamma_operator, stack, unstack
+from .._mm.outer import MMConfig, MMProblem, evaluate, init_state, run
+from .._mm.solve import NonFiniteError, output_frame
+from .._mm.subproblem import SubproblemConfig
+from .metrics import absolute_trajectory_error, relative_pose_error
 
 __all__ = ["sweep", "SweepResult", "reference_optimum", "TRACE_COUNTS", "default_max_batch_bytes"]
 
@@ -106,7 +106,7 @@ def reference_optimum(graph: PoseGraph, *, grad_tol: float = 1e-5, max_iteration
     problems (3600-pose Cube: f ~ 1.5e4, ||grad F|| stalls at 3e-6 after ~50 iterations while f
     no longer changes in the 16th digit), which turns it into a 5000-iteration run.
     """
-    from ._solve import centralized_optimum
+    from .._mm.solve import centralized_optimum
 
     return float(centralized_optimum(graph, grad_tol=grad_tol, max_iterations=max_iterations).f)
 

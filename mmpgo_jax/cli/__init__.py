@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ._progress import progress_bar
+from .progress import progress_bar
 
 
 class CLIError(Exception):
@@ -72,7 +72,7 @@ def _is_mmpgo_warning(category, filename) -> bool:
         return False
     if any(c.__name__ == "G2OWarning" for c in category.__mro__):
         return True
-    package = os.path.dirname(os.path.abspath(__file__)) + os.sep
+    package = os.path.dirname(os.path.dirname(os.path.abspath(__file__))) + os.sep  # mmpgo_jax/
     return os.path.abspath(str(filename)).startswith(package)
 
 
@@ -242,7 +242,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     _add_strict(p)
     _add_common(p)
-    from .sharding import add_cli_options
+    from .sharded import add_cli_options
 
     add_cli_options(p)
 
@@ -294,17 +294,17 @@ def main(argv: list[str] | None = None) -> int:
 
 def _run(args, argv) -> int:
     if args.precision == "float64":
-        from ._precision import enable_float64
+        from .._core.precision import enable_float64
 
         enable_float64()
-    from ._datasets import DatasetNotFoundError
-    from ._g2o import G2OFormatError
+    from .._io.datasets import DatasetNotFoundError
+    from .._io.g2o import G2OFormatError
 
     try:
         if args.command == "info":
             return _cmd_info(args)
         if args.command == "solve":
-            from .sharding import cli_solve, wants_sharding
+            from .sharded import cli_solve, wants_sharding
 
             if wants_sharding(args):
                 if args.ground_truth:
@@ -314,13 +314,17 @@ def _run(args, argv) -> int:
         if args.command == "optimum":
             return _cmd_optimum(args)
         if args.command == "demo":
-            from ._demo import run_demo
+            from .demo import run_demo
 
             return run_demo(args)
         if args.command == "bench":
-            from ._bench import run_bench
+            from .bench import run_bench
 
             return run_bench(args)
+    except BrokenPipeError:  # e.g. `mmpgo info FILE | head`: the reader left, nothing to report
+        with contextlib.suppress(OSError):
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 141
     except (G2OFormatError, DatasetNotFoundError, CLIError, ValueError, OSError) as err:
         print_error(err)
         return 2
@@ -334,7 +338,7 @@ def _resolve_file(name: str, data: str | None, *, announce: bool = True) -> Path
     """The g2o file of a FILE argument (see :func:`~mmpgo_jax._datasets.find_benchmark`: a path
     is only a path; a bare name is looked up in the data folder). ``announce``: print ``using
     PATH (benchmark NAME)`` when the data folder supplied the file."""
-    from ._datasets import benchmark_info, find_benchmark, names_a_path
+    from .._io.datasets import benchmark_info, find_benchmark, names_a_path
 
     path = find_benchmark(name, data)
     if announce and not names_a_path(name):
@@ -346,7 +350,7 @@ def _resolve_file(name: str, data: str | None, *, announce: bool = True) -> Path
 def read_input(path, args=None):
     """``read_g2o(path)`` of the FILE argument, refusing indefinite information matrices with
     ``--strict-information``."""
-    from ._g2o import read_g2o
+    from .._io.g2o import read_g2o
 
     return read_g2o(path, strict_information=bool(getattr(args, "strict_information", False)))
 
@@ -358,7 +362,7 @@ def check_outputs(args) -> None:
     """Refuse unusable output paths before any work: for each of --out, --tum, --history, --plot
     that is set, its folder must exist and be writable, the path must not be a directory (nor a
     device or other non-regular file), and no two may be the same file (symbolic links resolved)."""
-    from ._atomic import resolve_target
+    from .._io.atomic import resolve_target
 
     seen: dict = {}
     for attr, flag in _OUTPUTS:
@@ -393,7 +397,7 @@ def check_outputs(args) -> None:
 
 
 def _describe_components(graph, vertex_ids=None) -> tuple[list[np.ndarray], str]:
-    from ._pose_graph import connected_components
+    from .._core.pose_graph import connected_components
 
     comps = connected_components(graph.num_poses, np.asarray(graph.i), np.asarray(graph.j))
     if len(comps) == 1:
@@ -405,7 +409,7 @@ def _describe_components(graph, vertex_ids=None) -> tuple[list[np.ndarray], str]
 
 
 def _cmd_info(args) -> int:
-    from ._partition import contiguous_robots, partition_stats
+    from .._core.partition import contiguous_robots, partition_stats
 
     path = _resolve_file(args.file, args.data)
     g2o = read_input(path, args)
@@ -457,8 +461,8 @@ class LoadedInput:
 
     def poses_file(self, file, what: str):
         """Poses of a --init / --ground-truth file, matched to this graph by vertex id."""
-        from ._initialization import load_poses
-        from ._pose_graph import Poses
+        from .._core.pose_graph import Poses
+        from .._init.chordal import load_poses
 
         full = load_poses(self.g2o.graph, file, vertex_ids=self.g2o.vertex_ids, what=what)
         return full if self.keep is None else Poses(full.R[self.keep], full.t[self.keep])
@@ -474,7 +478,7 @@ class LoadedInput:
 
 def _largest_component(g2o, comp: np.ndarray):
     """A G2OFile's graph, information and VERTEX estimates restricted to the poses ``comp``."""
-    from ._pose_graph import PoseGraph, Poses
+    from .._core.pose_graph import PoseGraph, Poses
 
     g = g2o.graph
     new_index = np.full(g.num_poses, -1)
@@ -499,7 +503,7 @@ def _largest_component(g2o, comp: np.ndarray):
 def _load_for_solve(args, *, announce: bool = True) -> LoadedInput:
     """The :class:`LoadedInput` of ``args.file``; refuses a disconnected graph unless
     ``--largest-component``. ``announce``: print the component note."""
-    from ._gauge import FixedPoses
+    from .._core.gauge import FixedPoses
 
     path = _resolve_file(args.file, args.data, announce=False)
     g2o = read_input(path, args)
@@ -527,8 +531,8 @@ _OPTIMUM_STARTS = ("chordal", "vertices", "odometry")
 
 
 def _cmd_solve(args) -> int:
-    from ._datasets import benchmark_info
-    from ._solve import solve
+    from .._io.datasets import benchmark_info
+    from .._mm.solve import solve
 
     args.file = str(_resolve_file(args.file, args.data))
     check_outputs(args)
@@ -563,7 +567,7 @@ def _cmd_solve(args) -> int:
 
 
 def _print_certificate(data: LoadedInput, poses, *, hint: bool) -> None:
-    from ._certificate import certify
+    from .._experiments.certificate import certify
 
     if data.fixed is not None and len(data.fixed) > 1:
         print(f"certificate not applicable: {len(data.fixed)} FIX poses constrain the problem "
@@ -577,7 +581,7 @@ def _print_certificate(data: LoadedInput, poses, *, hint: bool) -> None:
 
 def _write_estimate(args, data: LoadedInput, poses) -> list[str]:
     """--out (g2o, with the FIX lines) and --tum files of an estimate; returns the paths written."""
-    from ._g2o import write_g2o, write_tum
+    from .._io.g2o import write_g2o, write_tum
 
     written = []
     if args.out:
@@ -593,7 +597,7 @@ def _write_estimate(args, data: LoadedInput, poses) -> list[str]:
 def finish_solve(args, data: LoadedInput, result, fstar) -> None:
     """After a solve (single- or multi-device): --certify, then the --out/--tum/--history/--plot
     files, all or none (:func:`~mmpgo_jax._atomic.atomic_group`)."""
-    from ._atomic import atomic_group
+    from .._io.atomic import atomic_group
 
     if args.certify:
         _print_certificate(data, result.poses, hint=True)
@@ -603,7 +607,7 @@ def finish_solve(args, data: LoadedInput, result, fstar) -> None:
             write_history_csv(args.history, result)
             written.append(args.history)
         if args.plot:
-            from ._plotting import save_solve_figure
+            from .._experiments.plots import save_solve_figure
 
             save_solve_figure(args.plot, data.graph, result, fstar=fstar, title=data.path.name)
             written.append(args.plot)
@@ -612,9 +616,9 @@ def finish_solve(args, data: LoadedInput, result, fstar) -> None:
 
 
 def _cmd_optimum(args) -> int:
-    from ._atomic import atomic_group
-    from ._datasets import benchmark_info
-    from ._solve import centralized_optimum
+    from .._io.atomic import atomic_group
+    from .._io.datasets import benchmark_info
+    from .._mm.solve import centralized_optimum
 
     args.file = str(_resolve_file(args.file, args.data))
     check_outputs(args)
@@ -658,7 +662,7 @@ def _print_summary(result, fstar: float | None) -> None:
 
 
 def write_history_csv(path, result) -> None:
-    from ._atomic import atomic_write
+    from .._io.atomic import atomic_write
 
     h = result.history
     with atomic_write(path) as fh:
@@ -666,6 +670,3 @@ def write_history_csv(path, result) -> None:
         for k in range(len(h.f)):
             fh.write(f"{k},{float(h.f[k])!r},{float(h.grad_norm[k])!r},{int(h.restarts[k].sum())}\n")
 
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -33,9 +33,9 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from ._gauge import FixedPoses
-from ._geometry import project_to_so
-from ._pose_graph import PoseGraph, Poses, connected_components
+from .._core.gauge import FixedPoses, anchor_poses, anchor_set
+from .._core.geometry import project_to_so
+from .._core.pose_graph import PoseGraph, Poses
 
 __all__ = [
     "INITIALIZATION_METHODS",
@@ -77,32 +77,6 @@ def _edges_np(graph: PoseGraph):
 
 def _float_dtype(graph: PoseGraph):
     return jnp.asarray(graph.R).dtype
-
-
-def anchor_set(graph: PoseGraph, fixed: FixedPoses | None = None) -> FixedPoses:
-    """The poses the initializations hold: the ``fixed`` poses at their values, plus the first pose
-    of every connected component without a fixed pose, at R = I, t = 0 (pose 0 alone for a connected
-    graph without fixed poses)."""
-    d = graph.dim
-    comps = connected_components(graph.num_poses, np.asarray(graph.i), np.asarray(graph.j))
-    if fixed is None:
-        return FixedPoses.identity(np.array([c[0] for c in comps], dtype=np.int64), d)
-    fixed.check(graph.num_poses, d)
-    mask = fixed.mask(graph.num_poses)
-    free_comps = np.array([c[0] for c in comps if not mask[c].any()], dtype=np.int64)
-    if free_comps.size == 0:
-        return fixed
-    ident = FixedPoses.identity(free_comps, d)
-    return FixedPoses(
-        np.concatenate([fixed.index, ident.index]),
-        np.concatenate([fixed.R, ident.R]),
-        np.concatenate([fixed.t, ident.t]),
-    )
-
-
-def anchor_poses(graph: PoseGraph, fixed: FixedPoses | None = None) -> np.ndarray:
-    """Indices of :func:`anchor_set` (sorted ascending; ``[0]`` for a connected graph without fixed poses)."""
-    return anchor_set(graph, fixed).index
 
 
 def rotation_connection_laplacian(graph: PoseGraph) -> sp.csr_matrix:
@@ -432,7 +406,7 @@ def load_poses(graph: PoseGraph, path, *, vertex_ids=None, what: str = "initial-
                 R, t = R[rows], t[rows]
             return poses_from_arrays(graph, R, t, what=where)
     if suffix == ".g2o":
-        from ._g2o import read_g2o_poses
+        from .._io.g2o import read_g2o_poses
 
         f = read_g2o_poses(path)
         if f.dim != d:
@@ -490,7 +464,7 @@ def _initial_poses(graph, method, initial, robots, fixed, distributed_options) -
             if initial is None:
                 raise ValueError("method 'vertices' needs the file's VERTEX estimates (initial=...), but none were given")
             return poses_from_arrays(graph, initial.R, initial.t, what="VERTEX estimates")
-        from ._distributed_chordal import distributed_chordal_initialization
+        from .distributed_chordal import distributed_chordal_initialization
 
         if robots is None:
             robots = min(10, graph.num_poses)

@@ -81,7 +81,7 @@ import jax.numpy as jnp
 import numpy as np
 from scipy import integrate, optimize, special
 
-from ._pose_graph import PoseGraph, Poses
+from .._core.pose_graph import PoseGraph, Poses
 
 __all__ = [
     "SyntheticDataset",

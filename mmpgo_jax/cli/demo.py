@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ._progress import progress_bar
+from .progress import progress_bar
 
 __all__ = ["run_demo", "demo_grid"]
 
@@ -51,16 +51,16 @@ def _fmt_iters(k) -> str:
 
 
 def run_demo(args) -> int:
-    from ._atomic import atomic_write
-    from ._certificate import certify
-    from ._g2o import write_g2o
-    from ._initialization import initialize
-    from ._metrics import align_poses, trajectory_accuracy
-    from ._plotting import save_convergence_figure, save_solve_figure
-    from ._pose_graph import cost
-    from ._precision import float64_enabled
-    from ._solve import centralized_optimum, solve
-    from ._synthetic import cube_dataset
+    from .._core.pose_graph import cost
+    from .._core.precision import float64_enabled
+    from .._experiments.certificate import certify
+    from .._experiments.metrics import align_poses, trajectory_accuracy
+    from .._experiments.plots import save_convergence_figure, save_solve_figure
+    from .._experiments.synthetic import cube_dataset
+    from .._init.chordal import initialize
+    from .._io.atomic import atomic_write
+    from .._io.g2o import write_g2o
+    from .._mm.solve import centralized_optimum, solve
 
     n, A, iters = int(args.poses), int(args.robots), int(args.iterations)
     if n < 2:

@@ -29,8 +29,8 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ._geometry import bmm, mT, project_to_so, sym
-from ._majorization import (
+from .._core.geometry import bmm, mT, project_to_so, sym
+from .majorization import (
     GammaOperator,
     GammaSoA,
     from_soa,

@@ -16,23 +16,29 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._majorization import (
+from .._core.partition import Partition
+from .._core.pose_graph import Poses
+from .majorization import (
     BlockJacobi,
     BlockJacobiSoA,
     ChainPreconditioner,
-    GammaSoA,
-    gamma_to_soa,
-    preconditioner_to_soa,
     GammaOperator,
+    GammaSoA,
     build_chain_preconditioner,
     build_gamma_operator,
+    gamma_to_soa,
     gradient_and_share,
+    preconditioner_to_soa,
     stack,
     unstack,
 )
-from ._partition import Partition
-from ._pose_graph import Poses
-from ._subproblem import SubproblemConfig, majorizer_value, project_rotations, solve_subproblem, tangent_projection
+from .subproblem import (
+    SubproblemConfig,
+    majorizer_value,
+    project_rotations,
+    solve_subproblem,
+    tangent_projection,
+)
 
 
 class MMConfig(eqx.Module):

@@ -41,7 +41,7 @@ __all__ = [
 ]
 
 ENV_VAR = "MMPGO_DATA"
-_PACKAGE_DIR = Path(__file__).resolve().parent
+_PACKAGE_DIR = Path(__file__).resolve().parents[1]  # mmpgo_jax/
 _REPO_DIR = _PACKAGE_DIR.parent
 _DEFAULT_DIR = _REPO_DIR.parent / "shared" / "datasets"
 

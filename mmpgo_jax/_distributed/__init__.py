@@ -1,0 +1,1 @@
+"""Robots sharded over devices and processes: collectives, plans, sharded solve, reports, launcher."""

@@ -1,0 +1,1 @@
+"""Experiments on top of the solvers: sweeps, accuracy metrics, synthetic data, certificate, plots."""

@@ -1,0 +1,1 @@
+"""Initializations: centralized chordal and odometry, distributed chordal (Algorithm 3)."""

@@ -1,0 +1,1 @@
+"""Input and output: g2o files, atomic writes, the benchmark registry."""

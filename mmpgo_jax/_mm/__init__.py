@@ -1,0 +1,1 @@
+"""The MM / AMM solvers: majorization, the robot subproblem, the outer loop, the driver, solve()."""

@@ -1,0 +1,227 @@
+"""The one driver of the compiled outer loop: init, chunks of steps, terminate.
+
+Every way of laying a run out — one device (:func:`~mmpgo_jax.solve`), robots sharded over a mesh
+(:func:`~mmpgo_jax.sharding.solve_sharded`) — builds its start state and one compiled chunk of
+``length`` outer iterations (``lax.scan`` over :func:`~mmpgo_jax.step`), then hands both to
+:func:`drive`, which runs chunks until the budget or a stopping rule ends the run, and records
+the history. Stopping rules, the history, the non-finite guard and the result enum live here once,
+in the spirit of optimistix's ``init / step / terminate`` and ``Solution(value, result, stats)``.
+
+:func:`compile_once` keeps compiled chunks per (function, static arguments, argument shapes), so a
+second run of the same shapes and configuration structure does not compile again; the numbers
+of a configuration (ξ, tolerances, restart constants) are traced arguments.
+"""
+
+from __future__ import annotations
+
+import enum
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import jax
+import numpy as np
+
+__all__ = ["RESULTS", "History", "NonFiniteError", "Termination", "compile_once", "drive"]
+
+
+class RESULTS(enum.Enum):
+    """Why a run stopped (``SolveResult.result``; ``.value`` is the short name, ``describe`` says it in words)."""
+
+    iterations = "iterations"
+    grad_tol = "grad_tol"
+    f_target = "f_target"
+    rel_decrease_tol = "rel_decrease_tol"
+    callback = "callback"
+
+    def describe(self, termination: Termination) -> str:
+        t = termination
+        if self is RESULTS.iterations:
+            return f"budget of {t.iterations} iterations reached"
+        if self is RESULTS.grad_tol:
+            return f"||grad F|| <= {t.grad_tol:g}"
+        if self is RESULTS.f_target:
+            return f"f <= {t.f_target:g}"
+        if self is RESULTS.rel_decrease_tol:
+            return f"f fell by less than a relative {t.rel_decrease_tol:g} over the last chunk"
+        return "stopped by the callback"
+
+
+class NonFiniteError(ValueError):
+    """f or its gradient became NaN or infinite during a solve (no result is returned)."""
+
+
+@dataclass(frozen=True)
+class History:
+    """Per-iteration history; index k is the state after k outer iterations (k = 0: the start)."""
+
+    f: np.ndarray  # (K+1,) f = 2F (the paper's tables)
+    grad_norm: np.ndarray  # (K+1,) ||grad F|| (Riemannian)
+    restarts: np.ndarray  # (K+1, A) bool: robot fell back to the MM step in iteration k
+
+    @property
+    def iterations(self) -> int:
+        return len(self.f) - 1
+
+    def first_below(self, target: float) -> int | None:
+        """First iteration k with f[k] <= target, or None."""
+        hit = np.flatnonzero(self.f <= target)
+        return int(hit[0]) if len(hit) else None
+
+
+def _finite_number(name: str, value, *, low: float, inclusive: bool = True, optional: bool = False) -> None:
+    if value is None and optional:
+        return
+    ok = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
+    ok = ok and np.isfinite(value) and (value >= low if inclusive else value > low)
+    if not ok:
+        bound = f">= {low:g}" if inclusive else f"> {low:g}"
+        raise ValueError(f"{name} must be a finite number {bound}{' or None' if optional else ''}, got {value!r}")
+
+
+def _count(name: str, value, low: int) -> None:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
+        raise ValueError(f"{name} must be an integer >= {low}, got {value!r}")
+
+
+@dataclass(frozen=True)
+class Termination:
+    """When a driven run stops: after ``iterations``, or — checked after each chunk of
+    ``chunk_size`` iterations — when ||grad F|| <= ``grad_tol``, f <= ``f_target``, or f fell by less
+    than a relative ``rel_decrease_tol`` over the last chunk. Checked when constructed."""
+
+    iterations: int
+    chunk_size: int = 50
+    grad_tol: float | None = None
+    f_target: float | None = None
+    rel_decrease_tol: float | None = None
+
+    def __post_init__(self):
+        _count("iterations", self.iterations, 0)
+        _count("chunk_size", self.chunk_size, 1)
+        _finite_number("grad_tol", self.grad_tol, low=0.0, inclusive=False, optional=True)
+        if self.f_target is not None and not (
+            isinstance(self.f_target, (int, float, np.number)) and np.isfinite(self.f_target)
+        ):
+            raise ValueError(f"f_target must be a finite number or None, got {self.f_target!r}")
+        _finite_number("rel_decrease_tol", self.rel_decrease_tol, low=0.0, optional=True)
+
+    @property
+    def length(self) -> int:
+        """Iterations per compiled chunk."""
+        return max(1, min(self.chunk_size, self.iterations))
+
+    def __call__(self, fs: list[np.ndarray], gs: list[np.ndarray]) -> RESULTS | None:
+        """The rule that stops the run after the last chunk (``fs[-1]``, ``gs[-1]``), or None."""
+        check_finite(fs[-1], gs[-1], sum(len(f) for f in fs[:-1]))
+        if self.grad_tol is not None and gs[-1][-1] <= self.grad_tol:
+            return RESULTS.grad_tol
+        if self.f_target is not None and fs[-1][-1] <= self.f_target:
+            return RESULTS.f_target
+        if self.rel_decrease_tol is not None and len(fs) > 1:
+            before = fs[-2][-1]
+            if before - fs[-1][-1] <= self.rel_decrease_tol * abs(before):
+                return RESULTS.rel_decrease_tol
+        return None
+
+
+def check_finite(f: np.ndarray, grad_norm: np.ndarray, first_iteration: int) -> None:
+    """Raise :class:`NonFiniteError` at the first non-finite f or ||grad F|| of a chunk."""
+    bad = ~(np.isfinite(f) & np.isfinite(grad_norm))
+    if bad.any():
+        k = int(np.flatnonzero(bad)[0])
+        what = "f" if not np.isfinite(f[k]) else "||grad F||"
+        value = f[k] if what == "f" else grad_norm[k]
+        at = "at the start" if first_iteration + k == 0 else f"after iteration {first_iteration + k}"
+        raise NonFiniteError(
+            f"{what} = {value} {at}: the data's weights or measurements are too large or too small "
+            "for the floating-point precision in use; nothing was written"
+        )
+
+
+_COMPILED: dict = {}
+
+
+def _signature(tree):
+    leaves, treedef = jax.tree.flatten(tree)
+    return treedef, tuple(
+        (np.shape(x), getattr(x, "dtype", type(x)), getattr(x, "weak_type", None), getattr(x, "sharding", None))
+        for x in leaves
+    )
+
+
+def compile_once(fn, *args, static=()):
+    """``fn.lower(*args).compile()`` (``fn`` jitted; ``static`` its hashable static values, also
+    part of the key), cached per argument structure, shapes, dtypes and shardings."""
+    key = (fn, static, _signature(args))
+    compiled = _COMPILED.get(key)
+    if compiled is None:
+        if len(_COMPILED) > 64:  # bounded: long sessions with many shapes
+            _COMPILED.pop(next(iter(_COMPILED)))
+        compiled = _COMPILED[key] = fn.lower(*args).compile()
+    return compiled
+
+
+@dataclass(frozen=True)
+class Driven:
+    """What :func:`drive` returns: the final state, the history, why it stopped, and timings."""
+
+    state: object
+    history: History
+    result: RESULTS
+    compile_seconds: float
+    solve_seconds: float
+
+
+def drive(
+    compile_chunk: Callable,
+    state,
+    start,
+    termination: Termination,
+    *,
+    fetch: Callable,
+    callback: Callable[[int, np.ndarray], bool | None] | None = None,
+    agree: Callable[[RESULTS | None], RESULTS | None] | None = None,
+) -> Driven:
+    """Run compiled chunks of the outer loop from ``state`` until ``termination`` says stop.
+
+    ``compile_chunk(state, length, limit)`` returns ``chunk(state, limit) -> (state, record)``
+    (compiled once: every chunk reuses it; ``limit`` is the traced iteration budget, iterations
+    past it leave the state unchanged). ``start``: (f, grad_norm, restarted) at X^0 on the host.
+    ``fetch(record)``: the chunk's (f, grad_norm, restarted) as numpy arrays. ``callback(k, f)``
+    after each chunk (k iterations so far; True stops the run). ``agree``: the stop decision every
+    process takes (multi-process runs).
+    """
+    f0, g0, r0 = start
+    fs, gs, rs = [np.atleast_1d(f0)], [np.atleast_1d(g0)], [np.asarray(r0)[None]]
+    check_finite(fs[0], gs[0], 0)
+    compile_seconds = solve_seconds = 0.0
+    result = RESULTS.iterations
+    iterations = termination.iterations
+    if iterations > 0:
+        length = termination.length
+        limit = np.asarray(iterations)
+        t = time.perf_counter()
+        chunk = compile_chunk(state, length, limit)
+        compile_seconds = time.perf_counter() - t
+        done = 0
+        while done < iterations:
+            t = time.perf_counter()
+            state, rec = chunk(state, limit)
+            f, g, r = fetch(rec)
+            solve_seconds += time.perf_counter() - t
+            take = min(length, iterations - done)
+            fs.append(f[:take])
+            gs.append(g[:take])
+            rs.append(r[:take])
+            done += take
+            reason = termination(fs, gs)
+            if callback is not None and callback(done, f[:take]):
+                reason = reason or RESULTS.callback
+            if agree is not None:
+                reason = agree(reason)
+            if reason is not None:
+                result = reason
+                break
+    history = History(np.concatenate(fs), np.concatenate(gs), np.concatenate(rs))
+    return Driven(state, history, result, compile_seconds, solve_seconds)
