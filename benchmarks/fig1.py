@@ -3,7 +3,7 @@
     python benchmarks/fig1.py                       # the paper's settings (20 datasets, 1000 iterations)
     python benchmarks/fig1.py --datasets 2 --iterations 100 --poses 600   # a quick look
 
-Paper settings (Section VIII.A, Fig. 1 caption, NOTES §8): Cube datasets (seeds 0..K-1) with a
+Paper settings (Section VIII.A, Fig. 1 caption, docs/conventions.md §8): Cube datasets (seeds 0..K-1) with a
 12 x 12 x 12 grid of 1 m cells, 3600 poses, loop-closure probability 0.1, sigma_t = 0.02 m,
 sigma_R = 0.02 pi rad; 5, 10 and 50 robots (contiguous blocks); centralized chordal start;
 1000 iterations; f = 2F. f* per dataset is our centralized optimum
@@ -11,8 +11,8 @@ sigma_R = 0.02 pi rad; 5, 10 and 50 robots (contiguous blocks); centralized chor
 ||grad F|| <= 1e-5; the paper uses SE-Sync's certified optimum).
 
 All configurations run through :func:`mmpgo_jax._experiments.sweep.sweep` (one compiled executable per
-(method, robot count), reused for every dataset; ``--group-by method`` pads everything to 50 robots and compiles once per
-method, which is about 20x slower on this problem, see the sweep module).
+(method, robot count), reused for every dataset; ``--group-by method`` pads everything to 50 robots and
+compiles once per method, which is about 20x slower on this problem, see the sweep module).
 
 Writes ``<out>.png`` (f - f* and (f - f*)/f* vs iteration, log y, median and 10-90 % band over
 datasets per (method, robots)), ``<out>.md`` (tables, timings, command, machine, comparison with
@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import itertools
 import os
 import platform
 import shlex
@@ -92,13 +93,13 @@ def plot(path: Path, res, keys, title: str) -> None:
         gaps = [f - fstar, (f - fstar) / fstar]
         floors = [REL_FLOOR * float(np.median(fstar)), REL_FLOOR]
         x = np.arange(f.shape[1])
-        for ax, gap, floor in zip(axes, gaps, floors):
+        for ax, gap, floor in zip(axes, gaps, floors, strict=True):
             med, lo, hi = band(gap, floor)
-            c = COLORS.get(robots, None)
+            c = COLORS.get(robots)
             ax.plot(x, med, STYLES[method], color=c, lw=1.8, label=f"{LABELS[method]}, {robots} robots")
             ax.fill_between(x, lo, hi, color=c, alpha=0.12 if method == "amm" else 0.08, lw=0)
     n = len(res.graphs)
-    for ax, what in zip(axes, ["suboptimality gap  f − f*", "relative suboptimality gap  (f − f*) / f*"]):
+    for ax, what in zip(axes, ["suboptimality gap  f − f*", "relative suboptimality gap  (f − f*) / f*"], strict=True):
         ax.set_yscale("log")
         ax.set_xlabel("iteration", fontsize=11)
         ax.set_ylabel(what, fontsize=11)
@@ -140,7 +141,7 @@ def main(argv=None) -> int:
 
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    command = "python " + " ".join(shlex.quote(a) for a in [os.path.relpath(__file__, HERE.parent)] + sys.argv[1:]) \
+    command = "python " + " ".join(shlex.quote(a) for a in [os.path.relpath(__file__, HERE.parent), *sys.argv[1:]]) \
         if argv is None else "python benchmarks/fig1.py " + " ".join(shlex.quote(a) for a in argv)
     t_all = time.perf_counter()
     print(f"[fig1] {args.datasets} datasets x {args.robots} robots x {args.methods} x {args.iterations} iterations",
@@ -165,7 +166,8 @@ def main(argv=None) -> int:
     t = time.perf_counter()
     batch_configs = args.batch_configs or (1 if jax.default_backend() == "cpu" else None)
     res = sweep(datasets, args.robots, tuple(args.methods), args.iterations, fstar=fstar,
-                group_by=args.group_by, max_batch_configs=batch_configs, max_batch_bytes=None if args.max_batch_bytes is None else int(args.max_batch_bytes),
+                group_by=args.group_by, max_batch_configs=batch_configs,
+                max_batch_bytes=None if args.max_batch_bytes is None else int(args.max_batch_bytes),
                 progress=lambda msg: print("[fig1] " + msg, flush=True))
     t_sweep = time.perf_counter() - t
     wall = time.perf_counter() - t_all
@@ -185,7 +187,8 @@ def main(argv=None) -> int:
                 w.writerow([m, a, k] + [f"{v[k]:.6e}" for v in (*g1, *g2)])
     res.configs_to_csv(f"{out}_configs.csv")
 
-    title = (f"Fig. 1 reproduction: {len(names)} Cube dataset{'s' if len(names) != 1 else ''} ({args.poses} poses, {args.grid}³ grid), "
+    title = (f"Fig. 1 reproduction: {len(names)} Cube dataset{'s' if len(names) != 1 else ''} "
+             f"({args.poses} poses, {args.grid}³ grid), "
              f"{args.iterations} iterations, f* = centralized optimum")
     plot(Path(f"{out}.png"), res, keys, title)
 
@@ -206,7 +209,7 @@ def main(argv=None) -> int:
                      "{5, 10, 50} robots, 1000 iterations).\n")
     if args.note:
         lines.append(args.note.strip() + "\n")
-    lines.append("Settings: paper Section VIII.A / Fig. 1 caption (NOTES §8): 1 m cells, loop-closure "
+    lines.append("Settings: paper Section VIII.A / Fig. 1 caption (docs/conventions.md §8): 1 m cells, loop-closure "
                  "probability 0.1, σ_t = 0.02 m, σ_R = 0.02π rad; contiguous robot blocks; centralized "
                  "chordal start; AMM with the adaptive restart (library default); ξ = 1e-3; inner solver "
                  "defaults (1 Newton step, ≤ 20 CG iterations). f = 2F. f* per dataset = our centralized "
@@ -249,9 +252,9 @@ def main(argv=None) -> int:
                  "iterations (all robots of a configuration, serial on this machine; compilation excluded). "
                  "With batches larger than one, `vmap` turns the AMM step's `lax.cond` (MM fallback only "
                  "when a robot restarts) into a `select` that always computes the fallback; batches of one "
-                 "keep the real `cond`, as `solve()` does. ATE = RMSE of positions after the best rigid alignment to the ground "
-                 "truth, RPE = RMSE of consecutive relative-motion errors (translation, rotation), at the "
-                 "final iterate.\n")
+                 "keep the real `cond`, as `solve()` does. ATE = RMSE of positions after the best rigid alignment "
+                 "to the ground truth, RPE = RMSE of consecutive relative-motion errors (translation, rotation), "
+                 "at the final iterate.\n")
 
     # paper statements
     lines.append("## The paper's statements, checked on these runs\n")
@@ -259,7 +262,7 @@ def main(argv=None) -> int:
     for m in args.methods:
         for k in cps:
             order = [med[(m, a, k)] for a in sorted(args.robots)]
-            ok = all(x <= y for x, y in zip(order, order[1:]))
+            ok = all(x <= y for x, y in itertools.pairwise(order))
             checks.append(f"- Fewer robots converge faster ({LABELS[m]}, iteration {k}): median gaps for "
                           + ", ".join(f"{a} robots {fmt(med[(m, a, k)])}" for a in sorted(args.robots))
                           + f" — **{'holds' if ok else 'does not hold'}**.")
@@ -277,7 +280,7 @@ def main(argv=None) -> int:
                        else "AMM with {hi} robots is slower").format(hi=hi)
             checks.append(f"- \"AMM with {hi} robots converges almost faster than MM with {lo} robots\": median "
                           f"gap ratio AMM-{hi} / MM-{lo} at iterations "
-                          + ", ".join(f"{k}: {r:.2g}" for k, r in zip(cps, ratios)) + f" — {verdict}.")
+                          + ", ".join(f"{k}: {r:.2g}" for k, r in zip(cps, ratios, strict=True)) + f" — {verdict}.")
     lines += checks
     lines.append("")
 
@@ -295,7 +298,8 @@ def main(argv=None) -> int:
     for g in res.groups:
         lines.append(f"| {g['method']} | {', '.join(map(str, g['robots']))} | {g['configs']} | "
                      f"{g['A']} × {g['n_max']}, {g['e_max']}, {g['couplings']} | {g['bytes_per_config'] / 2**20:.1f} | "
-                     f"{g['batches']} | {g['compile_seconds']:.1f} | {g['run_seconds']:.1f} | {g['setup_seconds']:.1f} |")
+                     f"{g['batches']} | {g['compile_seconds']:.1f} | {g['run_seconds']:.1f} | "
+                     f"{g['setup_seconds']:.1f} |")
     lines.append("")
     lines.append(f"Files: `{out.name}.png`, `{out.name}_curves.csv` (plotted medians and bands), "
                  f"`{out.name}_configs.csv` (one row per configuration).\n")

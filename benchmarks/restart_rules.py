@@ -5,7 +5,7 @@
 For each available benchmark and each rule (``adaptive``: Algorithm 2's test with a vanishing
 slack, the default; ``average``: moving averages of each robot's share, in the spirit of the
 authors' later code; ``paper``: Algorithm 2's test as written): f = 2F after 100 / 250 / 1000
-iterations beside the authors' adaptive-restart code (NOTES §7), iterations to a relative
+iterations beside the authors' adaptive-restart code (docs/conventions.md §7), iterations to a relative
 suboptimality of 1e-3 and 1e-4 (f* = our certified centralized optimum), the number of hard
 restarts (MM fallbacks) and ms per iteration. The library's default is the rule that reaches f*
 faster; this file is the measurement behind that choice.
@@ -78,7 +78,7 @@ def main(argv=None) -> int:
            f"Settings: {args.robots} robots (contiguous blocks), centralized chordal start, xi = 1e-3, default inner "
            "solver. f = 2F. f* = `centralized_optimum` (certified globally optimal, see tables/bench.md). "
            "\"code\": the authors' C++ AMM with their adaptive restart (for `paper`: with Algorithm 2's test), "
-           "NOTES §7. Restarts = hard restarts (MM fallbacks) summed over robots and iterations; the "
+           "docs/conventions.md §7. Restarts = hard restarts (MM fallbacks) summed over robots and iterations; the "
            "`average` rule's soft restarts (momentum reset only) are not counted.\n",
            "Rules: **adaptive** (default) = Algorithm 2's test with a vanishing summable slack; **average** = hard "
            "restart above the slow moving average of the robot's share (rate 5e-4) or above the slack, soft "

@@ -45,10 +45,7 @@ def one(args) -> dict:
     ds = cube_dataset(args.seed, num_poses=args.poses, grid=args.grid)
     graph = ds.graph
     gen_s = time.perf_counter() - t0
-    if args.init == "ground-truth":
-        X0 = ds.ground_truth
-    else:
-        X0 = initialize(graph, args.init)
+    X0 = ds.ground_truth if args.init == "ground-truth" else initialize(graph, args.init)
     rss_graph = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     # Two chunks; the second one is timed (wall and this process's CPU time, all threads) from
     # the callback, which runs right after each chunk's results reached the host.
@@ -138,7 +135,8 @@ def table(rows) -> str:
             out.append(f"| {r['poses']} | {r['robots']} | {r['devices']} | | | | | error: {r['error'][:60]} | | | | |")
             continue
         out.append(
-            f"| {r['poses']} | {r['robots']} | {r['devices']} | {'yes' if r['sharded'] else 'no (solve)'} | {r['n_max']} | "
+            f"| {r['poses']} | {r['robots']} | {r['devices']} | {'yes' if r['sharded'] else 'no (solve)'} | "
+            f"{r['n_max']} | "
             f"{r['setup_s']} | {r['compile_s']} | {r['ms_per_iteration']} | {r['cpu_ms_per_iteration']} | "
             f"{r['loadavg'][0]:.1f}-{r['loadavg'][1]:.1f} | {r['f0']:.4g} -> {r['f']:.4g} | {r['maxrss_mb']} |"
         )

@@ -18,16 +18,32 @@ from nbformat.v4 import new_code_cell, new_markdown_cell, new_notebook
 
 HERE = Path(__file__).resolve().parent
 
+# The first code cell of every notebook: its imports (stdlib, third party, this package, as ruff's
+# isort rules want them), then the common set-up.
 SETUP = '''\
-import os
-import time
+{stdlib}
 
 import jax
+import matplotlib.pyplot as plt
+import numpy as np
+{third_party}
 import mmpgo_jax as mm
-
+{first_party}
 mm.enable_float64()  # explicit: the paper's numbers are float64
 ITERATIONS = int(os.environ.get("MMPGO_NOTEBOOK_ITERATIONS", "{default}"))
 print("iterations:", ITERATIONS, "| data folder:", mm.data_dir(), "| jax", jax.__version__, jax.default_backend())'''
+
+
+def setup_cell(default: int, *, stdlib=("os",), third_party: str = "", first_party: str = "", after: str = ""):
+    """The set-up cell: ``import`` lines for ``stdlib``, extra third-party / first-party import lines, the
+    common set-up with iteration budget ``default``, then ``after`` (notebook constants)."""
+    src = SETUP.format(
+        stdlib="\n".join(f"import {m}" for m in stdlib),
+        third_party=third_party + "\n" if third_party else "",
+        first_party=first_party + "\n" if first_party else "",
+        default=default,
+    )
+    return new_code_cell(src + ("\n\n" + after if after else ""))
 
 
 def quickstart() -> nbformat.NotebookNode:
@@ -39,7 +55,7 @@ def quickstart() -> nbformat.NotebookNode:
             "majorization-minimization method (AMM-PGO, Algorithm 2 of Fan & Murphey) from the chordal "
             "initialization, and plot the trajectory and the convergence.\n\n"
             "The iteration budget comes from `MMPGO_NOTEBOOK_ITERATIONS` (default 300)."),
-        new_code_cell(SETUP.format(default=300) + "\n\nimport numpy as np\nimport matplotlib.pyplot as plt"),
+        setup_cell(300),
         new_markdown_cell("## 1. Data\n`find_benchmark` looks in `MMPGO_DATA` (or `../shared/datasets`); "
                           "objective values are f = 2F, the convention of the paper's tables."),
         new_code_cell(
@@ -54,7 +70,8 @@ def quickstart() -> nbformat.NotebookNode:
             '    data = mm.cube_dataset(0, num_poses=1000, grid=8)\n'
             '    graph, name, ground_truth = data.graph, data.name, data.ground_truth\n'
             '    fstar = mm.centralized_optimum(graph, grad_tol=1e-5, max_iterations=500).f\n'
-            'print(f"{name}: d={graph.dim}, n={graph.num_poses} poses, m={graph.num_edges} measurements, f*={fstar:.6g}")'),
+            'print(f"{name}: d={graph.dim}, n={graph.num_poses} poses, m={graph.num_edges} measurements, "\n'
+            '      f"f*={fstar:.6g}")'),
         new_markdown_cell("## 2. Partition among robots\nContiguous blocks of poses (as in the paper); "
                           "inter-robot edges are the ones whose majorization couples robots."),
         new_code_cell(
@@ -83,12 +100,15 @@ def quickstart() -> nbformat.NotebookNode:
             'ax_c.semilogy(np.maximum((f - fstar) / fstar, 1e-14), label="AMM-PGO")\n'
             'mm_run = mm.solve(graph, part, method="mm", iterations=ITERATIONS)\n'
             'ax_c.semilogy(np.maximum((mm_run.history.f - fstar) / fstar, 1e-14), "--", label="MM-PGO")\n'
-            'ax_c.set_xlabel("iteration"); ax_c.set_ylabel("(f - f*) / f*"); ax_c.grid(alpha=0.4); ax_c.legend()\n'
+            'ax_c.set_xlabel("iteration")\n'
+            'ax_c.set_ylabel("(f - f*) / f*")\n'
+            'ax_c.grid(alpha=0.4)\n'
+            'ax_c.legend()\n'
             'ax_c.set_title("relative suboptimality")\n'
             'plt.show()'),
         new_code_cell(
             'if ground_truth is not None:  # generated data: accuracy against the ground truth\n'
-                        '    print(f"ATE {mm.absolute_trajectory_error(result.poses, ground_truth):.4f} m, "\n'
+            '    print(f"ATE {mm.absolute_trajectory_error(result.poses, ground_truth):.4f} m, "\n'
             '          f"RPE {mm.relative_pose_error(result.poses, ground_truth)}")'),
         new_markdown_cell("## 5. Is it the global optimum?\n`centralized_optimum` (one robot, near-exact Newton "
                           "steps) finds a critical point; `certify` checks SE-Sync's dual certificate "
@@ -111,10 +131,10 @@ def reproduce_tables() -> nbformat.NotebookNode:
             "f = 2F after the iteration checkpoints next to the paper's numbers (registry "
             "`mmpgo_jax.BENCHMARKS`). The default budget (`MMPGO_NOTEBOOK_ITERATIONS`, 100) "
             "fills the 100-iteration column; set it to 1000 for all three columns."),
-        new_code_cell(SETUP.format(default=100) + "\n\nimport numpy as np\nimport matplotlib.pyplot as plt\n"
-                      "from IPython.display import Markdown, display\n\nROBOTS = 10\nCHECKPOINTS = (100, 250, 1000)"),
+        setup_cell(100, stdlib=("os", "time"), third_party="from IPython.display import Markdown, display",
+                   after="ROBOTS = 10\nCHECKPOINTS = (100, 250, 1000)"),
         new_code_cell(
-                        '# MMPGO_NOTEBOOK_DATASETS: comma-separated names ("MITb,garage"), "all", or empty (default:\n'
+            '# MMPGO_NOTEBOOK_DATASETS: comma-separated names ("MITb,garage"), "all", or empty (default:\n'
             '# the paper\'s benchmarks found in the data folder with at most 3500 poses, which keeps this\n'
             '# notebook under two minutes; "all" adds city10000 and torus3D, about a minute more).\n'
             'SELECT = os.environ.get("MMPGO_NOTEBOOK_DATASETS", "").strip()\n'
@@ -141,13 +161,16 @@ def reproduce_tables() -> nbformat.NotebookNode:
             '        print(f"{info.name:>10} {method.upper():>3}: f = {r.f:.6g} after {r.iterations} iterations "\n'
             '              f"({time.perf_counter() - t:.1f} s, {r.ms_per_iteration:.2f} ms/iteration)")'),
         new_markdown_cell("## Ours beside the paper\n`paper` = Table I/II; `f*` = certified optimum "
-                          "(SE-Sync, NOTES §6). Columns appear for checkpoints within the budget."),
+                          "(SE-Sync; sources of the reference numbers: `docs/conventions.md`). Columns appear "
+                          "for checkpoints within the budget."),
         new_code_cell(
             'cps = [k for k in CHECKPOINTS if k <= ITERATIONS]\n'
             'if not cps:\n'
-            '    print(f"budget {ITERATIONS} < 100: showing f after {ITERATIONS} iterations beside the paper\'s 100-iteration column")\n'
+            '    print(f"budget {ITERATIONS} < 100: showing f after {ITERATIONS} iterations "\n'
+            '          "beside the paper\'s 100-iteration column")\n'
             'cols = cps or [ITERATIONS]\n'
-            'head = "| dataset | method | f* | " + " | ".join(f"ours @{k} | paper @{k if cps else 100}" for k in cols) + " |"\n'
+            'pairs = " | ".join(f"ours @{k} | paper @{k if cps else 100}" for k in cols)\n'
+            'head = "| dataset | method | f* | " + pairs + " |"\n'
             'lines = [head, "|" + "---|" * (3 + 2 * len(cols))]\n'
             'for (name, method), r in runs.items():\n'
             '    info = mm.BENCHMARKS[name]\n'
@@ -169,13 +192,14 @@ def reproduce_tables() -> nbformat.NotebookNode:
             '    fig, axes = plt.subplots(nrows, ncols, figsize=(5 * ncols, 3.8 * nrows), squeeze=False)\n'
             '    for ax in axes.flat[len(names):]:\n'
             '        ax.set_visible(False)\n'
-            '    for ax, name in zip(axes.flat, names):\n'
+            '    for ax, name in zip(axes.flat, names, strict=False):  # the spare axes are hidden\n'
             '        info = mm.BENCHMARKS[name]\n'
             '        if info.fstar is None:\n'
             '            continue\n'
             '        for method, style in (("mm", "--"), ("amm", "-")):\n'
             '            f = runs[(name, method)].history.f\n'
-            '            (line,) = ax.semilogy(np.maximum((f - info.fstar) / info.fstar, 1e-12), style, label=f"{method.upper()} (ours)")\n'
+            '            gap = np.maximum((f - info.fstar) / info.fstar, 1e-12)\n'
+            '            (line,) = ax.semilogy(gap, style, label=f"{method.upper()} (ours)")\n'
             '            paper = info.paper_mm if method == "mm" else info.paper_amm\n'
             '            # the paper prints 4 digits: values at or below f* carry no gap information\n'
             '            pts = {k: v for k, v in (paper or {}).items() if v > info.fstar}\n'
@@ -183,9 +207,13 @@ def reproduce_tables() -> nbformat.NotebookNode:
             '                ks = sorted(pts)\n'
             '                ax.semilogy(ks, [(pts[k] - info.fstar) / info.fstar for k in ks], "o",\n'
             '                            mfc="none", color=line.get_color(), label=f"{method.upper()} (paper)")\n'
-            '        ax.set_title(name); ax.set_xlabel("iteration"); ax.set_ylabel("(f - f*) / f*")\n'
-            '        ax.grid(alpha=0.4); ax.legend(fontsize=8)\n'
-            '    plt.tight_layout(); plt.show()'),
+            '        ax.set_title(name)\n'
+            '        ax.set_xlabel("iteration")\n'
+            '        ax.set_ylabel("(f - f*) / f*")\n'
+            '        ax.grid(alpha=0.4)\n'
+            '        ax.legend(fontsize=8)\n'
+            '    plt.tight_layout()\n'
+            '    plt.show()'),
     ]
     return _notebook(cells)
 
@@ -200,10 +228,11 @@ def robot_sweeps() -> nbformat.NotebookNode:
             "robots, MM vs AMM, and the two panels of the paper's Fig. 1 (f − f* and (f − f*)/f*, "
             "median and 10–90 % band over datasets). The full study is `benchmarks/fig1.py`.\n\n"
             "Budget: `MMPGO_NOTEBOOK_ITERATIONS` (default 150)."),
-        new_code_cell(SETUP.format(default=150) + "\n\nimport numpy as np\nimport matplotlib.pyplot as plt\n"
-                      "from IPython.display import Markdown, display\n"
-                      "from mmpgo_jax import reference_optimum, sweep\nfrom mmpgo_jax._experiments.sweep import TRACE_COUNTS  # trace counter (shows the single compilation)\n\n"
-                      "ROBOTS = [5, 10, 20]\nNUM_DATASETS = 3"),
+        setup_cell(150, stdlib=("os", "tempfile", "time"),
+                   third_party="from IPython.display import Markdown, display",
+                   first_party="from mmpgo_jax import reference_optimum, sweep\n"
+                               "from mmpgo_jax._experiments.sweep import TRACE_COUNTS  # counts compilations",
+                   after="ROBOTS = [5, 10, 20]\nNUM_DATASETS = 3"),
         new_code_cell(
             'datasets = {f"cube{s}": mm.cube_dataset(s, num_poses=600, grid=6) for s in range(NUM_DATASETS)}\n'
             'fstar = {name: reference_optimum(ds.graph) for name, ds in datasets.items()}  # centralized optimum\n'
@@ -218,7 +247,8 @@ def robot_sweeps() -> nbformat.NotebookNode:
             'before = dict(TRACE_COUNTS)\n'
             'one = sweep({"cube0": datasets["cube0"]}, ROBOTS, ("mm", "amm"), min(ITERATIONS, 20),\n'
             '            fstar={"cube0": fstar["cube0"]}, chunk_size=10)\n'
-            'print("traces per method during this sweep:", {m: TRACE_COUNTS[m] - before.get(m, 0) for m in ("mm", "amm")})\n'
+            'traces = {m: TRACE_COUNTS[m] - before.get(m, 0) for m in ("mm", "amm")}\n'
+            'print("traces per method during this sweep:", traces)\n'
             'for g in one.groups:\n'
             '    print(f"{g[\'method\']}: {g[\'configs\']} configs padded to A={g[\'A\']} x n_max={g[\'n_max\']} "\n'
             '          f"(x{g[\'padding_factor\']:.1f} slots), {g[\'bytes_per_config\'] / 2**20:.1f} MiB/config, "\n'
@@ -236,8 +266,9 @@ def robot_sweeps() -> nbformat.NotebookNode:
             'for method in res.methods:\n'
             '    for a in res.robots:\n'
             '        rows = [r for r in res.configs if r["method"] == method and r["robots"] == a]\n'
-            '        lines.append(f"| {method.upper()} | {a} | {np.median([r[\'relative_gap\'] for r in rows]):.2e} | "\n'
-            '                     f"{np.median([r[\'ms_per_iteration\'] for r in rows]):.1f} | {np.median([r[\'ate\'] for r in rows]):.4f} |")\n'
+            '        gap, ms, ate = (np.median([r[k] for r in rows]) for k in ("relative_gap", "ms_per_iteration",\n'
+            '                                                                  "ate"))\n'
+            '        lines.append(f"| {method.upper()} | {a} | {gap:.2e} | {ms:.1f} | {ate:.4f} |")\n'
             'display(Markdown("\\n".join(lines)))'),
         new_code_cell(
             'colors = {5: "tab:blue", 10: "tab:orange", 20: "tab:purple", 50: "tab:green"}\n'
@@ -246,24 +277,32 @@ def robot_sweeps() -> nbformat.NotebookNode:
             'for method, style in (("mm", "--"), ("amm", "-")):\n'
             '    for a in res.robots:\n'
             '        f = res.stack(method, a, relative=False)\n'
-            '        for ax, gap in zip(axes, (f - fs, (f - fs) / fs)):\n'
+            '        for ax, gap in zip(axes, (f - fs, (f - fs) / fs), strict=True):\n'
             '            gap = np.maximum(gap, 1e-14)\n'
             '            x = np.arange(gap.shape[1])\n'
-            '            ax.plot(x, np.median(gap, 0), style, color=colors[a], label=f"{method.upper()}-PGO, {a} robots")\n'
-            '            ax.fill_between(x, np.quantile(gap, 0.1, 0), np.quantile(gap, 0.9, 0), color=colors[a], alpha=0.1)\n'
-            'for ax, label in zip(axes, ("f - f*", "(f - f*) / f*")):\n'
-            '    ax.set_yscale("log"); ax.set_xlabel("iteration"); ax.set_ylabel(label); ax.grid(alpha=0.4)\n'
+            '            label = f"{method.upper()}-PGO, {a} robots"\n'
+            '            ax.plot(x, np.median(gap, 0), style, color=colors[a], label=label)\n'
+            '            lo, hi = np.quantile(gap, 0.1, 0), np.quantile(gap, 0.9, 0)\n'
+            '            ax.fill_between(x, lo, hi, color=colors[a], alpha=0.1)\n'
+            'for ax, label in zip(axes, ("f - f*", "(f - f*) / f*"), strict=True):\n'
+            '    ax.set_yscale("log")\n'
+            '    ax.set_xlabel("iteration")\n'
+            '    ax.set_ylabel(label)\n'
+            '    ax.grid(alpha=0.4)\n'
             'axes[1].legend(ncol=2, fontsize=8)\n'
             'fig.suptitle(f"{len(res.graphs)} Cube datasets (600 poses): median and 10-90 % band")\n'
-            'plt.tight_layout(); plt.show()'),
+            'plt.tight_layout()\n'
+            'plt.show()'),
         new_markdown_cell("## Tidy results\n`res.rows` (one dict per graph × robots × method × iteration), "
                           "`res.to_csv(path)`, `res.configs` (memory, time, ATE/RPE per configuration)."),
         new_code_cell(
-            'import tempfile\n'
             'path = os.path.join(tempfile.mkdtemp(), "sweep.csv")\n'
             'res.to_csv(path)\n'
-            'print(open(path).read().splitlines()[:4])\n'
-            'print({k: res.configs[0][k] for k in ("graph", "robots", "method", "f", "relative_gap", "bytes", "seconds", "ate", "rpe_translation", "rpe_rotation_deg")})'),
+            'with open(path) as fh:\n'
+            '    print(fh.read().splitlines()[:4])\n'
+            'keys = ("graph", "robots", "method", "f", "relative_gap", "bytes", "seconds", "ate", "rpe_translation",\n'
+            '        "rpe_rotation_deg")\n'
+            'print({k: res.configs[0][k] for k in keys})'),
     ]
     return _notebook(cells)
 

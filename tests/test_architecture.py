@@ -47,7 +47,7 @@ def test_no_import_cycles():
         stack.append(m)
         for d in sorted(graph.get(m, ())):
             if state.get(d) == "active":
-                raise AssertionError("import cycle: " + " -> ".join(stack[stack.index(d):] + [d]))
+                raise AssertionError("import cycle: " + " -> ".join([*stack[stack.index(d):], d]))
             if d not in state:
                 visit(d)
         stack.pop()

@@ -334,7 +334,7 @@ def test_bench_demo_bad_arguments(capsys, tmp_path, argv, needle):
     """Invalid bench/demo options end with exit status 2 and a one-line message, before any work."""
     from mmpgo_jax.cli import main
 
-    rc = main(argv + ["--out-dir", str(tmp_path / "out"), "--no-progress"])
+    rc = main([*argv, "--out-dir", str(tmp_path / "out"), "--no-progress"])
     err = capsys.readouterr().err
     assert rc == 2
     lines = err.strip().splitlines()
@@ -353,7 +353,8 @@ def test_solve_reports_accuracy_with_ground_truth(tmp_path):
     write_g2o(problem, data.graph, None)
     write_g2o(truth, data.graph, data.ground_truth)
     out = tmp_path / "est.g2o"
-    proc = mmpgo("solve", problem, "--robots", 3, "--iterations", 10, "--no-progress", "--ground-truth", truth, "--out", out)
+    proc = mmpgo("solve", problem, "--robots", 3, "--iterations", 10, "--no-progress", "--ground-truth", truth,
+                 "--out", out)
     _ok(proc)
     ate = float(re.search(r"^ATE\s+(\S+) RMSE", proc.stdout, re.MULTILINE).group(1))
     est = read_g2o(out).initial
@@ -377,7 +378,8 @@ def test_solve_certify_reports_global_optimum(tmp_path):
     data = mm.cube_dataset(2, num_poses=120, grid=3)
     problem = tmp_path / "cube.g2o"
     write_g2o(problem, data.graph, None)
-    proc = mmpgo("solve", problem, "--robots", 1, "--iterations", 300, "--grad-tol", "1e-7", "--no-progress", "--certify")
+    proc = mmpgo("solve", problem, "--robots", 1, "--iterations", 300, "--grad-tol", "1e-7", "--no-progress",
+                 "--certify")
     _ok(proc)
     line = re.search(r"^certificate (.*)$", proc.stdout, re.MULTILINE).group(1)
     assert line.startswith("global optimum (certified)"), proc.stdout

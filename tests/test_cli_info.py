@@ -39,7 +39,7 @@ def test_info_partition_table(capsys, benchmark_file):
     lines = [ln for ln in out.splitlines() if re.match(r"^\s+\d+\s+\d+\s+\d+\s+\d+\s+\d+", ln)]
     assert len(lines) == 10
     poses = [int(ln.split()[1]) for ln in lines]
-    assert poses == [81] * 8 + [80] * 2  # NOTES §4: the first n mod A robots get one more
+    assert poses == [81] * 8 + [80] * 2  # docs/conventions.md §4: the first n mod A robots get one more
 
 
 def test_info_bad_file_is_one_line_error(capsys):

@@ -175,7 +175,8 @@ def test_reader_warning_is_one_line(capsys, monkeypatch, command):
         pass
 
     monkeypatch.setattr(g2o_mod, "G2OWarning", G2OWarning, raising=False)
-    _fake_reader(monkeypatch, G2OWarning, "{path}: 1 of 5 information matrices are\nnot positive definite; SE-Sync weights used")
+    _fake_reader(monkeypatch, G2OWarning,
+                 "{path}: 1 of 5 information matrices are\nnot positive definite; SE-Sync weights used")
     argv = {"info": ["info", str(TINY)], "solve": ["solve", str(TINY), "-A", "2", "-n", "0", "--no-progress"],
             "optimum": ["optimum", str(TINY), "--no-certify", "--max-iterations", "2"]}[command]
     assert main(argv) == 0
@@ -264,7 +265,8 @@ BAD_OPTIONS = [
 ]
 
 
-@pytest.mark.parametrize("argv, option, allowed", BAD_OPTIONS, ids=[" ".join(a[0:1] + a[2:]) for a, _, _ in BAD_OPTIONS])
+@pytest.mark.parametrize("argv, option, allowed", BAD_OPTIONS,
+                         ids=[" ".join(a[0:1] + a[2:]) for a, _, _ in BAD_OPTIONS])
 def test_bad_numeric_option(capsys, tmp_path, argv, option, allowed):
     rc = main(argv)
     line = _error_line(capsys, rc)
@@ -402,7 +404,7 @@ def work(tmp_path, monkeypatch):
 
 def test_missing_output_folder_before_solving(capsys, work):
     """`--out ok.g2o --tum missing/x` used to write ok.g2o and fail after the solve."""
-    rc = main(SOLVE + ["--out", "ok.g2o", "--tum", "missing/x"])
+    rc = main([*SOLVE, "--out", "ok.g2o", "--tum", "missing/x"])
     assert _error_line(capsys, rc) == "mmpgo: error: --tum missing/x: folder 'missing' does not exist"
     assert sorted(p.name for p in work.iterdir()) == []
 
@@ -443,7 +445,7 @@ def test_unwritable_output_folder(capsys, work):
     ro.mkdir()
     ro.chmod(0o500)
     try:
-        line = _error_line(capsys, main(SOLVE + ["--out", "ro/x.g2o"]))
+        line = _error_line(capsys, main([*SOLVE, "--out", "ro/x.g2o"]))
     finally:
         ro.chmod(0o700)
     assert line == "mmpgo: error: --out ro/x.g2o: folder 'ro' is not writable"
@@ -456,7 +458,7 @@ def test_optimum_outputs_checked(capsys, work):
 
 
 def test_sharded_solve_outputs_checked(capsys, work):
-    rc = main(SOLVE + ["--devices", "1", "--out", "ok.g2o", "--tum", "missing/x"])
+    rc = main([*SOLVE, "--devices", "1", "--out", "ok.g2o", "--tum", "missing/x"])
     assert _error_line(capsys, rc) == "mmpgo: error: --tum missing/x: folder 'missing' does not exist"
     assert list(work.iterdir()) == []
 
@@ -475,7 +477,7 @@ def test_failure_in_second_writer_keeps_first_target(capsys, work, monkeypatch, 
     (work / "est.g2o").write_text("precious\n")
     _failing_write_tum(monkeypatch)
     argv = (SOLVE if command == "solve" else ["optimum", _F, "--no-certify", "--max-iterations", "2"])
-    line = _error_line(capsys, main(argv + ["--out", "est.g2o", "--tum", "est.tum"]))
+    line = _error_line(capsys, main([*argv, "--out", "est.g2o", "--tum", "est.tum"]))
     assert "No space left on device" in line
     assert (work / "est.g2o").read_text() == "precious\n"
     assert sorted(p.name for p in work.iterdir()) == ["est.g2o"]
@@ -489,14 +491,14 @@ def test_failure_in_last_writer_leaves_nothing_new(capsys, work, monkeypatch):
 
     monkeypatch.setattr(cli, "write_history_csv", fail)
     (work / "old.tum").write_text("old\n")
-    line = _error_line(capsys, main(SOLVE + ["--out", "new.g2o", "--tum", "old.tum", "--history", "h.csv"]))
+    line = _error_line(capsys, main([*SOLVE, "--out", "new.g2o", "--tum", "old.tum", "--history", "h.csv"]))
     assert "Input/output error" in line
     assert sorted(p.name for p in work.iterdir()) == ["old.tum"]
     assert (work / "old.tum").read_text() == "old\n"
 
 
 def test_all_outputs_written_together(capsys, work):
-    assert main(SOLVE + ["--out", "a.g2o", "--tum", "a.tum", "--history", "h.csv"]) == 0
+    assert main([*SOLVE, "--out", "a.g2o", "--tum", "a.tum", "--history", "h.csv"]) == 0
     assert sorted(p.name for p in work.iterdir()) == ["a.g2o", "a.tum", "h.csv"]
     assert g2o_mod.read_g2o(work / "a.g2o").has_vertex.all()
 
@@ -507,7 +509,7 @@ def test_output_through_symlink(capsys, work):
     (real / "est.g2o").write_text("old\n")
     os.symlink(real / "est.g2o", work / "link.g2o")
     os.symlink("real/missing.tum", work / "dangling.tum")
-    assert main(SOLVE + ["--out", "link.g2o", "--tum", "dangling.tum"]) == 0
+    assert main([*SOLVE, "--out", "link.g2o", "--tum", "dangling.tum"]) == 0
     assert (work / "link.g2o").is_symlink() and (work / "dangling.tum").is_symlink()
     assert os.readlink(work / "link.g2o") == str(real / "est.g2o")
     assert g2o_mod.read_g2o(real / "est.g2o").has_vertex.all()

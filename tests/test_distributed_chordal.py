@@ -58,7 +58,7 @@ def test_translations_reach_centralized_solution(graph):
     R = np.asarray(chordal_initialization(graph).R)
     tc = translations_given_rotations(graph, R)
     fc = relaxed_translation_cost(graph, R, tc)
-    t, hist, k, _ = distributed_translations(graph, R, ROBOTS, iterations=TRANS_IT, tol=None)
+    t, hist, _k, _ = distributed_translations(graph, R, ROBOTS, iterations=TRANS_IT, tol=None)
     assert _rel(relaxed_translation_cost(graph, R, np.asarray(t)), fc) <= 1e-9
     assert _rel(hist[-1], fc) <= 1e-9
     np.testing.assert_allclose(np.asarray(t), tc, atol=1e-5)
@@ -200,6 +200,28 @@ def test_tolerance_stop_without_recompiling(monkeypatch):
     assert len(traces) <= 1  # the same compiled loop served every tolerance (and the budget)
     assert out[1e-6][0] < out[1e-12][0] <= out[1e-13][0]
     assert out[1e-12][1] <= 1e-9
+
+
+def test_two_budgets_compile_once(monkeypatch):
+    """The budget is traced: two budgets below the same power of two run one compiled loop (a
+    graph shape used by no other test, so nothing is cached)."""
+    graph, _, _ = random_graph(N + 5, 2, EXTRA - 3, seed=104)
+    traces = []
+    real = dc._amm_run
+
+    def counting(*args, **kwargs):
+        traces.append(1)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(dc, "_amm_run", counting)
+    hists = {}
+    for budget in (130, 250):  # both padded to a history of 256
+        _, hist, k, conv = distributed_relaxed_rotations(graph, ROBOTS, iterations=budget, tol=None)
+        assert k == budget and not conv and hist.shape == (budget + 1,) and np.all(np.isfinite(hist))
+        hists[budget] = hist
+    assert len(traces) == 1
+    np.testing.assert_array_equal(hists[250][:131], hists[130])  # the same iterates, only more of them
+    assert dc._history_length(0) == 1 and dc._history_length(256) == 256 and dc._history_length(257) == 512
 
 
 def test_errors():

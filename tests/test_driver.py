@@ -38,8 +38,9 @@ def test_solve_result_is_a_solution(cube):
 
 def _compiles(fn):
     """Number of XLA compilations logged while ``fn()`` runs."""
-    from jax._src import dispatch  # noqa: F401  (the logger below lives there)
     import logging
+
+    from jax._src import dispatch  # noqa: F401  (the logger below lives there)
 
     seen = []
 

@@ -217,7 +217,9 @@ def test_subnormal_off_diagonal_information_is_refused(tmp_path):
 def test_weights_must_be_representable(tmp_path):
     # entries within range, but tau = 2 (I11 I22 - I12^2) / (I11 + I22) = 3.8e-301 is below 1e-300
     err = refused(write(tmp_path, "EDGE_SE2 0 1 1 0 0 2e-300 1.8e-300 0 2e-300 0 1\n"))
-    assert err.problem.startswith("EDGE_SE2: SE-Sync weight tau = 2 / tr(inv(I[:2, :2])) = 3.8e-301 is not representable")
+    assert err.problem.startswith(
+        "EDGE_SE2: SE-Sync weight tau = 2 / tr(inv(I[:2, :2])) = 3.8e-301 is not representable"
+    )
     assert err.problem.endswith("weights must be finite and between 1e-300 and 1e+300 (float64)")
     I = 10.0 * np.eye(6)
     I[3:, 3:] = np.eye(3) * 1e-300
@@ -318,7 +320,8 @@ def test_id_syntax_accepted(tmp_path):
     np.testing.assert_array_equal(f.vertex_ids, [lo, 5, 7, hi])
 
 
-@pytest.mark.parametrize("tok, kind", [("1_0", "is not an integer vertex id"), ("\uff11", "is not an integer vertex id"),
+@pytest.mark.parametrize("tok, kind", [("1_0", "is not an integer vertex id"),
+                                       ("\uff11", "is not an integer vertex id"),
                                        ("99999999999999999999", "is out of range")])
 def test_fix_id_syntax(tmp_path, tok, kind):
     err = refused(write(tmp_path, f"{E2}\nFIX 0 {tok}\n"))
@@ -333,7 +336,8 @@ def test_long_fields_are_shortened_in_messages(tmp_path):
     assert err.problem == f"EDGE_SE2: field 3 (dx) is not a number: {'1' * 40!r}… (3000001 characters)"
     assert len(str(err)) < 200 + len(str(err.path))
     err = refused(write(tmp_path, "EDGE_SE2 0 " + "7" * 100_000 + " 1 0 0 100 0 0 100 0 1000\n"))
-    assert err.problem == f"EDGE_SE2: field 2 (j) is out of range: {'7' * 40!r}… (100000 characters) (vertex ids must fit in a signed 64-bit integer)"
+    assert err.problem == (f"EDGE_SE2: field 2 (j) is out of range: {'7' * 40!r}… (100000 characters) "
+                           "(vertex ids must fit in a signed 64-bit integer)")
     err = refused(write(tmp_path, "V" * 10_000 + " 1 2\n"))
     assert err.problem.startswith(f"unknown tag {'V' * 40!r}… (10000 characters) (expected")
 
@@ -403,7 +407,8 @@ def test_tiny_quaternions_are_refused_as_zero_norm(tmp_path, q):
 def test_edge_translation_overflow_is_refused(tmp_path):
     err = refused(write(tmp_path, edge3(0, 1) + "\n" + edge3(1, 2, t=(0.0, 1e200, 0.0)) + "\n"))
     assert err.line == 2
-    assert err.problem == "EDGE_SE3:QUAT: translation (x, y, z) is too large: |t|^2 = inf overflows float64 (|t| = 1e+200)"
+    assert err.problem == ("EDGE_SE3:QUAT: translation (x, y, z) is too large: |t|^2 = inf overflows float64 "
+                           "(|t| = 1e+200)")
     err = refused(write(tmp_path, edge2(0, 1, t=(-1e200, 0.0)) + "\n"))
     assert err.problem == "EDGE_SE2: translation (dx, dy) is too large: |t|^2 = inf overflows float64 (|t| = 1e+200)"
     # |t|^2 = 1e300 is representable, tau |t|^2 = 1e310 is not

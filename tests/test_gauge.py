@@ -211,7 +211,8 @@ def test_poses_are_matched_by_vertex_id(tmp_path):
     np.savez(path, R=np.asarray(X.R)[perm], t=np.asarray(X.t)[perm], vertex_ids=ids[perm])
     got = load_poses(g, path, vertex_ids=ids)
     np.testing.assert_allclose(np.asarray(got.t), np.asarray(X.t), atol=1e-12)
-    with pytest.raises(ValueError, match=r"missing vertex ids 110, 113, 116, 119, 122, \.\.\. \(14 in all\); vertex ids not in the graph 10, 13"):
+    with pytest.raises(ValueError, match=r"missing vertex ids 110, 113, 116, 119, 122, \.\.\. \(14 in all\); "
+                                         r"vertex ids not in the graph 10, 13"):
         load_poses(g, path, vertex_ids=ids + 100)
     np.savez(path, R=np.asarray(X.R), t=np.asarray(X.t), vertex_ids=np.append(ids[:-1], 999))
     with pytest.raises(ValueError, match=r"missing vertex ids 49; vertex ids not in the graph 999"):

@@ -21,7 +21,7 @@ from mmpgo_jax._init.chordal import (
     translations_given_rotations,
 )
 
-# f = 2F at the centralized chordal initialization, NOTES §5.
+# f = 2F at the centralized chordal initialization, docs/conventions.md §5.
 CHORDAL_F = {
     "MIT.g2o": 88.132,
     "CSAIL.g2o": 31.718,
@@ -98,7 +98,7 @@ def dense_relaxed_rotations(g: PoseGraph) -> np.ndarray:
     q = d * d
     A = np.zeros((len(I_) * q, (n - 1) * q))
     b = np.zeros(len(I_) * q)
-    for e, (i, j) in enumerate(zip(I_, J_)):
+    for e, (i, j) in enumerate(zip(I_, J_, strict=True)):
         w = np.sqrt(kap[e])
         rows = slice(e * q, (e + 1) * q)
         Mi = w * np.kron(np.eye(d), Rm[e].T)
@@ -120,7 +120,7 @@ def dense_translations(g: PoseGraph, R) -> np.ndarray:
     R = np.asarray(R)
     A = np.zeros((len(I_) * d, (n - 1) * d))
     b = np.zeros(len(I_) * d)
-    for e, (i, j) in enumerate(zip(I_, J_)):
+    for e, (i, j) in enumerate(zip(I_, J_, strict=True)):
         w = np.sqrt(tau[e])
         rows = slice(e * d, (e + 1) * d)
         b[rows] = -w * R[i] @ tm[e]
@@ -214,7 +214,7 @@ def test_odometry_follows_chain_and_ignores_loop_closures():
     Rm, tm = np.asarray(g.R), np.asarray(g.t)
     R, t = np.eye(3), np.zeros(3)
     for k in range(1, 20):
-        e = np.flatnonzero((I_ == k - 1) & (J_ == k))[0]
+        e = np.flatnonzero((k - 1 == I_) & (k == J_))[0]
         R, t = R @ Rm[e], t + R @ tm[e]
         np.testing.assert_allclose(np.asarray(p.R[k]), R, atol=1e-10)
         np.testing.assert_allclose(np.asarray(p.t[k]), t, atol=1e-10)
@@ -294,7 +294,7 @@ def test_initialize_errors(tmp_path):
 
 
 # ---------------------------------------------------------------------------------------------
-# benchmark files: f at the chordal start (NOTES §5), to 4 significant digits
+# benchmark files: f at the chordal start (docs/conventions.md §5), to 4 significant digits
 # ---------------------------------------------------------------------------------------------
 
 

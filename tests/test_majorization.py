@@ -1,4 +1,4 @@
-"""The majorization of distributed PGO (paper §IV-V, Prop. 1, Appendix A, NOTES §3).
+"""The majorization of distributed PGO (paper §IV-V, Prop. 1, Appendix A; docs/conventions.md §3).
 
 References are independent of the library's per-robot code: the dense data matrix M̃ of Eq. (4)
 (``data_matrix``), dense linear algebra, and a per-edge Python loop over Eq. (10) with the
@@ -420,3 +420,33 @@ def test_literal_eq8_is_not_tight(setup):
     E_literal = eq10_loop(g, robots, Xk, Xk, part.num_robots, literal_eq8=True).sum()
     np.testing.assert_allclose(E_fixed, F, rtol=1e-12)
     assert abs(E_literal - F) > 1e-3 * F
+
+
+# ----------------------------------------------------------------------------- rotation projection
+
+
+@pytest.mark.parametrize("d", [2, 3, 4])
+def test_one_rotation_projection_in_both_layouts(d):
+    """project_to_so (SVD), the solver's project_rotations (stacked layout) and _project_soa
+    (structure-of-arrays layout) are one projection: near-rotations map to the same rotation
+    (d = 2's closed form is exact for any input), and the layouts are transposes of each other."""
+    from mmpgo_jax import project_to_so
+    from mmpgo_jax._core.geometry import nearest_rotations
+    from mmpgo_jax._mm.subproblem import _project_soa, project_rotations
+
+    rng = np.random.default_rng(d)
+    M = random_rotations(rng, (5, 7), d) + 0.05 * rng.standard_normal((5, 7, d, d))
+    ref = np.asarray(project_to_so(jnp.asarray(M)))
+    np.testing.assert_allclose(np.linalg.det(ref), 1.0, atol=1e-12)
+    fast = np.asarray(project_rotations(jnp.asarray(M)))
+    np.testing.assert_allclose(fast, ref, atol=1e-12)
+    soa = np.asarray(_project_soa(jnp.asarray(np.moveaxis(M, (-2, -1), (0, 1)))))
+    np.testing.assert_array_equal(np.moveaxis(soa, (0, 1), (-2, -1)), fast)
+    svd_first = nearest_rotations(jnp.asarray(np.moveaxis(M, (-2, -1), (0, 1))), layout="blocks-first")
+    np.testing.assert_allclose(np.moveaxis(np.asarray(svd_first), (0, 1), (-2, -1)), ref, atol=1e-14)
+    if d == 2:  # the closed form is the exact projection of any 2x2 matrix
+        W = rng.standard_normal((50, 2, 2))
+        np.testing.assert_allclose(np.asarray(project_rotations(jnp.asarray(W))),
+                                   np.asarray(project_to_so(jnp.asarray(W))), atol=1e-12)
+    with pytest.raises(ValueError, match="layout"):
+        nearest_rotations(jnp.asarray(M), layout="rows")

@@ -560,3 +560,169 @@ def test_xi_zero_with_padding_slots(subproblem_setup):
     assert np.all(np.asarray(v1) < 0)
     np.testing.assert_allclose(np.asarray(v0), np.asarray(v1), rtol=1e-6)
     np.testing.assert_allclose(np.asarray(Y0), np.asarray(Y1), atol=1e-8)
+
+
+# ----------------------------------------------------------------------------- configs: traced numbers, checks
+
+
+def _compiles_of_run(fn):
+    """(fn's result, number of 'Compiling run' log lines while it ran)."""
+    import logging as _logging
+
+    class _Handler(_logging.Handler):
+        def __init__(self):
+            super().__init__(_logging.DEBUG)
+            self.lines = []
+
+        def emit(self, record):
+            self.lines.append(record.getMessage())
+
+    handler = _Handler()
+    logger = _logging.getLogger("jax")
+    logger.addHandler(handler)
+    try:
+        with jax.log_compiles(True):
+            out = fn()
+    finally:
+        logger.removeHandler(handler)
+    return out, sum(1 for m in handler.lines if m.startswith("Compiling") and "jit(run)" in m)
+
+
+def test_traced_config_numbers_compile_once_and_match_static(problem2d):
+    """xi, cg_tolerance, slack_decay and the other restart constants are traced: runs that differ
+    only in them share one compilation of run(), and each gives exactly what a compilation with
+    the values baked in as constants (the former static fields) gives."""
+    from mmpgo_jax._mm.outer import _run
+
+    base = MMConfig(method="amm", restart="average", subproblem=SubproblemConfig(cg_iterations=5))
+    variants = {
+        "base": base,
+        "xi": eqx.tree_at(lambda c: c.xi, base, 0.05),
+        "cg_tolerance": eqx.tree_at(lambda c: c.subproblem.cg_tolerance, base, 0.3),
+        "slack_decay": eqx.tree_at(lambda c: c.slack_decay, base, 1.0),
+        "restart constants": eqx.tree_at(lambda c: (c.slack_scale, c.average_rates, c.soft_restart_hits), base,
+                                         (0.01, (0.3, 0.6), 2)),
+    }
+    part = partition(problem2d["graph"], problem2d["robots"])
+    X0 = _scatter(part, problem2d["X0"])
+    static_run = eqx.filter_jit(_run)  # Python floats of the config are compile-time constants here
+    length = 30
+    results, compiles = {}, []
+    for name, cfg in variants.items():
+        problem = MMProblem.build(part, config=cfg)
+        assert float(problem.xi) == cfg.xi
+        st0 = _init(problem, X0, cfg)
+        (st, rec), n = _compiles_of_run(lambda p=problem, c=cfg, s=st0: jax.block_until_ready(run(p, c, s, length)))
+        compiles.append(n)
+        st_ref, rec_ref = static_run(problem, cfg, st0, length)
+        np.testing.assert_allclose(np.asarray(rec.f), np.asarray(rec_ref.f), rtol=1e-12, atol=0, err_msg=name)
+        np.testing.assert_allclose(np.asarray(st.X), np.asarray(st_ref.X), rtol=0, atol=1e-12, err_msg=name)
+        results[name] = np.asarray(rec.f)
+    assert compiles[0] <= 1 and compiles[1:] == [0] * (len(variants) - 1), compiles
+    for name in variants:  # every traced number is read: each changes the run
+        if name != "base":
+            assert not np.allclose(results[name], results["base"], rtol=1e-10, atol=0), name
+
+
+@pytest.mark.parametrize(("cls", "kwargs", "message"), [
+    (MMConfig, dict(method="gd"), r"MMConfig\.method.*'mm' or 'amm'"),
+    (MMConfig, dict(restart="never"), r"MMConfig\.restart.*'paper' or 'adaptive' or 'average'"),
+    (MMConfig, dict(xi=-1e-3), r"MMConfig\.xi must be a finite number >= 0"),
+    (MMConfig, dict(xi=float("inf")), r"MMConfig\.xi must be a finite number >= 0"),
+    (MMConfig, dict(slack_scale=-1.0), r"MMConfig\.slack_scale must be a finite number >= 0"),
+    (MMConfig, dict(slack_decay=1.5), r"MMConfig\.slack_decay must be a finite number in \[0, 1\]"),
+    (MMConfig, dict(average_rates=(0.1, 2.0)), r"MMConfig\.average_rates\[1\] must be a finite number in \[0, 1\]"),
+    (MMConfig, dict(average_rates=(0.1,)), r"MMConfig\.average_rates must be a pair"),
+    (MMConfig, dict(soft_restart_hits=0), r"MMConfig\.soft_restart_hits must be an integer >= 1"),
+    (MMConfig, dict(soft_restart_hits=2.5), r"MMConfig\.soft_restart_hits must be an integer >= 1"),
+    (SubproblemConfig, dict(preconditioner="ilu"), r"SubproblemConfig\.preconditioner.*'block-jacobi' or 'chain'"),
+    (SubproblemConfig, dict(cg_tolerance=0.0), r"SubproblemConfig\.cg_tolerance must be a finite number in \(0, 1\]"),
+    (SubproblemConfig, dict(cg_tolerance=1.5), r"SubproblemConfig\.cg_tolerance must be a finite number in \(0, 1\]"),
+    (SubproblemConfig, dict(cg_iterations=0), r"SubproblemConfig\.cg_iterations must be an integer >= 1"),
+    (SubproblemConfig, dict(newton_steps=0), r"SubproblemConfig\.newton_steps must be an integer >= 1"),
+    (SubproblemConfig, dict(max_backtracks=-1), r"SubproblemConfig\.max_backtracks must be an integer >= 0"),
+    (SubproblemConfig, dict(cg_iterations=True), r"SubproblemConfig\.cg_iterations must be an integer >= 1"),
+])
+def test_config_fields_checked_when_built(cls, kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        cls(**kwargs)
+
+
+def test_config_checks_skip_traced_values():
+    """Under vmap / jit the traced numbers cannot be checked; building a config there works (a batch
+    of configs), and concrete arrays are checked elementwise."""
+    xs = jnp.asarray([0.0, 1e-3, 0.5])
+    out = jax.vmap(lambda x: MMConfig(xi=x, slack_decay=x, subproblem=SubproblemConfig(cg_tolerance=x + 0.1)).xi)(xs)
+    np.testing.assert_array_equal(np.asarray(out), np.asarray(xs))
+    assert float(jax.jit(lambda t: SubproblemConfig(cg_tolerance=t).cg_tolerance)(0.25)) == 0.25
+    MMConfig(xi=np.asarray([0.0, 1.0]))
+    with pytest.raises(ValueError, match=r"MMConfig\.xi"):
+        MMConfig(xi=np.asarray([0.0, -1.0]))
+    assert MMConfig(xi=None).xi is None
+
+
+def test_xi_of_config_and_problem_cannot_disagree(problem2d):
+    """MMProblem.build takes xi from the config; init_state / run refuse a config whose xi differs
+    from the problem's; xi=None defers to the problem."""
+    part = partition(problem2d["graph"], problem2d["robots"])
+    X0 = _scatter(part, problem2d["X0"])
+    cfg = MMConfig(method="mm", xi=0.25)
+    problem = MMProblem.build(part, config=cfg)
+    assert float(problem.xi) == 0.25
+    assert float(MMProblem.build(part, 0.25, config=cfg).xi) == 0.25  # both given, equal: fine
+    assert float(MMProblem.build(part).xi) == MMConfig().xi  # the default
+    with pytest.raises(ValueError, match=r"differs from config\.xi"):
+        MMProblem.build(part, 0.5, config=cfg)
+    other = MMConfig(method="mm", xi=1e-3)
+    with pytest.raises(ValueError, match=r"MMConfig\.xi = 0\.001 differs from the xi the MMProblem was built with"):
+        init_state(problem, X0, other)
+    st = init_state(problem, X0, cfg)
+    with pytest.raises(ValueError, match=r"MMConfig\.xi = 0\.001 differs"):
+        run(problem, other, st, 2)
+    with pytest.raises(ValueError, match=r"MMConfig\.xi = 0\.001 differs"):
+        run.lower(problem, other, st, 2)
+    deferred = MMConfig(method="mm", xi=None)
+    a, _ = run(problem, deferred, init_state(problem, X0), 2)
+    b, _ = run(problem, cfg, st, 2)
+    np.testing.assert_array_equal(np.asarray(a.X), np.asarray(b.X))
+
+
+def _leaves_run_reads(problem, config, state, length=3):
+    """Which leaves of ``problem`` run() reads: dead-code elimination of its jaxpr."""
+    from jax._src.interpreters import partial_eval as pe
+
+    leaves, treedef = jax.tree.flatten(problem)
+    closed = jax.make_jaxpr(lambda ls: run(jax.tree.unflatten(treedef, ls), config, state, length))(leaves)
+    _, used = pe.dce_jaxpr(closed.jaxpr, [True] * len(closed.jaxpr.outvars))
+    paths = [jax.tree_util.keystr(p) for p, _ in jax.tree_util.tree_flatten_with_path(problem)[0]]
+    return dict(zip(paths, used[: len(leaves)], strict=True))
+
+
+def test_mm_problem_holds_only_what_run_reads(problem2d):
+    """With a config, MMProblem.build keeps only what that config's run() reads: no stacked-layout
+    copies of Γ and block-Jacobi, and only the configured preconditioner. (The partition's pose maps
+    are for scatter/gather by callers, and xi is the 0-d record of Γ's ξ.)"""
+    part = partition(problem2d["graph"], problem2d["robots"])
+    X0 = _scatter(part, problem2d["X0"])
+    host_side = {".partition.pose_index", ".partition.pose_mask", ".partition.robot_of_pose",
+                 ".partition.slot_of_pose", ".xi"}
+    sizes = {}
+    for kind in ("block-jacobi", "chain"):
+        cfg = MMConfig(method="amm", subproblem=SubproblemConfig(preconditioner=kind))
+        problem = MMProblem.build(part, config=cfg)
+        assert problem.preconditioners == (kind,)
+        assert (problem.chain is None) == (kind != "chain")
+        assert (problem.block_jacobi_soa is None) == (kind == "chain")
+        reads = _leaves_run_reads(problem, cfg, init_state(problem, X0, cfg))
+        unread = {p for p, used in reads.items() if not used}
+        assert unread == host_side, unread
+        sizes[kind] = sum(x.nbytes for x in jax.tree.leaves(problem))
+    # without a config both preconditioners are built (any config can run it): larger
+    both = MMProblem.build(part)
+    assert both.preconditioners == ("block-jacobi", "chain")
+    assert sum(x.nbytes for x in jax.tree.leaves(both)) > max(sizes.values())
+    # the stacked-layout views are exact transpositions of what is stored
+    np.testing.assert_array_equal(np.asarray(both.gamma.diag), np.moveaxis(np.asarray(both.gamma_soa.diag), -1, -3))
+    bj = MMProblem.build(part, config=MMConfig())
+    with pytest.raises(ValueError, match="holds only the block-jacobi preconditioner"):
+        run(bj, MMConfig(subproblem=SubproblemConfig(preconditioner="chain")), init_state(bj, X0), 2)

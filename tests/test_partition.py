@@ -2,7 +2,7 @@
 gradient blocks, padding invariance and partition statistics.
 
 References are independent: brute-force loops over the edge list, and the whole-graph objective
-and gradient of ``_pose_graph``.
+and gradient of ``mmpgo_jax._core.pose_graph``.
 """
 
 import functools
@@ -368,7 +368,7 @@ def brute_stats(graph, rob):
     inter = [0] * A
     nbrs = [set() for _ in range(A)]
     remote = [set() for _ in range(A)]
-    for a_, b_ in zip(I, J):
+    for a_, b_ in zip(I, J, strict=True):
         a, b = rob[a_], rob[b_]
         if a == b:
             own[a] += 1
@@ -423,7 +423,7 @@ def test_partition_stats_edge_cases(d):
     deg = np.bincount(I, minlength=n) + np.bincount(J, minlength=n)
     assert sn.inter_edges.tolist() == deg.tolist()
     for p in range(n):
-        adj = sorted(set(J[I == p].tolist()) | set(I[J == p].tolist()))
+        adj = sorted(set(J[p == I].tolist()) | set(I[p == J].tolist()))
         assert sn.neighbours[p].tolist() == adj
         assert sn.received_poses[p] == len(adj)
     # The padded partitions agree: no inter edge at A = 1, every stored edge inter at A = n.

@@ -154,7 +154,7 @@ def test_data_matrix_matches_dense_reference_and_is_psd(problem):
 @given(problems())
 def test_data_matrix_block_structure(problem):
     rng, graph, _ = problem
-    I, J, Rm, tm, kap, tau = np_graph(graph)
+    I, J, _Rm, tm, kap, tau = np_graph(graph)
     n, d = graph.num_poses, graph.dim
     M = data_matrix(graph).toarray()
     # Translation block: the tau-weighted graph Laplacian.
@@ -196,6 +196,34 @@ def test_data_matrix_tiny_by_hand():
     B[2:4] = Rt
     B[4:6] = -np.eye(2)
     np.testing.assert_allclose(M, 5.0 * np.outer(a, a) + 3.0 * B @ B.T, atol=1e-14)
+
+
+@SETTINGS
+@given(problems())
+def test_edge_blocks_give_the_per_edge_costs(problem):
+    """tr(Y_i H_ii Y_i^T) + tr(Y_j H_jj Y_j^T) + 2 tr(Y_i H_ij Y_j^T) = kappa ||.||^2 + tau ||.||^2 per edge
+    (Y_p = [t_p | R_p]), and the kappa-only / tau-only blocks split it into its two terms."""
+    _, graph, poses = problem
+    I, J, Rm, tm, kap, tau = np_graph(graph)
+    Y = np.concatenate([np.asarray(poses.t)[:, :, None], np.asarray(poses.R)], axis=2)  # (n, d, d+1)
+
+    def tr(A, H, B):  # tr(A_e H_e B_e^T) per edge
+        return np.einsum("mab,mbc,mac->m", A, H, B)
+
+    def quad(blocks):
+        Hii, Hjj, Hij = blocks
+        Yi, Yj = Y[I], Y[J]
+        return tr(Yi, Hii, Yi) + tr(Yj, Hjj, Yj) + 2 * tr(Yi, Hij, Yj)
+
+    rot = kap * np.sum((np.asarray(poses.R)[I] @ Rm - np.asarray(poses.R)[J]) ** 2, axis=(1, 2))
+    res = np.einsum("mab,mb->ma", np.asarray(poses.R)[I], tm) + np.asarray(poses.t)[I] - np.asarray(poses.t)[J]
+    trans = tau * np.sum(res**2, axis=1)
+    np.testing.assert_allclose(quad(pg.edge_blocks(graph)), rot + trans, rtol=1e-10, atol=1e-10)
+    np.testing.assert_allclose(quad(pg.edge_blocks(graph, translation=False)), rot, rtol=1e-10, atol=1e-10)
+    np.testing.assert_allclose(quad(pg.edge_blocks(graph, rotation=False)), trans, rtol=1e-10, atol=1e-10)
+    unit = pg.edge_hessian_blocks(Rm, tm, kap, tau, unit_rotations=True)
+    for a, b in zip(unit, pg.edge_blocks(graph), strict=True):
+        np.testing.assert_allclose(a, b, atol=1e-12)  # R~ R~^T = I for measurements in SO(d)
 
 
 # ----------------------------------------------------------------------------------------------

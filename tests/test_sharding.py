@@ -185,7 +185,7 @@ def _brute_force_traffic(graph, rop, device_of_robot, D):
     sent = [set() for _ in range(A)]
     dev_recv = [set() for _ in range(D)]
     dev_sent = [set() for _ in range(D)]
-    for i, j in zip(gi, gj):
+    for i, j in zip(gi, gj, strict=True):
         a, b = rop[i], rop[j]
         if a == b:
             continue
@@ -195,7 +195,10 @@ def _brute_force_traffic(graph, rop, device_of_robot, D):
         if da != db:
             dev_recv[da].add(j), dev_recv[db].add(i)
             dev_sent[db].add((da, j)), dev_sent[da].add((db, i))
-    n = lambda sets: np.array([len(s) for s in sets])
+
+    def n(sets):
+        return np.array([len(s) for s in sets])
+
     return n(recv), n(sent), n(dev_recv), n(dev_sent)
 
 
@@ -238,7 +241,10 @@ def test_renumbering_keeps_neighbours_on_one_device():
     rop = np.random.default_rng(0).permutation(A)[blocks]
     plan = plan_shards(graph, rop, D)
     assert plan.reordered
-    cross = lambda dev: int(np.count_nonzero(dev[np.asarray(graph.i)] != dev[np.asarray(graph.j)]))
+
+    def cross(dev):
+        return int(np.count_nonzero(dev[np.asarray(graph.i)] != dev[np.asarray(graph.j)]))
+
     natural = plan_shards(graph, rop, D, reorder=False)
     contiguous = plan_shards(graph, A, D)
     assert cross(plan.device_of_pose()) < cross(natural.device_of_pose())
@@ -303,7 +309,9 @@ def test_solve_sharded_argument_errors(cube):
 def _read_history(path):
     # Values may be written as repr(np.float64(x)); accept both spellings.
     rows = []
-    for line in open(path).read().splitlines()[1:]:
+    with open(path) as fh:
+        lines = fh.read().splitlines()[1:]
+    for line in lines:
         rows.append([float(v) for v in re.sub(r"np\.float64\(([^)]*)\)", r"\1", line).split(",")])
     return np.array(rows)
 
@@ -318,7 +326,8 @@ def test_two_processes_reproduce_single_process(tmp_path, cube, sharded_results,
             "--no-progress", "--out", str(out), "--history", str(hist)]
     env = dict(os.environ, XLA_FLAGS=FAST_COMPILE)
     run = run_multiprocess(args, processes=2, timeout_s=170, env=env)
-    assert run.ok, f"rc={run.returncodes} timed_out={run.timed_out}\n" + "\n".join(o[-2000:] + e[-3000:] for o, e in run.outputs)
+    logs = "\n".join(o[-2000:] + e[-3000:] for o, e in run.outputs)
+    assert run.ok, f"rc={run.returncodes} timed_out={run.timed_out}\n" + logs
     assert "2 devices, 2 processes" in run.outputs[0][0]
     assert "wrote" not in run.outputs[1][0]  # only process 0 writes
 

@@ -162,3 +162,64 @@ def test_batches_of_one_run_unbatched_and_agree(amm_sweep, cube):
         np.testing.assert_allclose(res.history("cube", a, "amm"), full.history("cube", a, "amm"), rtol=1e-9, atol=0)
         np.testing.assert_allclose(np.asarray(res.poses[("cube", a, "amm")].t),
                                    np.asarray(full.poses[("cube", a, "amm")].t), atol=1e-8)
+
+
+XIS = [0.0, 1e-3, 1e-2, 1e-1]
+
+
+def test_xi_sweep_compiles_once_and_matches_separate_solves(cube):
+    """A sweep over 4 values of xi (one graph, one robot count): 4 configurations in one
+    compilation of the batched chunk, each equal to solve(..., xi=x); results keyed by xi."""
+    a = 10
+    res, traces, compiles = _sweep_logging_compiles({"cube": cube}, [a], methods=("amm",), iterations=ITERATIONS,
+                                                    xi=XIS, subproblem=STABLE, chunk_size=CHUNK)
+    assert traces == 1 and len(compiles) == 1, compiles
+    (group,) = res.groups
+    assert group["configs"] == 4 and group["batches"] == 1 and group["xi"] == XIS
+    assert res.xis == XIS and res.keyed_by_xi
+    assert set(res.histories) == {("cube", a, "amm", x) for x in XIS}
+    finals = set()
+    for x in XIS:
+        ref = mm.solve(cube.graph, a, method="amm", iterations=ITERATIONS, xi=x, subproblem=STABLE, chunk_size=CHUNK)
+        np.testing.assert_allclose(res.history("cube", a, "amm", xi=x), ref.history.f, rtol=1e-9, atol=0,
+                                   err_msg=f"xi={x}")
+        np.testing.assert_allclose(np.asarray(res.poses[("cube", a, "amm", x)].t), np.asarray(ref.poses.t), atol=1e-8)
+        finals.add(float(ref.history.f[-1]))
+    assert len(finals) == 4  # xi matters
+    with pytest.raises(ValueError, match="several xi"):
+        res.history("cube", a, "amm")
+    rows = res.rows
+    assert list(rows[0])[:5] == ["graph", "robots", "method", "xi", "iteration"]
+    assert sorted({r["xi"] for r in rows}) == sorted(XIS) and {r["xi"] for r in res.configs} == set(XIS)
+
+
+def test_scalar_xi_keeps_keys_and_columns(tmp_path):
+    """One xi (a number or a one-element sequence): keys (graph, robots, method), no xi column."""
+    g = mm.cube_dataset(3, num_poses=40, grid=3)
+    for xi in (0.01, [0.01]):
+        res = sweep({"g": g}, [2], methods="mm", iterations=2, xi=xi, chunk_size=2)
+        assert set(res.histories) == {("g", 2, "mm")} and not res.keyed_by_xi
+        assert "xi" not in res.rows[0] and "xi" not in res.configs[0] and "xi" not in res.groups[0]
+        ref = mm.solve(g.graph, 2, method="mm", iterations=2, xi=0.01, chunk_size=2)
+        np.testing.assert_allclose(res.history("g", 2, "mm", xi=0.01), ref.history.f, rtol=1e-6)
+    res.to_csv(tmp_path / "h.csv")
+    assert (tmp_path / "h.csv").read_text().splitlines()[0] == "graph,robots,method,iteration,f,gap,relative_gap"
+    with pytest.raises(ValueError, match="xi must be a finite number >= 0"):
+        sweep({"g": g}, [2], methods="mm", iterations=1, xi=[0.1, -1.0])
+
+
+def test_padding_an_unpadded_partition_equals_partitioning_padded(cube):
+    """The sweep partitions each (graph, robots) once and pads it: the same arrays as partition()
+    with the padding options."""
+    from mmpgo_jax._core.partition import partition
+    from mmpgo_jax._experiments.sweep import _pad_partition
+
+    for a in (5, 50):
+        p0 = jax.device_get(partition(cube.graph, a))
+        pad = dict(min_max_poses=p0.max_poses + 7, min_max_edges=p0.max_edges + 3, num_robots=a + 2)
+        ref = partition(cube.graph, a, **pad)
+        got = _pad_partition(p0, pad["min_max_poses"], pad["min_max_edges"], pad["num_robots"])
+        assert jax.tree.structure(got) == jax.tree.structure(ref)
+        for x, y in zip(jax.tree.leaves(got), jax.tree.leaves(ref), strict=True):
+            assert x.dtype == y.dtype and x.shape == y.shape
+            np.testing.assert_array_equal(np.asarray(x), np.asarray(y))

@@ -1,5 +1,6 @@
 """Synthetic Cube / planar-grid datasets: determinism, structure, noise model and kappa/tau."""
 
+import itertools
 import math
 
 import jax.numpy as jnp
@@ -74,7 +75,7 @@ def test_kappa_inversion_roundtrip_and_limits(dim):
         k, _ = kappa_tau_from_rmse(1.0, s, dim)
         assert math.sqrt(langevin_expected_sq_angle(k, dim)) == pytest.approx(s, rel=1e-8)
     ks = [kappa_tau_from_rmse(1.0, s, dim)[0] for s in (0.05, 0.1, 0.5, 1.0)]
-    assert all(a > b for a, b in zip(ks, ks[1:]))
+    assert all(a > b for a, b in itertools.pairwise(ks))
     assert kappa_tau_from_rmse(0.0, 0.0, dim) == (math.inf, math.inf)
     with pytest.raises(ValueError):
         kappa_tau_from_rmse(0.02, smax * 1.01, dim)
@@ -83,12 +84,12 @@ def test_kappa_inversion_roundtrip_and_limits(dim):
 @pytest.mark.parametrize("dim", [2, 3])
 def test_expected_trace_closed_form_matches_quadrature(dim):
     for k in (0.05, 0.7, 3.0, 40.0, 380.0):
-        def w(th):
+        def w(th, k=k):
             base = math.exp(2 * k * (math.cos(th) - 1))
             return base if dim == 2 else (1 - math.cos(th)) * base
 
         tr = (lambda th: 2 * math.cos(th)) if dim == 2 else (lambda th: 1 + 2 * math.cos(th))
-        num = integrate.quad(lambda th: tr(th) * w(th), 0, math.pi, limit=400)[0]
+        num = integrate.quad(lambda th, tr=tr, w=w: tr(th) * w(th), 0, math.pi, limit=400)[0]
         den = integrate.quad(w, 0, math.pi, limit=400)[0]
         assert langevin_expected_trace(k, dim) == pytest.approx(num / den, rel=1e-9, abs=1e-12)
 
@@ -150,12 +151,12 @@ def test_expected_edge_cost_by_sampling(dim):
 def test_deterministic_for_seed():
     kw = dict(grid=4, num_poses=300)
     a, b, c = cube_dataset(5, **kw), cube_dataset(5, **kw), cube_dataset(6, **kw)
-    for x, y in zip(_np(a), _np(b)):
+    for x, y in zip(_np(a), _np(b), strict=True):
         np.testing.assert_array_equal(x, y)
     assert a.seed == 5 and a.name == "cube_seed5"
     assert not np.array_equal(np.asarray(a.graph.R), np.asarray(c.graph.R))
     g1, g2 = grid_2d_dataset(2, num_poses=200), grid_2d_dataset(2, num_poses=200)
-    for x, y in zip(_np(g1), _np(g2)):
+    for x, y in zip(_np(g1), _np(g2), strict=True):
         np.testing.assert_array_equal(x, y)
 
 

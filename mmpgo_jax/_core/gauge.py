@@ -38,7 +38,9 @@ class FixedPoses:
         t = np.asarray(self.t, dtype=np.float64)
         k = index.shape[0]
         if R.ndim != 3 or R.shape[0] != k or R.shape[1] != R.shape[2] or t.shape != (k, R.shape[-1]):
-            raise ValueError(f"FixedPoses: need R (k, d, d) and t (k, d) for k = {k} indices, got {R.shape} and {t.shape}")
+            raise ValueError(
+                f"FixedPoses: need R (k, d, d) and t (k, d) for k = {k} indices, got {R.shape} and {t.shape}"
+            )
         if k == 0:
             raise ValueError("FixedPoses: at least one pose index is needed")
         if np.unique(index).shape[0] != k or np.any(index < 0):
@@ -51,14 +53,14 @@ class FixedPoses:
         object.__setattr__(self, "t", t[order])
 
     @staticmethod
-    def identity(index, dim: int) -> "FixedPoses":
+    def identity(index, dim: int) -> FixedPoses:
         """``index`` held at R = I, t = 0."""
         index = np.atleast_1d(np.asarray(index, dtype=np.int64))
         k = index.shape[0]
         return FixedPoses(index, np.broadcast_to(np.eye(dim), (k, dim, dim)).copy(), np.zeros((k, dim)))
 
     @staticmethod
-    def from_poses(index, poses: Poses) -> "FixedPoses":
+    def from_poses(index, poses: Poses) -> FixedPoses:
         """``index`` held at their values in ``poses`` (n poses)."""
         index = np.atleast_1d(np.asarray(index, dtype=np.int64))
         return FixedPoses(index, np.asarray(poses.R, np.float64)[index], np.asarray(poses.t, np.float64)[index])
@@ -70,7 +72,7 @@ class FixedPoses:
     def __len__(self) -> int:
         return self.index.shape[0]
 
-    def check(self, num_poses: int, dim: int) -> "FixedPoses":
+    def check(self, num_poses: int, dim: int) -> FixedPoses:
         """Validate against a graph of ``num_poses`` poses in dimension ``dim``; returns self."""
         if self.dim != dim:
             raise ValueError(f"fixed poses are {self.dim}D, the graph is {dim}D")
@@ -84,7 +86,7 @@ class FixedPoses:
         out[self.index] = True
         return out
 
-    def restrict(self, keep: np.ndarray) -> "FixedPoses | None":
+    def restrict(self, keep: np.ndarray) -> FixedPoses | None:
         """Re-indexed to the poses ``keep`` (ascending old indices) of a sub-graph; None if none is kept."""
         keep = np.asarray(keep, dtype=np.int64)
         new_index = np.full(int(max(keep.max(initial=-1), self.index.max())) + 1, -1)
@@ -99,7 +101,9 @@ class FixedPoses:
         """``poses`` with the fixed poses set to their values (same dtype)."""
         R = jnp.asarray(poses.R)
         t = jnp.asarray(poses.t)
-        return Poses(R.at[self.index].set(jnp.asarray(self.R, R.dtype)), t.at[self.index].set(jnp.asarray(self.t, t.dtype)))
+        return Poses(
+            R.at[self.index].set(jnp.asarray(self.R, R.dtype)), t.at[self.index].set(jnp.asarray(self.t, t.dtype))
+        )
 
 
 def express_in_frame(poses: Poses, frame: FixedPoses) -> Poses:

@@ -5,6 +5,8 @@ Everything here works on batches (leading axes) and is jittable.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import jax.numpy as jnp
 import numpy as np
 
@@ -16,8 +18,13 @@ def rotation_2d(theta):
 
 
 def angle_2d(R):
-    """Angle of planar rotations (..., 2, 2) -> (...)."""
-    return jnp.arctan2(R[..., 1, 0], R[..., 0, 0])
+    """Angle of planar rotations (..., 2, 2) -> (...), atan2(R_10, R_00).
+
+    A NumPy array stays NumPy (computed on the host in its own precision: the g2o writer's float64
+    angles); anything else (JAX arrays, tracers) goes through ``jax.numpy`` and is jittable.
+    """
+    xp = np if isinstance(R, np.ndarray) else jnp
+    return xp.arctan2(R[..., 1, 0], R[..., 0, 0])
 
 
 def quaternion_to_rotation(q):
@@ -73,12 +80,113 @@ def project_to_so(M):
     """Nearest rotation (Frobenius norm) to each d x d block of ``M`` (..., d, d).
 
     SVD projection with the determinant fixed to +1 (Umeyama): U diag(1, .., det(U V^T)) V^T.
+    Exact for any input and any d; :func:`nearest_rotations` with ``method="fast"`` is the
+    solver's hot-path form of the same projection.
     """
+    return nearest_rotations(M)
+
+
+def _svd_projection(M):
+    """Umeyama's SVD projection of (..., d, d) blocks."""
     U, _, Vt = jnp.linalg.svd(M)
     det = jnp.linalg.det(U @ Vt)
     d = M.shape[-1]
-    fix = jnp.concatenate([jnp.ones(M.shape[:-2] + (d - 1,), M.dtype), det[..., None]], -1)
+    fix = jnp.concatenate([jnp.ones((*M.shape[:-2], d - 1), M.dtype), det[..., None]], -1)
     return (U * fix[..., None, :]) @ Vt
+
+
+class _Blocks(NamedTuple):
+    """Layout adapter: where the d x d matrix axes of a batch of blocks are. ``first=False``:
+    (..., d, d) (blocks last); ``first=True``: (d, d, ...) (the solver's structure-of-arrays layout).
+    Each layout is indexed natively (no transposition), so both are as fast as hand-written code."""
+
+    first: bool
+
+    def entry(self, M, i, j):
+        return M[i, j] if self.first else M[..., i, j]
+
+    def row(self, M, i):
+        return M[i] if self.first else M[..., i, :]
+
+    def cross(self, a, b):
+        return jnp.cross(a, b, axis=0) if self.first else jnp.cross(a, b)
+
+    def row_sum(self, x):
+        return jnp.sum(x, axis=0) if self.first else jnp.sum(x, axis=-1)
+
+    def matrix_sum(self, x):
+        return jnp.sum(x, axis=(0, 1)) if self.first else jnp.sum(x, axis=(-1, -2))
+
+    def stack_rows(self, rows):
+        return jnp.stack(rows) if self.first else jnp.stack(rows, axis=-2)
+
+    def stack_row(self, entries):
+        return jnp.stack(entries) if self.first else jnp.stack(entries, -1)
+
+    def per_block(self, s):
+        """A per-block scalar, broadcastable against the blocks."""
+        return s if self.first else s[..., None, None]
+
+    def scale_row(self, M, i, s):
+        return M.at[i].multiply(s) if self.first else M.at[..., i, :].multiply(s[..., None])
+
+
+def _closed_form_2d(M, L: _Blocks):
+    """Nearest planar rotations; exact for any input: [c -s; s c] maximises
+    tr(R^T M) = c (M00 + M11) + s (M10 - M01)."""
+    a = L.entry(M, 0, 0) + L.entry(M, 1, 1)
+    b = L.entry(M, 1, 0) - L.entry(M, 0, 1)
+    r = jnp.sqrt(a * a + b * b)
+    safe = r > 0
+    c = jnp.where(safe, a / jnp.where(safe, r, 1.0), 1.0)
+    s = jnp.where(safe, b / jnp.where(safe, r, 1.0), 0.0)
+    return L.stack_rows([L.stack_row([c, -s]), L.stack_row([s, c])])
+
+
+def _newton_polar_3d(M, L: _Blocks, iterations: int = 6):
+    """Orthogonal polar factor of near-rotations by scaled Newton iteration (Higham).
+
+    Converges quadratically; from ||M - R|| ~ 0.1, four iterations reach machine precision. Inputs
+    with det(M) <= 0 (far from SO(3)) are mapped to a proper rotation by flipping the last row's
+    sign (not the nearest rotation: :func:`project_to_so` is exact for those); the solver's
+    accept/reject test guards against such poor points.
+    """
+    X = M
+    for _ in range(iterations):
+        r0, r1, r2 = L.row(X, 0), L.row(X, 1), L.row(X, 2)
+        c0, c1, c2 = L.cross(r1, r2), L.cross(r2, r0), L.cross(r0, r1)  # rows of det(X) X^{-T}
+        det = L.row_sum(r0 * c0)
+        invT = L.stack_rows([c0, c1, c2]) / L.per_block(det)
+        scale = jnp.sqrt(jnp.sqrt(L.matrix_sum(invT**2) / L.matrix_sum(X**2)))
+        scale = L.per_block(jnp.where(jnp.isfinite(scale) & (scale > 0), scale, 1.0))
+        X = 0.5 * (scale * X + invT / scale)
+    det = L.row_sum(L.row(X, 0) * L.cross(L.row(X, 1), L.row(X, 2)))
+    return L.scale_row(X, 2, jnp.where(det < 0, -1.0, 1.0))
+
+
+def nearest_rotations(M, *, method: str = "svd", layout: str = "blocks-last"):
+    """The one projection onto SO(d) of the package, for either block layout.
+
+    ``layout="blocks-last"``: M (..., d, d), the matrix axes last (poses, tests, initializations);
+    ``"blocks-first"``: M (d, d, ...), the matrix axes first (the solver's structure-of-arrays
+    layout, where every entry is a contiguous vector). ``method="svd"``: Umeyama's SVD projection,
+    exact for any input and any d (= :func:`project_to_so`). ``"fast"``: the solver's hot path,
+    the closed form for d = 2 (exact as well) and a 6-step scaled Newton polar iteration for d = 3
+    (exact to rounding for near-rotations with det > 0, which is what a retraction or an AMM
+    extrapolation produces); other d fall back to the SVD.
+    """
+    if layout not in ("blocks-last", "blocks-first"):
+        raise ValueError(f"layout must be 'blocks-last' or 'blocks-first', got {layout!r}")
+    if method not in ("svd", "fast"):
+        raise ValueError(f"method must be 'svd' or 'fast', got {method!r}")
+    first = layout == "blocks-first"
+    d = M.shape[0] if first else M.shape[-1]
+    if method == "svd" or d not in (2, 3):
+        if not first:
+            return _svd_projection(M)
+        return jnp.moveaxis(_svd_projection(jnp.moveaxis(M, (0, 1), (-2, -1))), (-2, -1), (0, 1))
+    core = _closed_form_2d if d == 2 else _newton_polar_3d
+    return core(M, _Blocks(first))
 
 
 def sym(M):
@@ -93,7 +201,7 @@ def skew(M):
 
 def random_rotations(rng: np.random.Generator, shape, dim: int) -> np.ndarray:
     """Haar-distributed random rotations (host-side, for tests and synthetic data)."""
-    A = rng.standard_normal(tuple(shape) + (dim, dim))
+    A = rng.standard_normal((*shape, dim, dim))
     Q, Rr = np.linalg.qr(A)
     Q = Q * np.sign(np.diagonal(Rr, axis1=-2, axis2=-1))[..., None, :]
     det = np.linalg.det(Q)

@@ -22,7 +22,7 @@ from .pose_graph import PoseGraph, Poses
 
 
 def contiguous_robots(num_poses: int, num_robots: int) -> np.ndarray:
-    """Robot of each pose for contiguous blocks in file order (NOTES §4).
+    """Robot of each pose for contiguous blocks in file order (docs/conventions.md §4).
 
     With n poses and A robots the first n mod A robots get floor(n/A)+1 poses, the rest floor(n/A).
     """
@@ -117,7 +117,7 @@ def partition(
 ) -> Partition:
     """Split ``graph`` among robots.
 
-    ``robots`` is either a robot count (contiguous blocks, NOTES §4) or an (n,) array giving the
+    ``robots`` is either a robot count (contiguous blocks, docs/conventions.md §4) or an (n,) array giving the
     robot of each pose. ``min_max_poses`` / ``min_max_edges`` / ``num_robots`` pad to larger common
     shapes (e.g. to batch several partitions); padding never changes a result.
     """
@@ -165,7 +165,7 @@ def partition(
     e_slot = np.arange(len(owner)) - np.repeat(e_starts, e_counts)
 
     def padded(values, fill, dtype):
-        out = np.full((A, e_max) + values.shape[1:], fill, dtype=dtype)
+        out = np.full((A, e_max, *values.shape[1:]), fill, dtype=dtype)
         out[owner, e_slot] = values
         return out
 

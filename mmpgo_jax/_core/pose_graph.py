@@ -1,6 +1,6 @@
 """The pose-graph model: measurements, poses, the PGO objective and its gradients.
 
-Conventions (paper Eq. (3), NOTES §1-2):
+Conventions (paper Eq. (3); weights and f = 2F as in docs/conventions.md §1-2):
   F(X) = 1/2 sum_e [ kappa_e ||R_i Rt_e - R_j||^2 + tau_e ||R_i tt_e + t_i - t_j||^2 ]
   f    = 2 F        (what the paper's Tables I/II and SE-Sync report)
 All functions are pure and jittable; graphs and poses are pytrees.
@@ -31,13 +31,13 @@ class Poses(eqx.Module):
     def dim(self) -> int:
         return self.R.shape[-1]
 
-    def __add__(self, other: "Poses") -> "Poses":
+    def __add__(self, other: Poses) -> Poses:
         return Poses(self.R + other.R, self.t + other.t)
 
-    def __sub__(self, other: "Poses") -> "Poses":
+    def __sub__(self, other: Poses) -> Poses:
         return Poses(self.R - other.R, self.t - other.t)
 
-    def scale(self, c) -> "Poses":
+    def scale(self, c) -> Poses:
         return Poses(c * self.R, c * self.t)
 
 
@@ -65,7 +65,7 @@ class PoseGraph(eqx.Module):
         return self.i.shape[0]
 
     @staticmethod
-    def from_arrays(i, j, R, t, kappa, tau, num_poses: int | None = None, dtype=None) -> "PoseGraph":
+    def from_arrays(i, j, R, t, kappa, tau, num_poses: int | None = None, dtype=None) -> PoseGraph:
         """Build a graph from array-likes; float dtype follows JAX's default unless given."""
         i = np.asarray(i, dtype=np.int64)
         j = np.asarray(j, dtype=np.int64)
@@ -158,47 +158,91 @@ def matrix_to_poses(X) -> Poses:
     return Poses(jnp.asarray(R), jnp.asarray(t))
 
 
+def edge_hessian_blocks(R, t, kappa, tau, *, unit_rotations: bool = False):
+    """Per-edge blocks (H_ii, H_jj, H_ij) of the PGO objective, float64 numpy, each (m, d+1, d+1).
+
+    Layout per pose: Y_p = [t_p | R_p] (d x (d+1)), index 0 the translation, 1..d the rotation
+    columns. For an edge e = (i, j) with measurement (R~, t~) and a = (1, t~):
+
+        kappa ||R_i R~ - R_j||^2 + tau ||R_i t~ + t_i - t_j||^2
+            = tr(Y_i H_ii Y_i^T) + tr(Y_j H_jj Y_j^T) + 2 tr(Y_i H_ij Y_j^T),
+        H_ii = tau a a^T + kappa diag(0, R~ R~^T),  H_jj = tau e0 e0^T + kappa diag(0, I),
+        H_ij = -tau a e0^T - kappa diag(0, R~)
+
+    (the edge's blocks of the connection Laplacian M of Eq. (4); H_ji = H_ij^T). The blocks are
+    linear in (kappa, tau): ``tau = 0`` gives the rotation connection Laplacian's blocks (in
+    [1:, 1:]), ``kappa = 0`` the translation Laplacian's (in [0, 0]). ``unit_rotations=True``
+    writes I for R~ R~^T (equal up to rounding for measurements in SO(d)). Inputs: ``R`` (m, d, d),
+    ``t`` (m, d), ``kappa`` and ``tau`` (m,) or scalars.
+    """
+    R = np.asarray(R, dtype=np.float64)
+    t = np.asarray(t, dtype=np.float64)
+    m, d = t.shape
+    kappa = np.broadcast_to(np.asarray(kappa, dtype=np.float64), (m,))[:, None, None]
+    tau = np.broadcast_to(np.asarray(tau, dtype=np.float64), (m,))[:, None, None]
+    a = np.concatenate([np.ones((m, 1)), t], 1)
+    e0 = np.zeros(d + 1)
+    e0[0] = 1.0
+    gram = np.broadcast_to(np.eye(d), R.shape) if unit_rotations else R @ np.swapaxes(R, 1, 2)
+    Hii = tau * a[:, :, None] * a[:, None, :]
+    Hii[:, 1:, 1:] += kappa * gram
+    Hjj = tau * np.broadcast_to(np.outer(e0, e0), (m, d + 1, d + 1))
+    Hjj[:, 1:, 1:] += kappa * np.eye(d)
+    Hij = -tau * a[:, :, None] * e0[None, None, :]
+    Hij[:, 1:, 1:] -= kappa * R
+    return Hii, Hjj, Hij
+
+
+def edge_blocks(graph: PoseGraph, *, rotation: bool = True, translation: bool = True):
+    """:func:`edge_hessian_blocks` of ``graph``'s edges: (H_ii, H_jj, H_ij), each (m, d+1, d+1).
+
+    ``rotation=False`` drops the kappa terms, ``translation=False`` the tau terms (so the rotation
+    connection Laplacian and the tau-weighted graph Laplacian come from the same blocks).
+    """
+    kappa = np.asarray(graph.kappa, dtype=np.float64) if rotation else 0.0
+    tau = np.asarray(graph.tau, dtype=np.float64) if translation else 0.0
+    return edge_hessian_blocks(graph.R, graph.t, kappa, tau)
+
+
+def full_layout_index(num_poses: int, dim: int) -> np.ndarray:
+    """(n, d+1) columns of pose p's [t_p | R_p] in the layout of :func:`poses_to_matrix`:
+    p (its translation), then n + d p + a (its rotation columns)."""
+    p = np.arange(num_poses)[:, None]
+    return np.concatenate([p, num_poses + dim * p + np.arange(dim)], 1)
+
+
+def assemble_blocks(rows, cols, blocks, size: int) -> sp.csr_matrix:
+    """Sparse (size x size) sum of the blocks: ``blocks[e]`` (k, l) is added at rows ``rows[e]`` (k,)
+    and columns ``cols[e]`` (l,). Exact zeros of the blocks are not stored; duplicates add up."""
+    blocks = np.asarray(blocks, dtype=np.float64)
+    r = np.broadcast_to(np.asarray(rows)[:, :, None], blocks.shape).ravel()
+    c = np.broadcast_to(np.asarray(cols)[:, None, :], blocks.shape).ravel()
+    v = blocks.ravel()
+    keep = v != 0.0
+    return sp.csr_matrix((v[keep], (r[keep], c[keep])), shape=(size, size))
+
+
+def assemble_edge_blocks(i, j, Hii, Hjj, Hij, index, size: int) -> sp.csr_matrix:
+    """Symmetric sparse matrix of per-edge blocks: H_ii at (i, i), H_jj at (j, j), H_ij at (i, j)
+    and H_ij^T at (j, i), where pose p's block rows/columns are ``index[p]`` (e.g.
+    :func:`full_layout_index`, or ``d p + a`` for rotation blocks alone)."""
+    index = np.asarray(index)
+    ri, rj = index[np.asarray(i)], index[np.asarray(j)]
+    rows = np.concatenate([ri, rj, ri, rj])
+    cols = np.concatenate([ri, rj, rj, ri])
+    blocks = np.concatenate([Hii, Hjj, Hij, np.swapaxes(Hij, 1, 2)])
+    return assemble_blocks(rows, cols, blocks, size)
+
+
 def data_matrix(graph: PoseGraph) -> sp.csr_matrix:
     """The data matrix M of Eq. (4), sparse ((d+1)n square), with F(X) = 1/2 tr(X M X^T).
 
-    Column layout as :func:`poses_to_matrix`: translations first, then rotation blocks.
-    Built on the host with scipy; meant for tests and small problems.
+    Column layout as :func:`poses_to_matrix`: translations first, then rotation blocks; the
+    per-edge blocks are :func:`edge_blocks`. Built on the host with scipy; meant for tests,
+    certificates and small problems.
     """
     n, d = graph.num_poses, graph.dim
-    I_ = np.asarray(graph.i)
-    J_ = np.asarray(graph.j)
-    Rm = np.asarray(graph.R, dtype=np.float64)
-    tm = np.asarray(graph.t, dtype=np.float64)
-    kap = np.asarray(graph.kappa, dtype=np.float64)
-    tau = np.asarray(graph.tau, dtype=np.float64)
-    rows, cols, vals = [], [], []
-
-    def add(r, c, v):
-        rows.append(np.broadcast_to(r, v.shape).ravel())
-        cols.append(np.broadcast_to(c, v.shape).ravel())
-        vals.append(v.ravel())
-
-    # Translation residual r = X a with a[i] = 1, a[j] = -1, a[rot block of i] = tt.
-    # Rotation residual   Q = X B with B[rot block of i] = Rt, B[rot block of j] = -I.
-    ar = np.arange(d)
-    ri = n + d * I_[:, None] + ar  # (m, d) rotation columns of pose i
-    rj = n + d * J_[:, None] + ar
-    ti, tj = I_[:, None], J_[:, None]
-    # tau * a a^T
-    idx = np.concatenate([ti, tj, ri], 1)  # (m, d+2)
-    coef = np.concatenate([np.ones((len(I_), 1)), -np.ones((len(I_), 1)), tm], 1)
-    add(idx[:, :, None], idx[:, None, :], tau[:, None, None] * coef[:, :, None] * coef[:, None, :])
-    # kappa * B B^T : blocks (i,i) = Rt Rt^T = I, (j,j) = I, (i,j) = -Rt, (j,i) = -Rt^T
-    eye = np.broadcast_to(np.eye(d), Rm.shape)
-    add(ri[:, :, None], ri[:, None, :], kap[:, None, None] * (Rm @ np.swapaxes(Rm, 1, 2)))
-    add(rj[:, :, None], rj[:, None, :], kap[:, None, None] * eye)
-    add(ri[:, :, None], rj[:, None, :], -kap[:, None, None] * Rm)
-    add(rj[:, :, None], ri[:, None, :], -kap[:, None, None] * np.swapaxes(Rm, 1, 2))
-    size = (d + 1) * n
-    M = sp.coo_matrix(
-        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(size, size)
-    )
-    return M.tocsr()
+    return assemble_edge_blocks(graph.i, graph.j, *edge_blocks(graph), full_layout_index(n, d), (d + 1) * n)
 
 
 def connected_components(num_poses: int, i, j) -> list[np.ndarray]:

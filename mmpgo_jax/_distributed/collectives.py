@@ -53,14 +53,14 @@ class HaloCollectives(MeshCollectives):
 
     def gather_poses(self, X):
         B, n_max = X.shape[0], X.shape[1]
-        flat = X.reshape((B * n_max,) + X.shape[2:])
+        flat = X.reshape((B * n_max, *X.shape[2:]))
         send = flat[self.send_index[0]]  # (D, H, d, d+1): row j goes to device j
         recv = jax.lax.all_to_all(send, self.axis_name, 0, 0, tiled=True)  # row k came from device k
-        full = jnp.zeros((self.num_robots * n_max,) + X.shape[2:], X.dtype)
-        full = full.at[self.recv_index[0].reshape(-1)].set(recv.reshape((-1,) + X.shape[2:]), mode="drop")
+        full = jnp.zeros((self.num_robots * n_max, *X.shape[2:]), X.dtype)
+        full = full.at[self.recv_index[0].reshape(-1)].set(recv.reshape((-1, *X.shape[2:])), mode="drop")
         start = jax.lax.axis_index(self.axis_name) * (B * n_max)
         full = jax.lax.dynamic_update_slice_in_dim(full, flat, start, axis=0)
-        return full.reshape((self.num_robots, n_max) + X.shape[2:])
+        return full.reshape((self.num_robots, n_max, *X.shape[2:]))
 
 
 def halo_plan(part: Partition, graph: PoseGraph, num_devices: int) -> tuple[np.ndarray, np.ndarray]:

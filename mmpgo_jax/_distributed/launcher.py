@@ -7,8 +7,8 @@ import socket
 import subprocess
 import sys
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import jax
 import numpy as np
@@ -143,7 +143,8 @@ def run_multiprocess(
             str(local_devices),
         ]
         if capture:  # files, not pipes: a chatty process can never block on a full pipe
-            out, err = tempfile.TemporaryFile("w+"), tempfile.TemporaryFile("w+")
+            # kept open while the processes run, closed below once their output is read
+            out, err = tempfile.TemporaryFile("w+"), tempfile.TemporaryFile("w+")  # noqa: SIM115
             logs.append((out, err))
         else:
             out = err = None

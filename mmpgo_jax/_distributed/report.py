@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 from jax.sharding import Mesh
@@ -79,7 +79,8 @@ class CommunicationReport:
         lines = [
             f"per iteration, float64 poses of d + d^2 = {b // 8} numbers ({b} bytes)",
             "",
-            f"{'robot':>5} {'device':>6} {'recv poses':>10} {'recv bytes':>11} {'sent poses':>10} {'sent bytes':>11}  neighbours",
+            f"{'robot':>5} {'device':>6} {'recv poses':>10} {'recv bytes':>11} {'sent poses':>10} {'sent bytes':>11}"
+            "  neighbours",
         ]
         for a in range(len(self.recv_poses)):
             nb = " ".join(map(str, self.neighbours[a].tolist()))
@@ -93,8 +94,8 @@ class CommunicationReport:
         )
         lines += [
             "",
-            f"{'device':>6} {'robots':>6} {'cross-device recv poses':>23} {'bytes':>11} {'sent poses':>10} {'bytes':>11}"
-            f" {'halo recv bytes':>15} {'all_gather recv bytes':>21}",
+            f"{'device':>6} {'robots':>6} {'cross-device recv poses':>23} {'bytes':>11} {'sent poses':>10} "
+            f"{'bytes':>11} {'halo recv bytes':>15} {'all_gather recv bytes':>21}",
         ]
         for k in range(self.num_devices):
             lines.append(
@@ -146,13 +147,19 @@ def communication_report(
     recv_robot = np.concatenate([ri[inter], rj[inter]])
     send_robot = np.concatenate([rj[inter], ri[inter]])
     pose = np.concatenate([gj[inter], gi[inter]])
-    triples = np.unique(np.stack([recv_robot, send_robot, pose], 1), axis=0) if len(pose) else np.zeros((0, 3), np.int64)
+    if len(pose):
+        triples = np.unique(np.stack([recv_robot, send_robot, pose], 1), axis=0)
+    else:
+        triples = np.zeros((0, 3), np.int64)
     recv = np.bincount(triples[:, 0], minlength=A)
     sent = np.bincount(triples[:, 1], minlength=A)
     dev = plan.device_of_user_robot
     recv_dev, send_dev = dev[triples[:, 0]], dev[triples[:, 1]]
     cross = recv_dev != send_dev
-    pairs = np.unique(np.stack([recv_dev[cross], triples[cross, 2]], 1), axis=0) if cross.any() else np.zeros((0, 2), np.int64)
+    if cross.any():
+        pairs = np.unique(np.stack([recv_dev[cross], triples[cross, 2]], 1), axis=0)
+    else:
+        pairs = np.zeros((0, 2), np.int64)
     device_recv = np.bincount(pairs[:, 0], minlength=D)
     spairs = np.unique(np.stack([send_dev[cross], recv_dev[cross], triples[cross, 2]], 1), axis=0)
     # A pose sent to several devices counts once per destination device.

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import functools
 import time
-from typing import Callable, Literal, Sequence
+from collections.abc import Callable, Sequence
+from typing import Literal
 
 import equinox as eqx
 import jax
@@ -16,6 +17,7 @@ from jax.sharding import PartitionSpec as P
 from .._core.gauge import FixedPoses
 from .._core.partition import Partition, partition
 from .._core.pose_graph import PoseGraph, Poses
+from .._mm.driver import RESULTS, Termination, compile_once, drive
 from .._mm.majorization import unstack
 from .._mm.outer import (
     IterationRecord,
@@ -25,7 +27,6 @@ from .._mm.outer import (
     init_state,
     step,
 )
-from .._mm.driver import RESULTS, Termination, compile_once, drive
 from .._mm.solve import SolveResult, output_frame
 from .._mm.subproblem import SubproblemConfig
 from .collectives import (
@@ -193,7 +194,7 @@ def solve_sharded(
         else:
             part = partition(graph, plan.sharded_robot_of_pose, num_robots=plan.padded_robots)
         X0 = _initial_poses(graph, init, initial, user_part, multiprocess, fixed)
-        problem = MMProblem.build(part, xi, fixed=fixed)
+        problem = MMProblem.build(part, xi, config=config, fixed=fixed)
         state0 = init_state(problem, part.scatter(X0), config)
         start = jax.device_get(evaluate(problem, state0))
     problem_specs = _problem_specs(problem)

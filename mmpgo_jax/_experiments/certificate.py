@@ -1,12 +1,13 @@
 """Global optimality certificate for a critical point (SE-Sync's dual certificate, full layout).
 
-PGO is min_X 1/2 tr(X M Xᵀ) over X = [t_1..t_n R_1..R_n] with R_i ∈ SO(d). At a critical point the
-Lagrange multipliers of the constraints R_iᵀR_i = I are the blocks Λ_i = sym(R_iᵀ (X M)_{R_i}), and
-with Λ = blockdiag(0 for translations, Λ_1..Λ_n) the certificate matrix is S = M - Λ. Then
-X Sᵀ = 0 up to the gradient, and for every feasible Y, tr(Y M Yᵀ) = tr(Y S Yᵀ) + Σ tr(Λ_i). So if
-S ≽ 0 the critical point X is a global minimum (it also solves the SDP relaxation): the test the
-paper's f* (SE-Sync) rests on. S always has a (d+1)-dimensional null space: the d rows of X and
-the global translation.
+PGO is min_X 1/2 tr(X M Xᵀ) over X = [t_1..t_n R_1..R_n] with R_i ∈ SO(d) (M: :func:`data_matrix`,
+assembled from the per-edge blocks of :func:`~mmpgo_jax._core.pose_graph.edge_blocks`). At a
+critical point the Lagrange multipliers of the constraints R_iᵀR_i = I are the blocks Λ_i =
+sym(R_iᵀ (X M)_{R_i}), and with Λ = blockdiag(0 for translations, Λ_1..Λ_n) the certificate matrix
+is S = M - Λ. Then X Sᵀ = 0 up to the gradient, and for every feasible Y, tr(Y M Yᵀ) = tr(Y S Yᵀ)
++ Σ tr(Λ_i). So if S ≽ 0 the critical point X is a global minimum (it also solves the SDP
+relaxation): the test the paper's f* (SE-Sync) rests on. S always has a (d+1)-dimensional null
+space: the d rows of X and the global translation.
 
 Numerically, S ≽ -eta I is tested by the inertia of S + eta I: a sparse LDLᵀ (SuperLU with
 symmetric permutation and diagonal pivots) has no negative pivot iff the matrix is positive
@@ -24,9 +25,16 @@ import scipy.linalg as sla
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from .._core.pose_graph import PoseGraph, Poses, data_matrix, poses_to_matrix
+from .._core.pose_graph import (
+    PoseGraph,
+    Poses,
+    assemble_blocks,
+    data_matrix,
+    full_layout_index,
+    poses_to_matrix,
+)
 
-__all__ = ["OptimalityCertificate", "certify", "certificate_matrix"]
+__all__ = ["OptimalityCertificate", "certificate_matrix", "certify"]
 
 _DENSE_MAX = 3000  # eigenvalues of S densely up to this size
 
@@ -37,9 +45,10 @@ class OptimalityCertificate:
 
     ``certified``: S + eta I is positive definite, i.e. the poses are a global minimum up to the
     tolerance eta (and up to their own stationarity). ``min_eigenvalue``: the smallest eigenvalue
-    of S (about 0 at a certified optimum, because of S's null space; NaN if Lanczos did not converge). ``negative_eigenvalues``: how
-    many eigenvalues of S lie below -eta. ``stationarity``: ||S Xᵀ|| / (max_i M_ii ||X||), 0 at an
-    exact critical point. ``f``: 2F at the poses.
+    of S (about 0 at a certified optimum, because of S's null space; NaN if Lanczos did not
+    converge). ``negative_eigenvalues``: how many eigenvalues of S lie below -eta.
+    ``stationarity``: ||S Xᵀ|| / (max_i M_ii ||X||), 0 at an exact critical point. ``f``: 2F at
+    the poses.
     """
 
     certified: bool
@@ -74,10 +83,8 @@ def _certificate_parts(graph: PoseGraph, poses: Poses):
     XMR = XM[:, n:].reshape(d, n, d)
     lam = np.einsum("aib,aic->ibc", XR, XMR)
     lam = 0.5 * (lam + np.transpose(lam, (0, 2, 1)))
-    base = n + d * np.arange(n)[:, None, None]
-    rows = np.broadcast_to(base + np.arange(d)[None, :, None], lam.shape)
-    cols = np.broadcast_to(base + np.arange(d)[None, None, :], lam.shape)
-    Lam = sp.coo_matrix((lam.ravel(), (rows.ravel(), cols.ravel())), shape=M.shape)
+    rot = full_layout_index(n, d)[:, 1:]  # (n, d) rotation columns of each pose
+    Lam = assemble_blocks(rot, rot, lam, M.shape[0])
     return (M - Lam).tocsc(), X, M, XM
 
 
@@ -106,7 +113,9 @@ def _min_eigenvalue(S: sp.csc_matrix, eta: float, certified: bool, d: int) -> fl
     return float(np.min(w))
 
 
-def certify(graph: PoseGraph, poses: Poses, *, eta: float | None = None, relative_eta: float = 1e-8) -> OptimalityCertificate:
+def certify(
+    graph: PoseGraph, poses: Poses, *, eta: float | None = None, relative_eta: float = 1e-8
+) -> OptimalityCertificate:
     """Check whether ``poses`` (a critical point, e.g. from :func:`centralized_optimum`) is a global minimum.
 
     ``eta`` is the numerical tolerance on S's smallest eigenvalue; by default ``relative_eta`` times

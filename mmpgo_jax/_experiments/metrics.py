@@ -23,13 +23,13 @@ import numpy as np
 from .._core.pose_graph import Poses
 
 __all__ = [
-    "absolute_trajectory_error",
-    "relative_pose_error",
-    "rigid_alignment",
-    "align_poses",
-    "trajectory_accuracy",
     "RelativePoseError",
     "TrajectoryAccuracy",
+    "absolute_trajectory_error",
+    "align_poses",
+    "relative_pose_error",
+    "rigid_alignment",
+    "trajectory_accuracy",
 ]
 
 

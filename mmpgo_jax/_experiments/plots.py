@@ -3,9 +3,9 @@
 Everything is drawn on :class:`matplotlib.figure.Figure` objects with an explicit Agg canvas, so
 importing this module neither imports :mod:`matplotlib.pyplot` nor switches the process-wide
 backend (a Jupyter session keeps its own).  PNG files are rendered into memory and written with
-:func:`~mmpgo_jax._atomic.atomic_write`, so a reader never sees a half-written image.
+:func:`~mmpgo_jax._io.atomic.atomic_write`, so a reader never sees a half-written image.
 
-Objective values are f = 2F (the paper's Tables I/II, NOTES §2).  Relative suboptimality is
+Objective values are f = 2F (the paper's Tables I/II, docs/conventions.md §2).  Relative suboptimality is
 (f - f*)/f*; values <= 0 (an iterate at or below the reference f*, which happens when f* is itself
 only a tolerance-converged estimate) cannot be drawn on a log axis and are shown at a floor one
 decade below the smallest positive value, which the axis label says.
@@ -27,12 +27,12 @@ from matplotlib.lines import Line2D
 from .._io.atomic import atomic_write
 
 __all__ = [
-    "plot_trajectory",
-    "plot_convergence",
-    "save_solve_figure",
-    "save_convergence_figure",
-    "robot_colors",
     "RELATIVE_FLOOR",
+    "plot_convergence",
+    "plot_trajectory",
+    "robot_colors",
+    "save_convergence_figure",
+    "save_solve_figure",
 ]
 
 RELATIVE_FLOOR = 1e-12  # lowest level at which (f - f*)/f* <= 0 is drawn on the log axis
@@ -126,7 +126,8 @@ def plot_trajectory(ax, graph, poses, robot_of_pose, *, inter_robot_edges: bool 
                 ax.plot(t[run, 0], t[run, 1], t[run, 2], "-", color=colors[a], lw=lw)
             else:
                 ax.plot(t[run, 0], t[run, 1], "-", color=colors[a], lw=lw)
-        handles.append(Line2D([], [], color=colors[a], lw=2, label=f"robot {a} ({len(idx)} pose{'' if len(idx) == 1 else 's'})"))
+        label = f"robot {a} ({len(idx)} pose{'' if len(idx) == 1 else 's'})"
+        handles.append(Line2D([], [], color=colors[a], lw=2, label=label))
 
     # start pose
     if three_d:
@@ -176,7 +177,7 @@ def plot_trajectory(ax, graph, poses, robot_of_pose, *, inter_robot_edges: bool 
         shown = handles
         if len(handles) > MAX_LEGEND_ROBOTS:
             rest = len(handles) - (MAX_LEGEND_ROBOTS - 1)
-            shown = handles[: MAX_LEGEND_ROBOTS - 1] + [Line2D([], [], ls="", label=f"… (+{rest} more robots)")]
+            shown = [*handles[:MAX_LEGEND_ROBOTS - 1], Line2D([], [], ls="", label=f"… (+{rest} more robots)")]
         extra = [start] + ([inter_handle] if inter_handle is not None else [])
         items = shown + extra
         # below the axes, so that it never hides the trajectory
@@ -320,7 +321,7 @@ def save_convergence_figure(
 
 
 def save_solve_figure(path, graph, result, *, fstar: float | None = None, title: str = "") -> None:
-    """One PNG for a :class:`~mmpgo_jax._solve.SolveResult`: trajectory (left), convergence (right).
+    """One PNG for a :class:`~mmpgo_jax.SolveResult`: trajectory (left), convergence (right).
 
     Left: the estimate's positions coloured by robot (top view for 2D, 3D axes for 3D) with the
     inter-robot edges.  Right: f vs iteration and, when ``fstar`` is given, (f − f*)/f* below it.
@@ -343,10 +344,7 @@ def save_solve_figure(path, graph, result, *, fstar: float | None = None, title:
 
     label = method if cfg is None or cfg.method != "amm" else f"{method} (restart={cfg.restart})"
     f = _f_array(result)
-    if fstar is None:
-        ax_f = fig.add_subplot(gs[:, 1])
-    else:
-        ax_f = fig.add_subplot(gs[0, 1])
+    ax_f = fig.add_subplot(gs[:, 1]) if fstar is None else fig.add_subplot(gs[0, 1])
     plot_convergence(ax_f, {label: f}, None)
     ax_f.set_yscale("linear")
     if fstar is not None:

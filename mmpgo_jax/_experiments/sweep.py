@@ -8,6 +8,16 @@ nothing; padding never changes a result). The problems and states are stacked al
 *configuration* axis and advanced by one compiled chunk ``jit(vmap(run))`` of ``chunk_size``
 outer iterations, so a sweep compiles once per method (``group_by="method"``, the default).
 
+A sequence of proximal terms (``xi=[1e-3, 1e-2, ...]``) adds an axis: every (graph, robot count,
+xi) is one configuration. xi lives in the problems' arrays (Gamma^alpha and its preconditioner
+contain it; ``MMProblem.xi`` is an ordinary leaf), so the configurations with different xi stack
+and share the method's one compilation as well.
+
+Every partition and Gamma^alpha is built once: the unpadded partition of each (graph, robot count)
+gives the group's common shape and is then padded to it (no second partitioning), and Gamma^alpha
+of each configuration is built once, on the padded partition. Sweeps never stop early, so the
+per-chunk records stay on the device and f is fetched once per batch.
+
 Padding the robot axis has a price: a 5-robot configuration padded to 50 robots carries 10x the
 slots of the real problem (measured on the 3600-pose Cube: about 20x the time per iteration).
 ``group_by="robots"`` stacks only the configurations that share a robot count (for example the
@@ -45,16 +55,17 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._core.gauge import FixedPoses
-from .._core.partition import Partition, partition
+from .._core.partition import Partition, RobotEdges, partition
 from .._core.pose_graph import PoseGraph, Poses
 from .._init.chordal import initialize
-from .._mm.majorization import build_gamma_operator, stack, unstack
+from .._mm.driver import NonFiniteError, Termination, compile_once, drive
+from .._mm.majorization import gamma_couplings, stack, unstack
 from .._mm.outer import MMConfig, MMProblem, evaluate, init_state, run
-from .._mm.solve import NonFiniteError, output_frame
+from .._mm.solve import output_frame
 from .._mm.subproblem import SubproblemConfig
 from .metrics import absolute_trajectory_error, relative_pose_error
 
-__all__ = ["sweep", "SweepResult", "reference_optimum", "TRACE_COUNTS", "default_max_batch_bytes"]
+__all__ = ["TRACE_COUNTS", "SweepResult", "default_max_batch_bytes", "reference_optimum", "sweep"]
 
 #: How many times the batched chunk was traced (= compiled: each trace is followed by exactly one
 #: compilation), per method. Incremented at trace time only; tests read it.
@@ -66,7 +77,8 @@ def _sweep_chunk_impl(problem: MMProblem, config: MMConfig, state, length: int, 
     if state.s.shape[0] == 1:
         # A batch of one runs unbatched: under vmap the AMM step's lax.cond (MM fallback only when a
         # robot restarts) would become a select that computes the fallback every iteration.
-        squeeze = lambda tree: jax.tree.map(lambda x: x[0], tree)
+        def squeeze(tree):
+            return jax.tree.map(lambda x: x[0], tree)
         out = run(squeeze(problem), config, squeeze(state), length, limit)
         return jax.tree.map(lambda x: x[None], out)
     return jax.vmap(lambda p, s: run(p, config, s, length, limit))(problem, state)
@@ -132,28 +144,51 @@ class SweepResult:
     """Tidy results of a sweep.
 
     ``rows``: one dict per (graph, robots, method, iteration) with f = 2F and, when f* is known,
-    ``gap`` = f - f* and ``relative_gap`` = (f - f*)/f* (else None). ``configs``: one dict per
+    ``gap`` = f - f* and ``relative_gap`` = (f - f*)/f* (else None). A sweep over several xi
+    (``xi=[...]``) keys everything by (graph, robots, method, xi) instead and adds an ``xi``
+    column to ``rows`` and ``configs`` (and to the CSV files); with one xi (a number, the default),
+    keys and columns are (graph, robots, method) as before. ``configs``: one dict per
     configuration (final f and gap, ``bytes`` of its problem + state pytrees as run (padded),
     ``seconds`` (its share of the batch's run time, compilation excluded), batch index, and, with a
     ground truth, ``ate`` / ``rpe_translation`` / ``rpe_rotation_deg``). ``groups``: one dict per
     compiled group (shape, compile seconds, batches).
     """
 
-    histories: dict[tuple[str, int, str], np.ndarray]  # (graph, robots, method) -> f (K+1,)
+    histories: dict[tuple, np.ndarray]  # (graph, robots, method[, xi]) -> f (K+1,)
     fstar: dict[str, float | None]
     configs: list[dict]
     groups: list[dict]
-    poses: dict[tuple[str, int, str], Poses] = field(repr=False, default_factory=dict)
+    poses: dict[tuple, Poses] = field(repr=False, default_factory=dict)
     iterations: int = 0
+    xi_values: list[float] = field(default_factory=list)  # the sweep's xi, in the given order
 
-    def history(self, graph: str, robots: int, method: str) -> np.ndarray:
-        return self.histories[(graph, int(robots), method)]
+    @property
+    def keyed_by_xi(self) -> bool:
+        """True when several xi were swept: keys are (graph, robots, method, xi)."""
+        return any(len(k) == 4 for k in self.histories)
 
-    def relative_gap(self, graph: str, robots: int, method: str) -> np.ndarray:
+    def key(self, graph: str, robots: int, method: str, xi: float | None = None) -> tuple:
+        """The key of one configuration in ``histories`` / ``poses`` (``xi`` needed when several were swept)."""
+        if not self.keyed_by_xi:
+            if xi is not None and self.xi_values and float(xi) != self.xi_values[0]:
+                raise KeyError(f"this sweep ran xi = {self.xi_values[0]:g} only, not {xi!r}")
+            return (graph, int(robots), method)
+        if xi is None:
+            raise ValueError(f"this sweep ran several xi {self.xi_values}: give xi=")
+        return (graph, int(robots), method, float(xi))
+
+    @property
+    def xis(self) -> list[float]:
+        return list(self.xi_values)
+
+    def history(self, graph: str, robots: int, method: str, xi: float | None = None) -> np.ndarray:
+        return self.histories[self.key(graph, robots, method, xi)]
+
+    def relative_gap(self, graph: str, robots: int, method: str, xi: float | None = None) -> np.ndarray:
         fs = self.fstar.get(graph)
         if fs is None:
             raise ValueError(f"no f* for graph {graph!r}")
-        return (self.history(graph, robots, method) - fs) / fs
+        return (self.history(graph, robots, method, xi) - fs) / fs
 
     @property
     def graphs(self) -> list[str]:
@@ -170,30 +205,34 @@ class SweepResult:
     @property
     def rows(self) -> list[dict]:
         out = []
-        for (g, a, m), f in self.histories.items():
+        for key, f in self.histories.items():
+            g, a, m = key[:3]
+            extra = {"xi": key[3]} if len(key) == 4 else {}
             fs = self.fstar.get(g)
             for k, v in enumerate(f):
                 v = float(v)
                 gap = None if fs is None else v - fs
-                out.append(dict(graph=g, robots=a, method=m, iteration=k, f=v, gap=gap,
+                out.append(dict(graph=g, robots=a, method=m, **extra, iteration=k, f=v, gap=gap,
                                 relative_gap=None if fs is None else gap / fs))
         return out
 
     def to_csv(self, path) -> None:
-        """The per-iteration table (columns: graph, robots, method, iteration, f, gap, relative_gap)."""
-        _write_csv(path, _HISTORY_COLUMNS, self.rows)
+        """The per-iteration table (columns: graph, robots, method[, xi], iteration, f, gap, relative_gap)."""
+        cols = _HISTORY_COLUMNS if not self.keyed_by_xi else (*_HISTORY_COLUMNS[:3], "xi", *_HISTORY_COLUMNS[3:])
+        _write_csv(path, cols, self.rows)
 
     def configs_to_csv(self, path) -> None:
         """The per-configuration table."""
         cols = list(dict.fromkeys(k for row in self.configs for k in row))
         _write_csv(path, cols, self.configs)
 
-    def stack(self, method: str, robots: int, graphs: Sequence[str] | None = None, relative: bool = True):
-        """(graphs, K+1) array of relative gaps (or f when ``relative=False``) for one (method, robots)."""
+    def stack(self, method: str, robots: int, graphs: Sequence[str] | None = None, relative: bool = True,
+              xi: float | None = None):
+        """(graphs, K+1) array of relative gaps (or f when ``relative=False``) for one (method, robots[, xi])."""
         graphs = self.graphs if graphs is None else list(graphs)
         if relative:
-            return np.stack([self.relative_gap(g, robots, method) for g in graphs])
-        return np.stack([self.history(g, robots, method) for g in graphs])
+            return np.stack([self.relative_gap(g, robots, method, xi) for g in graphs])
+        return np.stack([self.history(g, robots, method, xi) for g in graphs])
 
 
 def _write_csv(path, columns, rows) -> None:
@@ -254,7 +293,7 @@ def _per_graph(value, names, what):
     if isinstance(value, (Sequence, np.ndarray)) and not isinstance(value, (str, Poses)):
         if len(value) != len(names):
             raise ValueError(f"{what}: expected {len(names)} values, got {len(value)}")
-        return dict(zip(names, value))
+        return dict(zip(names, value, strict=False))
     if len(names) == 1:
         return {names[0]: value}
     raise ValueError(f"{what}: give a mapping graph name -> value for several graphs")
@@ -284,7 +323,7 @@ def sweep(
     iterations: int = 1000,
     *,
     init="chordal",
-    xi: float = 1e-3,
+    xi: float | Sequence[float] = 1e-3,
     restart: Literal["paper", "adaptive", "average"] = "adaptive",
     fstar: Mapping[str, float] | Sequence[float] | float | str | None = None,
     max_batch_bytes: int | None = None,
@@ -305,13 +344,19 @@ def sweep(
     graph). ``fstar``: per-graph optimum (mapping or sequence), or ``"centralized"`` to compute it
     with :func:`reference_optimum`; relative gaps need it. ``max_batch_bytes``: see the module
     docstring; ``max_batch_configs`` caps the configurations per batch as well (on a CPU, small
-    batches are faster: cache-sized working sets). ``group_by``: "method" (one compilation per method, robot axis padded to the largest
-    count) or "robots" (one per (method, robot count)). ``progress(message)`` is called with a
+    batches are faster: cache-sized working sets). ``group_by``: "method" (one compilation per
+    method, robot axis padded to the largest count) or "robots" (one per (method, robot count)).
+    ``progress(message)`` is called with a
     line of text after each batch.
 
     ``fixed``: per-graph :class:`~mmpgo_jax.FixedPoses` held by the start and every iteration
     (default: a dataset's own ``fixed_poses``, e.g. a :class:`~mmpgo_jax.G2OFile`'s FIX lines).
     Final poses are in the frame :func:`~mmpgo_jax.solve` reports by default.
+
+    ``xi``: the proximal term, or a sequence of them: each value is one more configuration per
+    (graph, robot count), run in the same compilation; results are then keyed by (graph, robots,
+    method, xi) and ``rows`` / ``configs`` get an ``xi`` column (see :class:`SweepResult`). A
+    single value (a number, or a one-element sequence) keeps the (graph, robots, method) keys.
 
     Equivalent, configuration by configuration, to ``solve(graph, robots, method=..., iterations,
     init, xi, restart, subproblem, fixed)``.
@@ -323,7 +368,7 @@ def sweep(
     names, glist, gts, fixed_of = _normalize_graphs(graphs)
     if fixed is not None:
         fixed_of = _per_graph(fixed, names, "fixed")
-    for name, g in zip(names, glist):
+    for name, g in zip(names, glist, strict=False):
         if fixed_of.get(name) is not None:
             fixed_of[name].check(g.num_poses, g.dim)
     any_fixed = any(v is not None for v in fixed_of.values())
@@ -333,7 +378,7 @@ def sweep(
     for m in methods:
         if m not in ("mm", "amm"):
             raise ValueError(f"unknown method {m!r}: use 'mm' or 'amm'")
-    for name, g in zip(names, glist):
+    for name, g in zip(names, glist, strict=False):
         for a in robots:
             if not 1 <= a <= g.num_poses:
                 raise ValueError(f"graph {name!r} has {g.num_poses} poses: cannot split among {a} robots")
@@ -342,54 +387,63 @@ def sweep(
     if isinstance(fstar, str):
         if fstar != "centralized":
             raise ValueError(f"fstar must be a mapping, a sequence, a number, None or 'centralized', got {fstar!r}")
-        fstars = {n: reference_optimum(g) for n, g in zip(names, glist)}
+        fstars = {n: reference_optimum(g) for n, g in zip(names, glist, strict=False)}
     else:
         fstars = {n: (None if v is None else float(v)) for n, v in _per_graph(fstar, names, "fstar").items()}
     if max_batch_bytes is None:
         max_batch_bytes = default_max_batch_bytes()
+    xis = _xi_values(xi)
+    by_xi = len(xis) > 1  # several xi: results keyed (graph, robots, method, xi)
     sub = subproblem or SubproblemConfig()
     say = progress or (lambda msg: None)
 
-    # Shape needs of every (graph, robots): n_max, e_max and couplings of the unpadded layout.
+    def key_of(name: str, a: int, method: str, x: float) -> tuple:
+        return (name, a, method, x) if by_xi else (name, a, method)
+
+    # Every (graph, robots) is partitioned once: the unpadded partition gives the shape needs
+    # (n_max, e_max, loop-closure couplings) and is kept on the host, to be padded to its group's
+    # common shape (exactly the arrays of a padded partition(...) call) when it is built.
+    unpadded: dict[tuple[int, int], Partition] = {}
     needs: dict[tuple[int, int], tuple[int, int, int]] = {}
     for gi, g in enumerate(glist):
         for a in robots:
             p = partition(g, a)
-            k = int(build_gamma_operator(p.edges, xi, p.max_poses).src.shape[-1])
-            needs[(gi, a)] = (p.max_poses, p.max_edges, k)
+            needs[(gi, a)] = (p.max_poses, p.max_edges, gamma_couplings(p.edges))
+            unpadded[(gi, a)] = jax.device_get(p)
 
-    starts: dict[int, Poses] = {}
+    starts: dict = {}
 
     def start_of(gi: int, a: int) -> Poses:
         fix = fixed_of[names[gi]]
-        if isinstance(init, str) and init == "distributed-chordal":
-            return initialize(glist[gi], init, robots=a, fixed=fix)
-        if gi not in starts:
-            starts[gi] = initialize(glist[gi], init, fixed=fix)
-        return starts[gi]
+        key = (gi, a) if isinstance(init, str) and init == "distributed-chordal" else gi
+        if key not in starts:
+            robots_kw = {"robots": a} if key != gi else {}
+            starts[key] = initialize(glist[gi], init, fixed=fix, **robots_kw)
+        return starts[key]
 
-    histories: dict[tuple[str, int, str], np.ndarray] = {}
-    final_poses: dict[tuple[str, int, str], Poses] = {}
+    histories: dict[tuple, np.ndarray] = {}
+    final_poses: dict[tuple, Poses] = {}
     config_rows: list[dict] = []
     group_rows: list[dict] = []
 
     for method in methods:
-        config = MMConfig(method=method, restart=restart, xi=xi, subproblem=sub)
-        keys = [(gi, a) for a in robots for gi in range(len(glist))]
+        # xi=None: each problem carries its own xi (an array leaf), so one config serves them all
+        config = MMConfig(method=method, restart=restart, xi=None, subproblem=sub)
+        keys = [(gi, a, x) for a in robots for gi in range(len(glist)) for x in xis]
         groups = [keys] if group_by == "method" else [[k for k in keys if k[1] == a] for a in robots]
         for gkeys in groups:
-            n_max = max(needs[k][0] for k in gkeys)
-            e_max = max(needs[k][1] for k in gkeys)
-            kc = max(needs[k][2] for k in gkeys)
+            n_max = max(needs[k[:2]][0] for k in gkeys)
+            e_max = max(needs[k[:2]][1] for k in gkeys)
+            kc = max(needs[k[:2]][2] for k in gkeys)
             A = max(k[1] for k in gkeys)
 
-            def build(gi: int, a: int):
+            def build(gi: int, a: int, x: float, n_max=n_max, e_max=e_max, A=A, kc=kc, config=config):
                 g = glist[gi]
-                part = partition(g, a, min_max_poses=n_max, min_max_edges=e_max, num_robots=A)
+                part = _pad_partition(unpadded[(gi, a)], n_max, e_max, A)
                 fix = fixed_of[names[gi]]
                 if fix is None and any_fixed:  # one pytree structure per batch: an all-free mask
                     fix = np.zeros(g.num_poses, dtype=bool)
-                problem = MMProblem.build(part, xi, min_couplings=kc, fixed=fix)
+                problem = MMProblem.build(part, x, config=config, min_couplings=kc, fixed=fix)
                 return part, problem
 
             def batchable(problem: MMProblem, n_common: int) -> MMProblem:
@@ -405,30 +459,29 @@ def sweep(
                     slot_of_pose=jnp.pad(p.slot_of_pose, (0, pad)),
                     num_poses=n_common,
                 )
-                return MMProblem(common, problem.gamma, problem.chain, problem.block_jacobi,
-                                 problem.gamma_soa, problem.block_jacobi_soa, problem.free, problem.xi)
+                return MMProblem(partition=common, gamma_soa=problem.gamma_soa,
+                                 block_jacobi_soa=problem.block_jacobi_soa, chain=problem.chain, free=problem.free,
+                                 xi=problem.xi)
 
             n_common = max(glist[k[0]].num_poses for k in gkeys)
             # bytes of one configuration (all have the same padded shape)
             t_build = time.perf_counter()
             built = {gkeys[0]: build(*gkeys[0])}  # reused by the first batch
             prob0 = batchable(built[gkeys[0]][1], n_common)
-            st_shape = jax.eval_shape(lambda p, x: init_state(p, unstack(x), config), prob0,
-                                      jax.ShapeDtypeStruct((A, n_max, d, d + 1), prob0.gamma.diag.dtype))
+            st_shape = jax.eval_shape(lambda p, x, config=config: init_state(p, unstack(x), config), prob0,
+                                      jax.ShapeDtypeStruct((A, n_max, d, d + 1), prob0.gamma_soa.diag.dtype))
             per_config = _tree_bytes(prob0) + _tree_bytes(st_shape)
             del prob0
             C = len(gkeys)
             per_batch = max(1, min(C, int(max_batch_bytes // max(per_config, 1)), max_batch_configs or C))
             num_batches = math.ceil(C / per_batch)
             per_batch = math.ceil(C / num_batches)
-            group = dict(method=method, robots=sorted({k[1] for k in gkeys}), configs=C, A=A, n_max=n_max,
+            group = dict(method=method, robots=sorted({k[1] for k in gkeys}), **({"xi": xis} if by_xi else {}),
+                         configs=C, A=A, n_max=n_max,
                          e_max=e_max, couplings=kc, bytes_per_config=per_config, batches=num_batches,
                          configs_per_batch=per_batch, compile_seconds=0.0, run_seconds=0.0,
                          setup_seconds=0.0,
-                         padding_factor=float(A * n_max * C / sum(glist[gi].num_poses for gi, _ in gkeys)))
-            compiled = None
-            length = max(1, min(chunk_size, iterations)) if iterations > 0 else 0
-            limit = jnp.asarray(iterations)
+                         padding_factor=float(A * n_max * C / sum(glist[gi].num_poses for gi, _, _ in gkeys)))
             setup = time.perf_counter() - t_build
             for b in range(num_batches):
                 t0 = time.perf_counter()
@@ -436,8 +489,8 @@ def sweep(
                 real = len(bkeys)
                 bkeys = bkeys + [bkeys[-1]] * (per_batch - real)  # same compiled shape
                 parts, probs, X0s = [], [], []
-                for (gi, a) in bkeys[:real]:
-                    part, prob = built.pop((gi, a), None) or build(gi, a)
+                for (gi, a, x) in bkeys[:real]:
+                    part, prob = built.pop((gi, a, x), None) or build(gi, a, x)
                     parts.append(part)
                     probs.append(batchable(prob, n_common))
                     X0s.append(stack(part.scatter(start_of(gi, a))))
@@ -446,40 +499,38 @@ def sweep(
                 problem = _stack(probs)
                 del probs
                 state, rec0 = _batched_start(problem, config, jnp.stack(X0s))
-                fs = [np.asarray(rec0.f)[:, None]]
                 setup += time.perf_counter() - t0
-                run_s = 0.0
-                if iterations > 0:
-                    if compiled is None:
-                        t, traces = time.perf_counter(), TRACE_COUNTS[method]
-                        compiled = sweep_chunk.lower(problem, config, state, length, limit).compile()
-                        group["compile_seconds"] = time.perf_counter() - t
-                        group["traces"] = TRACE_COUNTS[method] - traces  # 1 (0: jax's trace cache hit)
-                    done = 0
-                    t = time.perf_counter()
-                    while done < iterations:
-                        state, rec = compiled(problem, config, state, limit)
-                        take = min(length, iterations - done)
-                        fs.append(np.asarray(rec.f)[:, :take])
-                        done += take
-                    jax.block_until_ready(state)
-                    run_s = time.perf_counter() - t
-                f_all = np.concatenate(fs, axis=1)
+
+                def compile_chunk(state, length, limit, problem=problem, config=config):
+                    compiled = compile_once(sweep_chunk, problem, config, state, length, limit, static=(length,))
+                    return lambda st, lim: compiled(problem, config, st, lim)
+
+                # sweeps never stop early: the driver keeps the records on the device and fetches f once
+                traces = TRACE_COUNTS[method]
+                try:
+                    out = drive(compile_chunk, state, (rec0.f, rec0.grad_norm, rec0.restarted),
+                                Termination(iterations, chunk_size), fetch=None)
+                except NonFiniteError as err:
+                    which = ", ".join(f"{names[gi]!r} ({a} robots{f', xi={x:g}' if by_xi else ''})"
+                                      for gi, a, x in bkeys[:real])
+                    raise NonFiniteError(f"sweep ({method}), in a batch of {which}: {err}") from None
+                if b == 0:
+                    group["compile_seconds"] = out.compile_seconds
+                    group["traces"] = TRACE_COUNTS[method] - traces  # 1 (0: jax's trace cache hit)
+                f_all, run_s, state = out.history.f, out.solve_seconds, out.state
                 X_final = np.asarray(state.X)
                 del problem, state
-                for c, (gi, a) in enumerate(bkeys[:real]):
+                for c, (gi, a, x) in enumerate(bkeys[:real]):
                     name = names[gi]
-                    key = (name, a, method)
+                    key = key_of(name, a, method, x)
                     f = f_all[c]
-                    if not np.isfinite(f).all():
-                        raise NonFiniteError(f"sweep: f became non-finite for graph {name!r}, {a} robots, {method} "
-                                             f"(after iteration {int(np.flatnonzero(~np.isfinite(f))[0])})")
                     histories[key] = f
                     Xc = unstack(jnp.asarray(X_final[c]))
                     poses = output_frame(parts[c].gather(Xc), fixed_of[name], None)
                     final_poses[key] = poses
                     fs_ = fstars.get(name)
-                    row = dict(graph=name, robots=a, method=method, iterations=iterations,
+                    row = dict(graph=name, robots=a, method=method, **({"xi": x} if by_xi else {}),
+                               iterations=iterations,
                                f_start=float(f[0]), f=float(f[-1]),
                                gap=None if fs_ is None else float(f[-1] - fs_),
                                relative_gap=None if fs_ is None else float((f[-1] - fs_) / fs_),
@@ -498,9 +549,52 @@ def sweep(
             group["setup_seconds"] = setup
             group_rows.append(group)
 
-    # order histories as graph-major, then robots, then method
-    order = {(n, a, m): (names.index(n), robots.index(a), methods.index(m)) for (n, a, m) in histories}
+    # order histories as graph-major, then robots, then method (then xi)
+    order = {k: (names.index(k[0]), robots.index(k[1]), methods.index(k[2]), *(xis.index(v) for v in k[3:]))
+             for k in histories}
     histories = dict(sorted(histories.items(), key=lambda kv: order[kv[0]]))
-    config_rows.sort(key=lambda r: order[(r["graph"], r["robots"], r["method"])])
+    config_rows.sort(key=lambda r: order[key_of(r["graph"], r["robots"], r["method"], r.get("xi"))])
     return SweepResult(histories=histories, fstar=fstars, configs=config_rows, groups=group_rows,
-                       poses=final_poses, iterations=iterations)
+                       poses=final_poses, iterations=iterations, xi_values=list(xis))
+
+
+def _xi_values(xi) -> list[float]:
+    """A number or a sequence of numbers (finite, >= 0), de-duplicated in the given order."""
+    values = [xi] if np.ndim(xi) == 0 else list(np.asarray(xi).reshape(-1)) if isinstance(xi, np.ndarray) else list(xi)
+    out = []
+    for v in values:
+        ok = isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, (bool, np.bool_))
+        if not ok or not np.isfinite(v) or v < 0:
+            raise ValueError(f"xi must be a finite number >= 0 or a sequence of them, got {xi!r}")
+        out.append(float(v))
+    if not out:
+        raise ValueError("xi: give at least one value")
+    return list(dict.fromkeys(out))
+
+
+def _pad_partition(p: Partition, n_max: int, e_max: int, num_robots: int) -> Partition:
+    """``partition(graph, robots, min_max_poses=n_max, min_max_edges=e_max, num_robots=...)`` from the
+    unpadded partition ``p`` (host arrays): the same arrays, without partitioning the graph again."""
+    A0, n0 = np.shape(p.pose_mask)
+    e0 = np.shape(p.edges.kappa)[1]
+    A, n_max, e_max = max(num_robots, A0), max(n_max, n0), max(e_max, e0)
+
+    def pad(x, lead, fill=0):
+        x = np.asarray(x)
+        out = np.full(lead + x.shape[2:], fill, dtype=x.dtype)
+        out[: x.shape[0], : x.shape[1]] = x
+        return jnp.asarray(out)
+
+    e = p.edges
+    d = np.shape(e.t)[-1]
+    R = np.broadcast_to(np.eye(d, dtype=np.asarray(e.R).dtype), (A, e_max, d, d)).copy()
+    R[:A0, :e0] = np.asarray(e.R)
+    E = (A, e_max)
+    edges = RobotEdges(
+        robot_i=pad(e.robot_i, E), slot_i=pad(e.slot_i, E), robot_j=pad(e.robot_j, E), slot_j=pad(e.slot_j, E),
+        local_i=pad(e.local_i, E, False), local_j=pad(e.local_j, E, False), R=jnp.asarray(R), t=pad(e.t, E),
+        kappa=pad(e.kappa, E), tau=pad(e.tau, E),
+    )
+    return Partition(pose_index=pad(p.pose_index, (A, n_max)), pose_mask=pad(p.pose_mask, (A, n_max), False),
+                     edges=edges, robot_of_pose=jnp.asarray(p.robot_of_pose), slot_of_pose=jnp.asarray(p.slot_of_pose),
+                     num_poses=p.num_poses)

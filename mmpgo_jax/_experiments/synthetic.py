@@ -86,14 +86,14 @@ from .._core.pose_graph import PoseGraph, Poses
 __all__ = [
     "SyntheticDataset",
     "cube_dataset",
+    "expected_edge_cost",
     "grid_2d_dataset",
-    "lattice_dataset",
     "kappa_tau_from_rmse",
     "langevin_expected_sq_angle",
     "langevin_expected_trace",
-    "expected_edge_cost",
-    "sample_langevin",
+    "lattice_dataset",
     "rotation_angle",
+    "sample_langevin",
 ]
 
 
@@ -340,7 +340,7 @@ class SyntheticDataset:
         """E[f(ground truth)] (f = 2F) under the generative model; 0 for noise-free data."""
         if self.sigma_t == 0.0 and self.sigma_R == 0.0:
             return 0.0
-        kap, tau = kappa_tau_from_rmse(self.sigma_t, self.sigma_R, self.dim)
+        kap, _tau = kappa_tau_from_rmse(self.sigma_t, self.sigma_R, self.dim)
         per_edge = (0.0 if self.sigma_R == 0.0 else expected_edge_cost(kap, 1.0, self.dim) - self.dim)
         per_edge += 0.0 if self.sigma_t == 0.0 else self.dim
         return float(self.num_edges * per_edge)
@@ -460,10 +460,7 @@ def lattice_dataset(
     Rrel = np.swapaxes(Rgt[I], 1, 2) @ Rgt[J]
     trel = np.einsum("mba,mb->ma", Rgt[I], tgt[J] - tgt[I])
     Rn = sample_langevin(rng, kappa, m, dim)  # identities when sigma_R = 0
-    if math.isinf(tau):
-        tn = np.zeros((m, dim))
-    else:
-        tn = rng.standard_normal((m, dim)) / math.sqrt(tau)
+    tn = np.zeros((m, dim)) if math.isinf(tau) else rng.standard_normal((m, dim)) / math.sqrt(tau)
     Rmeas = Rrel @ Rn
     tmeas = trel + tn
 
@@ -492,7 +489,7 @@ def cube_dataset(
     dtype=None,
     loop_closure_radius: float = 1.0,
 ) -> SyntheticDataset:
-    """The paper's Cube dataset (Fig. 1, NOTES §8): 12x12x12 cells of 1 m, 3600 poses,
+    """The paper's Cube dataset (Fig. 1, docs/conventions.md §8): 12x12x12 cells of 1 m, 3600 poses,
     loop-closure probability 0.1, sigma_t = 0.02 m, sigma_R = 0.02 pi rad.  Deterministic in seed.
     """
     return lattice_dataset(seed, dim=3, grid=grid, side=side, num_poses=num_poses,

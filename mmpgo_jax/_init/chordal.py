@@ -1,7 +1,7 @@
 """Initial estimates for pose-graph optimization.
 
 * :func:`chordal_initialization` -- the centralized chordal initialization used for the paper's
-  Tables I/II (NOTES §5): relax SO(d)^n to R^{d x dn}, minimise the relaxed rotation objective
+  Tables I/II (docs/conventions.md §5): relax SO(d)^n to R^{d x dn}, minimise the relaxed rotation objective
   (Eq. (22)) with R_0 = I by one sparse linear solve, project each block to SO(d) (SVD, det
   fixed), then solve the translation least-squares problem (Eq. (25)) with t_0 = 0.
 * :func:`odometry_initialization` -- compose the measurements along a spanning tree (the
@@ -17,7 +17,7 @@ measurement graph is fixed: the first pose (smallest index) of each component, a
 t = 0. For a connected graph that is pose 0 exactly as in the paper. Poses in different
 components are unrelated; this just makes the linear systems non-singular.
 
-Cost conventions follow :mod:`._pose_graph`: "cost" is the sum without the 1/2 (the f = 2F
+Cost conventions follow :mod:`mmpgo_jax._core.pose_graph`: "cost" is the sum without the 1/2 (the f = 2F
 convention of the paper's tables); ``relaxed_rotation_cost`` = 2 F_R of Eq. (23).
 """
 
@@ -35,7 +35,7 @@ import scipy.sparse.linalg as spla
 
 from .._core.gauge import FixedPoses, anchor_poses, anchor_set
 from .._core.geometry import project_to_so
-from .._core.pose_graph import PoseGraph, Poses
+from .._core.pose_graph import PoseGraph, Poses, assemble_edge_blocks, edge_blocks
 
 __all__ = [
     "INITIALIZATION_METHODS",
@@ -82,36 +82,22 @@ def _float_dtype(graph: PoseGraph):
 def rotation_connection_laplacian(graph: PoseGraph) -> sp.csr_matrix:
     """The (dn x dn) matrix L with 2 F_R(R) = tr(R L R^T), R = [R_1 .. R_n] in R^{d x dn}.
 
-    Row/column ``d*i + a`` belongs to pose i. Blocks per edge e = (i, j):
+    Row/column ``d*i + a`` belongs to pose i. Blocks per edge e = (i, j) (the rotation blocks of
+    :func:`~mmpgo_jax._core.pose_graph.edge_blocks` without the tau terms):
     (i, i) += kappa Rt Rt^T, (j, j) += kappa I, (i, j) -= kappa Rt, (j, i) -= kappa Rt^T.
     """
-    I_, J_, Rm, _, kap, _ = _edges_np(graph)
     n, d = graph.num_poses, graph.dim
-    ar = np.arange(d)
-    ri = d * I_[:, None] + ar  # (m, d)
-    rj = d * J_[:, None] + ar
-    eye = np.broadcast_to(np.eye(d), Rm.shape)
-    k = kap[:, None, None]
-    blocks = [
-        (ri, ri, k * (Rm @ np.swapaxes(Rm, 1, 2))),
-        (rj, rj, k * eye),
-        (ri, rj, -k * Rm),
-        (rj, ri, -k * np.swapaxes(Rm, 1, 2)),
-    ]
-    rows = np.concatenate([np.broadcast_to(r[:, :, None], v.shape).ravel() for r, _, v in blocks])
-    cols = np.concatenate([np.broadcast_to(c[:, None, :], v.shape).ravel() for _, c, v in blocks])
-    vals = np.concatenate([v.ravel() for _, _, v in blocks])
-    return sp.csr_matrix((vals, (rows, cols)), shape=(d * n, d * n))
+    Hii, Hjj, Hij = (H[:, 1:, 1:] for H in edge_blocks(graph, translation=False))
+    index = d * np.arange(n)[:, None] + np.arange(d)
+    return assemble_edge_blocks(graph.i, graph.j, Hii, Hjj, Hij, index, d * n)
 
 
 def translation_laplacian(graph: PoseGraph) -> sp.csr_matrix:
-    """The (n x n) tau-weighted graph Laplacian of the measurement graph."""
-    I_, J_, _, _, _, tau = _edges_np(graph)
+    """The (n x n) tau-weighted graph Laplacian of the measurement graph (the translation entries
+    of :func:`~mmpgo_jax._core.pose_graph.edge_blocks` without the kappa terms)."""
     n = graph.num_poses
-    rows = np.concatenate([I_, J_, I_, J_])
-    cols = np.concatenate([I_, J_, J_, I_])
-    vals = np.concatenate([tau, tau, -tau, -tau])
-    return sp.csr_matrix((vals, (rows, cols)), shape=(n, n))
+    Hii, Hjj, Hij = (H[:, :1, :1] for H in edge_blocks(graph, rotation=False))
+    return assemble_edge_blocks(graph.i, graph.j, Hii, Hjj, Hij, np.arange(n)[:, None], n)
 
 
 def translation_rhs(graph: PoseGraph, R) -> np.ndarray:
@@ -236,9 +222,9 @@ def _spanning_tree(graph: PoseGraph, roots: np.ndarray):
 
     0-1 BFS where odometry edges (|i - j| = 1) cost 0 and loop closures cost 1: poses reachable
     from a root along the odometry chain are reached through it, the rest through as few loop
-    closures as possible (all roots start together, so each pose hangs from its nearest root). Returns (order, parent_edge) with ``order`` a topological order of the
-    poses (roots first) and ``parent_edge[p]`` the index of the edge linking p to its parent
-    (-1 for roots).
+    closures as possible (all roots start together, so each pose hangs from its nearest root).
+    Returns (order, parent_edge) with ``order`` a topological order of the poses (roots first) and
+    ``parent_edge[p]`` the index of the edge linking p to its parent (-1 for roots).
     """
     I_ = np.asarray(graph.i, dtype=np.int64)
     J_ = np.asarray(graph.j, dtype=np.int64)
@@ -401,7 +387,9 @@ def load_poses(graph: PoseGraph, path, *, vertex_ids=None, what: str = "initial-
             if "vertex_ids" in z.files:
                 ids = z["vertex_ids"]
                 if ids.shape != (R.shape[0],) or not np.issubdtype(ids.dtype, np.integer):
-                    raise ValueError(f"{where}: 'vertex_ids' must be ({R.shape[0]},) integers, got {ids.dtype} {ids.shape}")
+                    raise ValueError(
+                        f"{where}: 'vertex_ids' must be ({R.shape[0]},) integers, got {ids.dtype} {ids.shape}"
+                    )
                 rows = match_vertex_ids(ids, graph_ids, where=where)
                 R, t = R[rows], t[rows]
             return poses_from_arrays(graph, R, t, what=where)
@@ -429,8 +417,8 @@ def initialize(
 
     ``method`` is one of
 
-    * ``"chordal"`` -- :func:`chordal_initialization` (the paper's start, NOTES §5);
-    * ``"distributed-chordal"`` -- :func:`~mmpgo_jax._distributed_chordal.distributed_chordal_initialization`
+    * ``"chordal"`` -- :func:`chordal_initialization` (the paper's start, docs/conventions.md §5);
+    * ``"distributed-chordal"`` -- :func:`~mmpgo_jax._init.distributed_chordal.distributed_chordal_initialization`
       with ``robots`` (a count, an (n,) robot-of-pose array or a ``Partition``; default
       min(10, n) contiguous robots) and ``distributed_options`` passed through;
     * ``"odometry"`` -- :func:`odometry_initialization`;
@@ -462,7 +450,9 @@ def _initial_poses(graph, method, initial, robots, fixed, distributed_options) -
             return odometry_initialization(graph, fixed)
         if method == "vertices":
             if initial is None:
-                raise ValueError("method 'vertices' needs the file's VERTEX estimates (initial=...), but none were given")
+                raise ValueError(
+                    "method 'vertices' needs the file's VERTEX estimates (initial=...), but none were given"
+                )
             return poses_from_arrays(graph, initial.R, initial.t, what="VERTEX estimates")
         from .distributed_chordal import distributed_chordal_initialization
 

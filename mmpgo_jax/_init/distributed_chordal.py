@@ -1,7 +1,7 @@
 """Distributed chordal initialization by accelerated majorization minimization (paper §VII).
 
 Rotations (Algorithm 3, "AMM-Chordal"). The relaxed problem (22) min F_R(R) over R in
-R^{d x dn} with R_0 = I is split among the robots of a :class:`~._partition.Partition`. Eq. (24)
+R^{d x dn} with R_0 = I is split among the robots of a :class:`~mmpgo_jax._core.partition.Partition`. Eq. (24)
 majorizes every inter-robot term 1/2 kappa ||R_i Rt - R_j||^2 by kappa ||R_i Rt - P||^2 +
 kappa ||R_j - P||^2 around the midpoint P of the current iterate, plus a proximal term
 xi/2 ||R - R^k||^2. As a function of robot alpha's own blocks the majorizer is the quadratic
@@ -25,7 +25,7 @@ Translations. With the projected rotations fixed, the translation problem (25)-(
 kind of quadratic with the tau-weighted graph Laplacian (a scalar n_alpha x n_alpha Gamma_t^alpha,
 2 tau on inter-robot edge ends, + xi I), solved by the identical accelerated scheme, t_0 = 0.
 
-Anchoring. As in the centralized version (:func:`~._initialization.anchor_set`) the fixed poses
+Anchoring. As in the centralized version (:func:`~mmpgo_jax._core.gauge.anchor_set`) the fixed poses
 (g2o FIX) are held at their values and the first pose of every other connected component of the
 measurement graph at R = I, t = 0 (pose 0 of robot 0 for a connected graph without fixed poses
 and the contiguous partition). An anchor is eliminated from the robot's
@@ -77,8 +77,10 @@ sums its own edges and half of its inter-robot edges). With the momentum restart
 decreases essentially monotonically and linearly, and on the benchmark files the gap to the
 optimum at the stop was within 1-100x of tol. The loop is a ``lax.while_loop`` over
 ``lax.scan`` chunks of 10 iterations of the same jitted step, with the state frozen as soon as a
-stage converges or the budget is spent: ``tol`` and the budget are traced values (no
-recompilation when they change) and the reported iteration count is exact.
+stage converges or the budget is spent, so the reported iteration count is exact. ``tol`` and the
+budget are traced values; the only static size is the history buffer, whose length is the budget
+rounded up to a power of two. Changing ``tol`` never recompiles, and budgets within one power of
+two (e.g. 300 and 500, both 512) share one compilation per graph shape.
 
 Budgets. The defaults (20000 + 20000 iterations) are a cap, not a cost: every benchmark file
 stops by ``tol`` first. The ill-conditioned files need thousands of iterations
@@ -95,13 +97,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import scipy.linalg as sla
-import scipy.sparse as sp
 
 from .._core.gauge import FixedPoses, anchor_set
 from .._core.geometry import project_to_so
 from .._core.partition import Partition
 from .._core.partition import partition as make_partition
-from .._core.pose_graph import PoseGraph, Poses
+from .._core.pose_graph import PoseGraph, Poses, assemble_blocks, assemble_edge_blocks, edge_hessian_blocks
 
 __all__ = [
     "DEFAULT_ROTATION_ITERATIONS",
@@ -150,49 +151,24 @@ def _gamma_inverses(part: Partition, anchor_mask: np.ndarray, xi: float, d: int,
     sj = np.asarray(e.slot_j, dtype=np.int64)
     w = np.asarray(e.kappa if rotation else e.tau, dtype=np.float64)
     Rm = np.asarray(e.R, dtype=np.float64)
+    tm = np.asarray(e.t, dtype=np.float64)
     pose_mask = np.asarray(part.pose_mask)
-    ar = np.arange(b)
+    block = slice(1, None) if rotation else slice(0, 1)  # rotation or translation part of the (t, R) blocks
+    index = b * np.arange(n_max)[:, None] + np.arange(b)  # (n_max, b) rows/columns of each slot
     out = np.empty((A, N, N))
     for a in range(A):  # host-side set-up only; the iteration itself is vmapped
         own = loc_i[a] & loc_j[a]
         tail = loc_i[a] & ~loc_j[a]
         head = loc_j[a] & ~loc_i[a]
-        rows, cols, vals = [], [], []
-
-        def add(r_slots, c_slots, blocks):
-            if len(r_slots) == 0:
-                return
-            r = (b * r_slots[:, None] + ar)[:, :, None]
-            c = (b * c_slots[:, None] + ar)[:, None, :]
-            rows.append(np.broadcast_to(r, blocks.shape).ravel())
-            cols.append(np.broadcast_to(c, blocks.shape).ravel())
-            vals.append(blocks.ravel())
-
-        if rotation:
-            R = Rm[a]
-            RRt = R @ np.swapaxes(R, 1, 2)
-            eye = np.broadcast_to(np.eye(d), R.shape)
-            k = w[a][:, None, None]
-            add(si[a][own], si[a][own], (k * RRt)[own])
-            add(sj[a][own], sj[a][own], (k * eye)[own])
-            add(si[a][own], sj[a][own], (-k * R)[own])
-            add(sj[a][own], si[a][own], (-k * np.swapaxes(R, 1, 2))[own])
-            add(si[a][tail], si[a][tail], (2 * k * RRt)[tail])
-            add(sj[a][head], sj[a][head], (2 * k * eye)[head])
-        else:
-            k = w[a][:, None, None]
-            one = np.ones((e.kappa.shape[1], 1, 1))
-            add(si[a][own], si[a][own], (k * one)[own])
-            add(sj[a][own], sj[a][own], (k * one)[own])
-            add(si[a][own], sj[a][own], (-k * one)[own])
-            add(sj[a][own], si[a][own], (-k * one)[own])
-            add(si[a][tail], si[a][tail], (2 * k * one)[tail])
-            add(sj[a][head], sj[a][head], (2 * k * one)[head])
-        diag = np.where(np.repeat(pose_mask[a], b), xi, 1.0)
-        rows.append(np.arange(N))
-        cols.append(np.arange(N))
-        vals.append(diag)
-        G = sp.coo_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(N, N)).toarray()
+        # the edges' connection-Laplacian blocks with only kappa (rotations) or only tau (translations)
+        kappa, tau = (w[a], 0.0) if rotation else (0.0, w[a])
+        Hii, Hjj, Hij = (H[:, block, block] for H in edge_hessian_blocks(Rm[a], tm[a], kappa, tau))
+        G = assemble_edge_blocks(si[a][own], sj[a][own], Hii[own], Hjj[own], Hij[own], index, N)
+        # inter-robot edges: twice the local end's diagonal block (Eq. (24))
+        G = G + assemble_blocks(index[si[a][tail]], index[si[a][tail]], 2.0 * Hii[tail], N)
+        G = G + assemble_blocks(index[sj[a][head]], index[sj[a][head]], 2.0 * Hjj[head], N)
+        G = G.toarray()
+        G[np.diag_indices(N)] += np.where(np.repeat(pose_mask[a], b), xi, 1.0)
         # eliminate anchor poses: zero rows/columns, identity on the diagonal
         fixed = np.repeat(anchor_mask[a], b)
         G[fixed, :] = 0.0
@@ -389,13 +365,19 @@ def _check_iters(name, value) -> int:
     return int(value)
 
 
-def _tol_value(tol, dt):
+def _check_tol(tol) -> float | None:
     if tol is None:
-        return jnp.asarray(-1.0, dt)  # never satisfied
-    tol = float(tol)
-    if not tol >= 0.0:
+        return None
+    value = float(tol)
+    if not value >= 0.0:
         raise ValueError(f"tol must be None or a non-negative number, got {tol!r}")
-    return jnp.asarray(tol, dt)
+    return value
+
+
+def _tol_value(tol, dt):
+    """``tol`` as the traced stopping threshold (-1 when None: never satisfied)."""
+    tol = _check_tol(tol)
+    return jnp.asarray(-1.0 if tol is None else tol, dt)
 
 
 class _Setup(eqx.Module):
@@ -448,18 +430,35 @@ def _initial_translations(st: _Setup, initial, n: int):
     return jnp.where(st.anchor[..., None], st.anchor_t, t0)
 
 
+def _history_length(budget: int) -> int:
+    """Static length of the compiled loop's history buffer for an iteration ``budget``: the next
+    power of two >= budget (at least 1). The budget itself is traced, so all budgets up to that
+    length share one compiled loop: a graph shape compiles once per power of two of the budget."""
+    return 1 << max(int(budget) - 1, 0).bit_length()
+
+
+def _static_length(budget: int, history_length: int | None) -> int:
+    L = _history_length(budget) if history_length is None else int(history_length)
+    if budget > L:
+        raise ValueError(f"history_length ({L}) must be at least the iteration budget ({budget})")
+    return L
+
+
 def _run_rotations(st: _Setup, Ginv, R0, budget: int, tol, restart: bool, history_length: int | None = None):
-    """The jitted AMM-Chordal loop; ``history_length`` (static, >= budget) fixes the compiled shape."""
-    L = budget if history_length is None else history_length
+    """The jitted AMM-Chordal loop. ``budget`` and ``tol`` are traced; ``history_length`` (static,
+    >= budget; default the next power of two) fixes the compiled shape. The history
+    beyond the last iteration is NaN: slice it to ``k + 1``."""
+    L = _static_length(budget, history_length)
     return _rotation_solve(
-        st.part.edges, st.anchor, Ginv, R0, jnp.asarray(budget, jnp.int32), _tol_value(tol, st.dtype), int(L), bool(restart)
+        st.part.edges, st.anchor, Ginv, R0, jnp.asarray(budget, jnp.int32), _tol_value(tol, st.dtype), L, bool(restart)
     )
 
 
 def _run_translations(st: _Setup, Ginv, Rpad, t0, budget: int, tol, restart: bool, history_length: int | None = None):
-    L = budget if history_length is None else history_length
+    """As :func:`_run_rotations`, for the translation stage."""
+    L = _static_length(budget, history_length)
     return _translation_solve(
-        st.part.edges, st.anchor, Ginv, Rpad, t0, jnp.asarray(budget, jnp.int32), _tol_value(tol, st.dtype), int(L),
+        st.part.edges, st.anchor, Ginv, Rpad, t0, jnp.asarray(budget, jnp.int32), _tol_value(tol, st.dtype), L,
         bool(restart),
     )
 
@@ -482,9 +481,12 @@ def distributed_relaxed_rotations(
 
     ``robots``: a robot count (contiguous blocks), an (n,) robot-of-pose array or a Partition.
     ``initial``: R^(0) (n, d, d); default every block I (anchor poses are always I).
+    ``iterations`` and ``tol`` are traced: another tolerance, or a budget below the same power of
+    two, reuses the compiled loop (module docstring, "Stopping").
     Returns (R (n, d, d) not projected, history (k+1,) of 2 F_R, iterations used k, converged).
     """
     iterations = _check_iters("iterations", iterations)
+    tol = _check_tol(tol)
     st = _setup(graph, robots)
     out = _run_rotations(st, st.gamma_inverse(xi, True), _initial_rotations(st, initial, graph.num_poses),
                          iterations, tol, restart)
@@ -509,6 +511,7 @@ def distributed_translations(
     Returns (t (n, d), history (k+1,) of 2 F_t, iterations used k, converged).
     """
     iterations = _check_iters("iterations", iterations)
+    tol = _check_tol(tol)
     st = _setup(graph, robots)
     n, d = graph.num_poses, graph.dim
     R = jnp.asarray(R, st.dtype)
@@ -538,7 +541,7 @@ def distributed_chordal_initialization(
     projection of every block to SO(d) (each robot its own poses, SVD with det fixed), then the
     same accelerated MM scheme for the translations (25) given those rotations.
 
-    ``robots``: number of robots (contiguous blocks of poses in index order, NOTES §4), an (n,)
+    ``robots``: number of robots (contiguous blocks of poses in index order, docs/conventions.md §4), an (n,)
     robot-of-pose array, or a :class:`Partition`. ``rotation_iterations`` /
     ``translation_iterations``: iteration budgets of the two stages. ``tol``: relative stopping
     tolerance of both stages (module docstring), None to spend the whole budgets. ``restart``:
@@ -551,11 +554,11 @@ def distributed_chordal_initialization(
     """
     rotation_iterations = _check_iters("rotation_iterations", rotation_iterations)
     translation_iterations = _check_iters("translation_iterations", translation_iterations)
+    tol = _check_tol(tol)  # before any set-up work
     n = graph.num_poses
     st = _setup(graph, robots, fixed)
     R0 = _initial_rotations(st, initial_rotations, n)
     t0 = _initial_translations(st, initial_translations, n)
-    _tol_value(tol, st.dtype)
     outR = _run_rotations(st, st.gamma_inverse(xi, True), R0, rotation_iterations, tol, restart)
     # each robot projects its own blocks; padding slots hold I, anchors keep their values
     Rpad = jnp.where(st.anchor[..., None, None], st.anchor_R, project_to_so(outR.X))

@@ -162,7 +162,9 @@ def resolve_target(path) -> str:
 
 
 @contextlib.contextmanager
-def atomic_write(path, mode: str = "w", *, encoding: str | None = "utf-8", newline: str | None = "\n") -> Iterator[IO[Any]]:
+def atomic_write(
+    path, mode: str = "w", *, encoding: str | None = "utf-8", newline: str | None = "\n"
+) -> Iterator[IO[Any]]:
     """Context manager yielding a file object whose content replaces ``path`` atomically on success.
 
     The data goes to a temporary file in the target's directory (so that ``os.replace`` is a
@@ -199,10 +201,7 @@ def atomic_write(path, mode: str = "w", *, encoding: str | None = "utf-8", newli
         except OSError:
             perm = 0o666 & ~_current_umask()
         os.chmod(tmp, perm)
-        if binary:
-            f = os.fdopen(fd, "wb")
-        else:
-            f = os.fdopen(fd, "w", encoding=encoding, newline=newline)
+        f = os.fdopen(fd, "wb") if binary else os.fdopen(fd, "w", encoding=encoding, newline=newline)
         fd = -1  # now owned by f
         with f:
             yield f

@@ -3,8 +3,11 @@
 The registry lives in ``mmpgo_jax/benchmarks.json`` (package data) and holds, for every benchmark
 of the paper's Tables I/II and the extras shipped by SE-Sync: dimensions, provenance, the paper's
 printed numbers (f*, and f after 100/250/1000 iterations with 10 robots for MM, AMM and DGS), the
-certified SE-Sync optimum (NOTES §6), f at the chordal initialization (NOTES §5) and the
-measurements of the authors' C++ code (NOTES §7).  All objective values are f = 2F (NOTES §2).
+certified SE-Sync optimum, f at the centralized chordal initialization and the measurements of the
+authors' C++ code.  All objective values are f = 2F.  Where each number comes from (the paper,
+SE-Sync, the authors' code, or measured here and how) is ``docs/conventions.md`` in the
+repository: §2 for f = 2F, §5 for ``chordal_f``, §6 for ``sesync_fstar``, §7 for the ``code_*``
+fields.
 
 The benchmark files themselves are not part of the package.  They are looked up in, by
 precedence: an explicit directory (``data=`` / the CLI's ``--data``), the environment variable
@@ -63,19 +66,20 @@ class BenchmarkInfo:
     num_edges: int
     source: str
     paper_fstar: float | None = None  # Table I/II f*, as printed (4 significant digits)
-    sesync_fstar: float | None = None  # NOTES §6 (certified SE-Sync optimum)
-    chordal_f: float | None = None  # NOTES §5 (f at the centralized chordal initialization)
+    sesync_fstar: float | None = None  # certified SE-Sync optimum (docs/conventions.md §6)
+    chordal_f: float | None = None  # f at the centralized chordal initialization (docs/conventions.md §5)
     paper_mm: IterTable | None = None  # Table I/II, MM-PGO
     paper_amm: IterTable | None = None  # Table I/II, AMM-PGO
     in_paper: bool = False
     paper_dgs: IterTable | None = None  # Table I/II, DGS [11]
     paper_table: str | None = None  # "I" (2D) or "II" (3D)
-    code_mm: IterTable | None = None  # NOTES §7, authors' C++ MM
-    code_amm_paper_rule: IterTable | None = None  # NOTES §7, C++ AMM with Algorithm 2's test
-    code_amm_adaptive: IterTable | None = None  # NOTES §7, C++ AMM with its adaptive restart
-    code_ms_per_iter_mm: float | None = None  # NOTES §7, ms per outer iteration
+    code_mm: IterTable | None = None  # authors' C++ MM (docs/conventions.md §7)
+    code_amm_paper_rule: IterTable | None = None  # their AMM with Algorithm 2's test (conventions §7)
+    code_amm_adaptive: IterTable | None = None  # their AMM with its adaptive restart (conventions §7)
+    # ms per outer iteration of their MM / AMM (10 robots, one thread), measured 2026-12-01 (conventions §7)
+    code_ms_per_iter_mm: float | None = None
     code_ms_per_iter_amm: float | None = None
-    code_iters_to_1e_3: int | None = None  # NOTES §7, adaptive AMM iterations to rel. gap 1e-3
+    code_iters_to_1e_3: int | None = None  # their adaptive AMM's iterations to rel. gap 1e-3 (conventions §7)
     availability: str = "shipped"  # "shipped" | "public" (obtainable, not shipped) | "unavailable"
     notes: str = ""
     aliases: tuple[str, ...] = field(default=(), compare=False)

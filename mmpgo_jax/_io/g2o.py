@@ -96,7 +96,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._core.gauge import FixedPoses
-from .._core.geometry import rotation_to_quaternion
+from .._core.geometry import angle_2d, rotation_to_quaternion
 from .._core.pose_graph import PoseGraph, Poses
 from .atomic import atomic_write
 
@@ -411,7 +411,7 @@ def _convert(group: _Group, problems: list) -> None:
     # Slow path: locate the first offending field.
     ids = np.zeros((k, nid), dtype=np.int64)
     vals = np.zeros((k, nval), dtype=np.float64)
-    for r, (line, row) in enumerate(zip(group.lines, group.rows)):
+    for r, (line, row) in enumerate(zip(group.lines, group.rows, strict=True)):
         for f, tok in enumerate(row):
             where = f"{fmt.tag}: field {f + 1} ({fmt.fields[f]})"
             if f < nid:
@@ -505,7 +505,8 @@ def _check_values(group: _Group, problems: list, strict: bool, limits: _Limits) 
             v = int(np.flatnonzero(~finite[r])[0])
             tok = token(r, v)
             if _NUMBER_RE.fullmatch(tok):
-                return f"field {v + nid + 1} ({name(v)}) is out of range (its magnitude overflows float64): {_show(tok)}"
+                return (f"field {v + nid + 1} ({name(v)}) is out of range (its magnitude overflows float64): "
+                        f"{_show(tok)}")
             return f"field {v + nid + 1} ({name(v)}) is not finite: {float(vals[r, v])!r}"
 
         report(~finite.all(axis=1), nonfinite_message)
@@ -550,7 +551,7 @@ def _check_values(group: _Group, problems: list, strict: bool, limits: _Limits) 
         ksz = _info_size(d)
         start = fmt.information_start
         upper = vals[:, start:]
-        diag_pos = np.array([v for v, (r, c) in enumerate(zip(*np.triu_indices(ksz))) if r == c])
+        diag_pos = np.array([v for v, (r, c) in enumerate(zip(*np.triu_indices(ksz), strict=True)) if r == c])
         diag = upper[:, diag_pos]
 
         def diag_message(r: int) -> str:
@@ -575,7 +576,8 @@ def _check_values(group: _Group, problems: list, strict: bool, limits: _Limits) 
             if small[r, c]:
                 why = f"is nonzero but below {INFORMATION_MIN:g} in magnitude (subnormal or underflowing)"
             else:
-                why = f"is above {INFORMATION_MAX:g} in magnitude (the weights or the weighted squared residuals overflow)"
+                why = (f"is above {INFORMATION_MAX:g} in magnitude (the weights or the weighted squared residuals "
+                       "overflow)")
             return f"information entry {name(start + c)} = {x!r} {why}"
 
         report((small | large).any(axis=1), range_message)
@@ -814,7 +816,7 @@ def _check_vertex_residuals(eg: _Group, vg: _Group, problems: list, limits: _Lim
 def _rotations(group: _Group) -> np.ndarray:
     """float64 rotation matrices of a checked group: from angles [2D] or normalised quaternions [3D].
 
-    The same formulas as ``_geometry.rotation_2d`` / ``quaternion_to_rotation``, in numpy.
+    The same formulas as :func:`~mmpgo_jax._core.geometry.rotation_2d` / ``quaternion_to_rotation``, in numpy.
     """
     if group.fmt.dim == 2:
         theta = group.vals[:, 2]
@@ -937,7 +939,7 @@ def _fmt_rows(ints: np.ndarray | None, floats: np.ndarray, prefix: str) -> list[
     if ints is None:
         return [prefix + " ".join(map(repr, row)) for row in fl]
     il = ints.tolist()
-    return [prefix + " ".join(map(str, a)) + " " + " ".join(map(repr, b)) for a, b in zip(il, fl)]
+    return [prefix + " ".join(map(str, a)) + " " + " ".join(map(repr, b)) for a, b in zip(il, fl, strict=True)]
 
 
 def _pose_arrays(poses: Poses, dim: int) -> tuple[np.ndarray, np.ndarray]:
@@ -946,11 +948,6 @@ def _pose_arrays(poses: Poses, dim: int) -> tuple[np.ndarray, np.ndarray]:
     if R.ndim != 3 or R.shape[1:] != (dim, dim) or t.shape != (R.shape[0], dim):
         raise ValueError(f"poses must have R (n, {dim}, {dim}) and t (n, {dim}), got {R.shape} and {t.shape}")
     return R, t
-
-
-def _angles(R: np.ndarray) -> np.ndarray:
-    """Planar rotation angles, in float64 on the host (same formula as ``_geometry.angle_2d``)."""
-    return np.arctan2(R[..., 1, 0], R[..., 0, 0])
 
 
 def write_g2o(path, graph: PoseGraph, poses: Poses | None, *, vertex_ids=None, information=None, fixed=None) -> None:
@@ -978,7 +975,7 @@ def write_g2o(path, graph: PoseGraph, poses: Poses | None, *, vertex_ids=None, i
     tm = np.asarray(graph.t, dtype=np.float64)
     ei, ej = ids[np.asarray(graph.i)], ids[np.asarray(graph.j)]
     if d == 2:
-        meas = np.concatenate([tm, _angles(Rm)[:, None]], 1)
+        meas = np.concatenate([tm, angle_2d(Rm)[:, None]], 1)
     else:
         meas = np.concatenate([tm, rotation_to_quaternion(Rm).reshape(m, 4)], 1)
     edge_lines = _fmt_rows(np.stack([ei, ej], 1), np.concatenate([meas, _full_to_upper(info)], 1), _EDGE_TAG[d] + " ")
@@ -989,7 +986,7 @@ def write_g2o(path, graph: PoseGraph, poses: Poses | None, *, vertex_ids=None, i
         if R.shape[0] != n:
             raise ValueError(f"poses has {R.shape[0]} poses, the graph {n}")
         if d == 2:
-            vals = np.concatenate([t, _angles(R)[:, None]], 1)
+            vals = np.concatenate([t, angle_2d(R)[:, None]], 1)
         else:
             vals = np.concatenate([t, rotation_to_quaternion(R).reshape(n, 4)], 1)
         vertex_lines = _fmt_rows(ids[:, None], vals, _VERTEX_TAG[d] + " ")
@@ -1018,7 +1015,7 @@ def write_tum(path, poses: Poses, *, vertex_ids=None, timestamps=None) -> None:
     R, t = _pose_arrays(poses, d)
     n = R.shape[0]
     if d == 2:
-        half = 0.5 * _angles(R)
+        half = 0.5 * angle_2d(R)
         z = np.zeros(n)
         q = np.stack([z, z, np.sin(half), np.cos(half)], 1)
         t = np.concatenate([t, z[:, None]], 1)

@@ -126,12 +126,16 @@ class Termination:
 
 
 def check_finite(f: np.ndarray, grad_norm: np.ndarray, first_iteration: int) -> None:
-    """Raise :class:`NonFiniteError` at the first non-finite f or ||grad F|| of a chunk."""
+    """Raise :class:`NonFiniteError` at the first non-finite f or ||grad F|| of a chunk (iterations
+    on the last axis; leading axes, e.g. a sweep's configurations, are checked together)."""
+    f, grad_norm = np.asarray(f), np.asarray(grad_norm)
     bad = ~(np.isfinite(f) & np.isfinite(grad_norm))
     if bad.any():
-        k = int(np.flatnonzero(bad)[0])
-        what = "f" if not np.isfinite(f[k]) else "||grad F||"
-        value = f[k] if what == "f" else grad_norm[k]
+        k = int(np.flatnonzero(bad.reshape(-1, bad.shape[-1]).any(axis=0))[0]) if bad.ndim else 0
+        fk, gk = f[..., k], grad_norm[..., k]
+        what = "f" if not np.all(np.isfinite(fk)) else "||grad F||"
+        value = (fk if what == "f" else gk)
+        value = value.reshape(-1)[~np.isfinite(value.reshape(-1))][0] if np.ndim(value) else value
         at = "at the start" if first_iteration + k == 0 else f"after iteration {first_iteration + k}"
         raise NonFiniteError(
             f"{what} = {value} {at}: the data's weights or measurements are too large or too small "
@@ -179,7 +183,7 @@ def drive(
     start,
     termination: Termination,
     *,
-    fetch: Callable,
+    fetch: Callable | None,
     callback: Callable[[int, np.ndarray], bool | None] | None = None,
     agree: Callable[[RESULTS | None], RESULTS | None] | None = None,
 ) -> Driven:
@@ -187,17 +191,25 @@ def drive(
 
     ``compile_chunk(state, length, limit)`` returns ``chunk(state, limit) -> (state, record)``
     (compiled once: every chunk reuses it; ``limit`` is the traced iteration budget, iterations
-    past it leave the state unchanged). ``start``: (f, grad_norm, restarted) at X^0 on the host.
-    ``fetch(record)``: the chunk's (f, grad_norm, restarted) as numpy arrays. ``callback(k, f)``
-    after each chunk (k iterations so far; True stops the run). ``agree``: the stop decision every
-    process takes (multi-process runs).
+    past it leave the state unchanged). ``start``: (f, grad_norm, restarted) at X^0. ``fetch(record)``:
+    the chunk's (f, grad_norm, restarted) as numpy arrays, iterations on the last axis of f and
+    grad_norm (restarted: (..., length, A)); leading axes (a sweep's configurations) are kept.
+    ``fetch=None``: the run cannot stop early (no tolerance, no callback), so the records stay on
+    the device and are fetched once at the end. ``callback(k, f)`` after each chunk (k iterations
+    so far; True stops the run). ``agree``: the stop decision every process takes (multi-process).
     """
-    f0, g0, r0 = start
-    fs, gs, rs = [np.atleast_1d(f0)], [np.atleast_1d(g0)], [np.asarray(r0)[None]]
+    f0, g0, r0 = jax.device_get(start)
+    fs, gs, rs = [np.asarray(f0)[..., None]], [np.asarray(g0)[..., None]], [np.expand_dims(np.asarray(r0), -2)]
     check_finite(fs[0], gs[0], 0)
+    lazy = fetch is None
+    t = termination
+    rules = (t.grad_tol, t.f_target, t.rel_decrease_tol)
+    if lazy and (callback is not None or agree is not None or any(v is not None for v in rules)):
+        raise ValueError("fetch=None needs a run without stopping rules or callback")
     compile_seconds = solve_seconds = 0.0
     result = RESULTS.iterations
     iterations = termination.iterations
+    pending = []
     if iterations > 0:
         length = termination.length
         limit = np.asarray(iterations)
@@ -205,23 +217,35 @@ def drive(
         chunk = compile_chunk(state, length, limit)
         compile_seconds = time.perf_counter() - t
         done = 0
+        t = time.perf_counter()
         while done < iterations:
-            t = time.perf_counter()
             state, rec = chunk(state, limit)
-            f, g, r = fetch(rec)
-            solve_seconds += time.perf_counter() - t
             take = min(length, iterations - done)
-            fs.append(f[:take])
-            gs.append(g[:take])
-            rs.append(r[:take])
             done += take
+            if lazy:
+                pending.append((rec, take))
+                continue
+            f, g, r = fetch(rec)  # waits for the chunk: the time of the compiled iterations
+            solve_seconds += time.perf_counter() - t
+            fs.append(f[..., :take])
+            gs.append(g[..., :take])
+            rs.append(r[..., :take, :])
             reason = termination(fs, gs)
-            if callback is not None and callback(done, f[:take]):
+            if callback is not None and callback(done, f[..., :take]):
                 reason = reason or RESULTS.callback
             if agree is not None:
                 reason = agree(reason)
             if reason is not None:
                 result = reason
                 break
-    history = History(np.concatenate(fs), np.concatenate(gs), np.concatenate(rs))
+            t = time.perf_counter()
+        if lazy:
+            for rec, take in pending:
+                f, g, r = jax.device_get((rec.f, rec.grad_norm, rec.restarted))
+                fs.append(np.asarray(f)[..., :take])
+                gs.append(np.asarray(g)[..., :take])
+                rs.append(np.asarray(r)[..., :take, :])
+            solve_seconds = time.perf_counter() - t
+            termination(fs, gs)  # the non-finite guard
+    history = History(np.concatenate(fs, -1), np.concatenate(gs, -1), np.concatenate(rs, -2))
     return Driven(state, history, result, compile_seconds, solve_seconds)

@@ -1,4 +1,4 @@
-"""Per-robot quantities of the majorization (paper §IV-V, Appendix A, NOTES §3).
+"""Per-robot quantities of the majorization (paper §IV-V, Appendix A; docs/conventions.md §3).
 
 All functions here act on ONE robot (its padded incident edges) and are meant to be
 ``jax.vmap``-ped over the robot axis. A robot reads neighbour poses only at the remote ends of
@@ -87,7 +87,7 @@ def gamma_diagonal_blocks(edges: RobotEdges, xi, n_max: int):
     d = edges.t.shape[-1]
     dt = edges.t.dtype
     w = jnp.where(edges.is_inter, 2.0, 1.0)
-    a = jnp.concatenate([jnp.ones(edges.t.shape[:-1] + (1,), dt), edges.t], -1)  # [1; tt]
+    a = jnp.concatenate([jnp.ones((*edges.t.shape[:-1], 1), dt), edges.t], -1)  # [1; tt]
     rot_block = jnp.diag(jnp.concatenate([jnp.zeros(1, dt), jnp.ones(d, dt)]))
     e0 = jnp.zeros(d + 1, dt).at[0].set(1.0)
     tail = (w * edges.tau)[:, None, None] * a[:, :, None] * a[:, None, :]
@@ -153,6 +153,25 @@ def _edge_hessian_blocks(R, t, kappa, tau):
     Rblock[:, 1:, 1:] = R
     Hij = -tau[:, None, None] * a[:, :, None] * e0[None, None, :] - kappa[:, None, None] * Rblock
     return Hii, Hjj, Hij
+
+
+def _loop_closure_edges(edges: RobotEdges):
+    """(robot of each incident-edge slot, mask of own edges that are not consecutive-slot chain
+    edges): the couplings :func:`build_gamma_operator` stores as a coordinate list (host)."""
+    A, e_max = np.asarray(edges.kappa).shape
+    si = np.asarray(edges.slot_i).reshape(-1).astype(np.int64)
+    sj = np.asarray(edges.slot_j).reshape(-1).astype(np.int64)
+    own = np.asarray(edges.local_i).reshape(-1) & np.asarray(edges.local_j).reshape(-1)
+    chain = (sj == si + 1) | (si == sj + 1)
+    return np.repeat(np.arange(A), e_max), own & ~chain
+
+
+def gamma_couplings(edges: RobotEdges) -> int:
+    """The loop-closure coupling count k of ``build_gamma_operator(edges, ...)`` without padding
+    (host, cheap: no Gamma is built). Pass the largest k of a batch as ``min_couplings``."""
+    robot, rest = _loop_closure_edges(edges)
+    A = np.asarray(edges.kappa).shape[0]
+    return max(int(2 * np.bincount(robot[rest], minlength=A).max(initial=0)), 1)
 
 
 def build_gamma_operator(edges: RobotEdges, xi: float, n_max: int, *, min_couplings: int = 0) -> GammaOperator:
@@ -339,6 +358,17 @@ def gamma_to_soa(gamma: GammaOperator) -> GammaSoA:
         src=gamma.src,
         dst=gamma.dst,
         blocks=to_soa(gamma.blocks),
+    )
+
+
+def soa_to_gamma(gamma: GammaSoA) -> GammaOperator:
+    """The stacked-layout :class:`GammaOperator` of a :class:`GammaSoA` (exact: a transposition)."""
+    return GammaOperator(
+        diag=from_soa(gamma.diag),
+        band=from_soa(gamma.band),
+        src=gamma.src,
+        dst=gamma.dst,
+        blocks=from_soa(gamma.blocks),
     )
 
 

@@ -8,7 +8,6 @@ with a static chunk length, so running 1000 iterations as 10 chunks of 100 compi
 
 from __future__ import annotations
 
-from functools import partial
 from typing import Literal
 
 import equinox as eqx
@@ -26,19 +25,29 @@ from .majorization import (
     GammaSoA,
     build_chain_preconditioner,
     build_gamma_operator,
+    from_soa,
     gamma_to_soa,
     gradient_and_share,
     preconditioner_to_soa,
+    soa_to_gamma,
     stack,
     unstack,
 )
 from .subproblem import (
+    PRECONDITIONERS,
     SubproblemConfig,
+    check_choice,
+    check_count,
+    check_real,
+    concrete_value,
     majorizer_value,
     project_rotations,
     solve_subproblem,
     tangent_projection,
 )
+
+METHODS = ("mm", "amm")
+RESTARTS = ("paper", "adaptive", "average")
 
 
 class MMConfig(eqx.Module):
@@ -51,30 +60,89 @@ class MMConfig(eqx.Module):
       exceeds slack^alpha_k = slack_scale * (robot's initial local cost) * (1 - slack_decay)^k.
       Since the slacks are summable, F(X^k) stays below F(X^0) + sum_k slack_k (bounded), and
       the rule turns into Algorithm 2's test as k grows. The robot's shares move between robots
-      through inter-robot edges, so a test against the robot's own share history (NOTES §7) would
+      through inter-robot edges, so a test against the robot's own share history (docs/conventions.md §7) would
       keep restarting robots whose share legitimately grows; the slack avoids that.
       "average" tests against moving averages of each robot's own objective share, in the spirit
-      of the authors' later code (NOTES §7): a hard restart (MM fallback, momentum reset) when
+      of the authors' later code (docs/conventions.md §7): a hard restart (MM fallback, momentum reset) when
       G^alpha(Z|X^k) exceeds the slow average (rate ``average_rates[0]``) or when its increase over
       Gbar^alpha(k) exceeds the vanishing slack above (which keeps F bounded and the rule tending to
       Algorithm 2's); a soft restart (momentum reset only, Z kept) after ``soft_restart_hits``
       consecutive iterations in which G^alpha(Z|X^k) exceeds the fast average (rate
       ``average_rates[1]``). Measured against "adaptive" in benchmarks/restart_rules.md.
-    xi: the proximal term of Eq. (13).
+    xi: the proximal term of Eq. (13), >= 0, or None: "the xi the MMProblem was built with".
+      Gamma^alpha (and its preconditioners) contain xi, so the xi of a run is the problem's
+      (``MMProblem.xi``). The rule: ``MMProblem.build(partition, config=config)`` takes xi from
+      the config; ``init_state`` / ``run`` raise a ValueError when the config's xi and the problem's
+      are both concrete and differ (so the two can never silently disagree); ``xi=None`` defers to
+      the problem (e.g. for a batch of problems with different xi).
+
+    Static fields (their values select the compiled code): ``method``, ``restart`` and the
+    subproblem's ``preconditioner`` and loop budgets. Everything else is an ordinary (traced) field:
+    ``xi``, ``slack_scale`` (>= 0), ``slack_decay`` (in [0, 1]), ``average_rates`` (two rates in
+    [0, 1]: slow, fast), ``soft_restart_hits`` (integer >= 1) and the subproblem's ``cg_tolerance``;
+    a run with other values of these reuses the compiled code. Every field is checked when the
+    config is built (ValueError naming the field and its range); values that are traced at that
+    point (configs built under ``jit`` / ``vmap``) are not.
     """
 
     method: Literal["mm", "amm"] = eqx.field(static=True, default="amm")
     restart: Literal["paper", "adaptive", "average"] = eqx.field(static=True, default="adaptive")
-    xi: float = eqx.field(static=True, default=1e-3)
+    xi: float | None = 1e-3
     subproblem: SubproblemConfig = SubproblemConfig()
-    slack_scale: float = eqx.field(static=True, default=1.0)
-    slack_decay: float = eqx.field(static=True, default=5e-4)
-    average_rates: tuple[float, float] = eqx.field(static=True, default=(5e-4, 2.5e-2))
-    soft_restart_hits: int = eqx.field(static=True, default=25)
+    slack_scale: float = 1.0
+    slack_decay: float = 5e-4
+    average_rates: tuple[float, float] = (5e-4, 2.5e-2)
+    soft_restart_hits: int = 25
+
+    def __check_init__(self):
+        owner = "MMConfig"
+        check_choice(owner, "method", self.method, METHODS)
+        check_choice(owner, "restart", self.restart, RESTARTS)
+        if self.xi is not None:
+            check_real(owner, "xi", self.xi, 0.0)
+        if not isinstance(self.subproblem, SubproblemConfig):
+            raise TypeError(f"{owner}.subproblem must be a SubproblemConfig, got {type(self.subproblem).__name__}")
+        check_real(owner, "slack_scale", self.slack_scale, 0.0)
+        check_real(owner, "slack_decay", self.slack_decay, 0.0, 1.0)
+        rates = self.average_rates
+        if not isinstance(rates, (tuple, list)) or len(rates) != 2:
+            raise ValueError(f"{owner}.average_rates must be a pair (slow, fast) of rates in [0, 1], got {rates!r}")
+        check_real(owner, "average_rates[0]", rates[0], 0.0, 1.0)
+        check_real(owner, "average_rates[1]", rates[1], 0.0, 1.0)
+        check_count(owner, "soft_restart_hits", self.soft_restart_hits, 1)
+
+
+def check_consistent(problem: MMProblem, config: MMConfig) -> None:
+    """ValueError when ``config`` cannot run on ``problem``: its xi (when set and concrete) differs
+    from the xi Gamma was built with, or its preconditioner was not built (see ``MMProblem.build``)."""
+    check_xi(problem, config)
+    kind = config.subproblem.preconditioner
+    if kind not in problem.preconditioners:
+        raise ValueError(
+            f"this MMProblem holds only the {' and '.join(problem.preconditioners)} preconditioner, the config asks "
+            f"for {kind!r}: build it with MMProblem.build(..., config=config) (or preconditioner={kind!r})"
+        )
+
+
+def check_xi(problem: MMProblem, config: MMConfig) -> None:
+    """ValueError when the config's xi and the problem's are both concrete and differ."""
+    if config.xi is not None:
+        cx, px = concrete_value(config.xi), concrete_value(problem.xi)
+        if cx is not None and px is not None and np.any(cx.astype(px.dtype) != px):
+            raise ValueError(
+                f"MMConfig.xi = {config.xi!r} differs from the xi the MMProblem was built with ({px.tolist()!r}): "
+                "build the problem with MMProblem.build(partition, config=config), or give MMConfig(xi=None) "
+                "to use the problem's"
+            )
 
 
 class MMProblem(eqx.Module):
     """Constant data of a run: the partition and Gamma^alpha of every robot (built once).
+
+    Only what the solver reads is stored: Gamma^alpha and the configured preconditioner in the
+    solver's structure-of-arrays layout (``gamma_soa``; ``block_jacobi_soa`` and/or ``chain``, the
+    other one None). ``gamma`` / ``block_jacobi`` (stacked layout) are views computed on access.
+    ``xi`` (a 0-d array, traced like the other leaves) is the xi Gamma was built with.
 
     ``free`` (A, n_max) bool marks the slots the solver may move: all but the fixed poses (g2o FIX;
     see :class:`~mmpgo_jax.FixedPoses`), which keep their value in X^0; None when no pose is fixed
@@ -83,35 +151,88 @@ class MMProblem(eqx.Module):
     """
 
     partition: Partition
-    gamma: GammaOperator  # batched over robots
-    chain: ChainPreconditioner  # exact inverse of Gamma's chain part, batched
-    block_jacobi: BlockJacobi  # inverses of Gamma's diagonal blocks, batched
-    gamma_soa: GammaSoA  # the solver's (structure-of-arrays) copies of gamma and block_jacobi
-    block_jacobi_soa: BlockJacobiSoA
+    gamma_soa: GammaSoA  # batched over robots, structure-of-arrays (the solver's layout)
+    block_jacobi_soa: BlockJacobiSoA | None  # inverses of Gamma's diagonal blocks (block-jacobi)
+    chain: ChainPreconditioner | None  # exact inverse of Gamma's chain part (preconditioner="chain")
     free: jax.Array | None  # (A, n_max) bool, or None when no pose is fixed
-    xi: float = eqx.field(static=True)
+    xi: jax.Array  # () the xi of Gamma
 
-    def preconditioner(self, config: "MMConfig"):
-        """The configured preconditioner, acting on stacked poses (n_max, d, d+1) per robot."""
+    @property
+    def gamma(self) -> GammaOperator:
+        """Gamma^alpha in the stacked layout (a view of ``gamma_soa``, computed on access)."""
+        return soa_to_gamma(self.gamma_soa)
+
+    @property
+    def block_jacobi(self) -> BlockJacobi:
+        """Inverses of Gamma's diagonal blocks, stacked layout (computed on access)."""
+        if self.block_jacobi_soa is not None:
+            return BlockJacobi(from_soa(self.block_jacobi_soa.diag_inverse))
+        return BlockJacobi(jnp.linalg.inv(self.gamma.diag))
+
+    @property
+    def preconditioners(self) -> tuple[str, ...]:
+        """The preconditioner kinds this problem holds (a config asking for another one fails)."""
+        return tuple(k for k, v in (("block-jacobi", self.block_jacobi_soa), ("chain", self.chain)) if v is not None)
+
+    def preconditioner(self, config: MMConfig):
+        """The configured preconditioner, acting on stacked poses (n_max, d, d+1) per robot.
+
+        A kind the problem does not hold is computed (on the host for "chain": not under jit)."""
         kind = config.subproblem.preconditioner
         if kind == "chain":
-            return self.chain
+            if self.chain is not None:
+                return self.chain
+            if any(concrete_value(x) is None for x in jax.tree.leaves(self.gamma_soa)):
+                raise ValueError("this MMProblem holds no chain preconditioner: build it with "
+                                 "MMProblem.build(..., config=config) (or preconditioner='chain')")
+            return build_chain_preconditioner(self.gamma)
         if kind == "block-jacobi":
             return self.block_jacobi
         raise ValueError(f"unknown preconditioner {kind!r}: use 'chain' or 'block-jacobi'")
 
-    def _solver_preconditioner(self, config: "MMConfig"):
-        pre = self.preconditioner(config)
-        return self.block_jacobi_soa if pre is self.block_jacobi else pre
+    def _solver_preconditioner(self, config: MMConfig):
+        kind = config.subproblem.preconditioner
+        if kind == "block-jacobi" and self.block_jacobi_soa is not None:
+            return self.block_jacobi_soa
+        if kind == "chain" and self.chain is not None:
+            return self.chain
+        check_consistent(self, config)  # raises: the configured preconditioner was not built
+        raise AssertionError("unreachable")
 
     @staticmethod
-    def build(partition: Partition, xi: float = 1e-3, *, min_couplings: int = 0, fixed=None) -> "MMProblem":
-        """``min_couplings`` pads Gamma's loop-closure list (to batch problems of one shape);
+    def build(partition: Partition, xi: float | None = None, *, config: MMConfig | None = None,
+              preconditioner: str | None = None, min_couplings: int = 0, fixed=None) -> MMProblem:
+        """Gamma^alpha of every robot, its preconditioner and the fixed-pose mask (host, once).
+
+        ``xi``: the proximal term; default ``config.xi`` (1e-3 without a config). Given both and
+        different: ValueError. ``config``: the MMConfig the problem will run with: only the
+        preconditioner it reads is built. ``preconditioner``: "block-jacobi", "chain" or "both"
+        (overrides the config's); without either, both are built (any config can run the problem).
+        ``min_couplings`` pads Gamma's loop-closure list (to batch problems of one shape);
         ``fixed``: a :class:`~mmpgo_jax.FixedPoses` (or (n,) bool mask) of poses that never move."""
+        if config is not None and config.xi is not None:
+            if xi is None:
+                xi = config.xi
+            elif concrete_value(xi) is not None and concrete_value(config.xi) is not None and \
+                    float(xi) != float(config.xi):
+                raise ValueError(f"MMProblem.build: xi = {xi!r} differs from config.xi = {config.xi!r}")
+        if xi is None:
+            xi = 1e-3
+        check_real("MMProblem.build", "xi", xi, 0.0)
+        xi = float(xi)
+        if preconditioner is None:
+            preconditioner = config.subproblem.preconditioner if config is not None else "both"
+        if preconditioner not in (*PRECONDITIONERS, "both"):
+            raise ValueError(f"MMProblem.build: unknown preconditioner {preconditioner!r}: "
+                             "use 'block-jacobi', 'chain' or 'both'")
         gamma = build_gamma_operator(partition.edges, xi, partition.max_poses, min_couplings=min_couplings)
-        chain = build_chain_preconditioner(gamma)
-        block_jacobi = BlockJacobi(jnp.linalg.inv(gamma.diag))
         soa = jax.vmap(gamma_to_soa)(gamma)
+        block_jacobi = chain = None
+        if preconditioner in ("block-jacobi", "both"):
+            block_jacobi = jax.vmap(preconditioner_to_soa)(BlockJacobi(jnp.linalg.inv(gamma.diag)))
+        if preconditioner in ("chain", "both"):
+            chain = build_chain_preconditioner(gamma)
+        del gamma  # the stacked-layout copy is not kept: the solver reads gamma_soa
         free = None  # no fixed pose: the solver runs without a mask (same compiled code as ever)
         if fixed is not None:
             mask = fixed.mask(partition.num_poses) if hasattr(fixed, "mask") else np.asarray(fixed, dtype=bool)
@@ -121,8 +242,8 @@ class MMProblem(eqx.Module):
             free = np.ones(partition.pose_mask.shape, dtype=bool)
             free[np.asarray(partition.robot_of_pose)[mask], np.asarray(partition.slot_of_pose)[mask]] = False
             free = jnp.asarray(free)
-        return MMProblem(partition, gamma, chain, block_jacobi, soa, jax.vmap(preconditioner_to_soa)(block_jacobi),
-                         free, xi)
+        return MMProblem(partition=partition, gamma_soa=soa, block_jacobi_soa=block_jacobi, chain=chain,
+                         free=free, xi=jnp.asarray(xi, soa.diag.dtype))
 
 
 class MMState(eqx.Module):
@@ -185,9 +306,15 @@ def _riemannian_grad_norm(X, grad, free, comm: Collectives = LOCAL):
     return jnp.sqrt(comm.sum(jnp.sum(rgrad**2, axis=(1, 2, 3))))
 
 
-def init_state(problem: MMProblem, X0: Poses, config: "MMConfig" = None) -> MMState:
-    """State at X^0 (padded per-robot poses, e.g. ``partition.scatter(poses)``); Alg. 2 lines 3-8."""
-    config = config or MMConfig()
+def init_state(problem: MMProblem, X0: Poses, config: MMConfig = None) -> MMState:
+    """State at X^0 (padded per-robot poses, e.g. ``partition.scatter(poses)``); Alg. 2 lines 3-8.
+
+    Without ``config``: the default config with the problem's xi. ValueError when the config's xi
+    and the problem's are concrete and differ (see :class:`MMConfig`)."""
+    if config is None:
+        config = MMConfig(xi=None)
+    else:
+        check_xi(problem, config)
     X0 = stack(X0)
     grad, share, local = _gradients(problem, X0)
     A = share.shape[0]
@@ -208,7 +335,8 @@ def init_state(problem: MMProblem, X0: Poses, config: "MMConfig" = None) -> MMSt
 
 def _mm_update(problem: MMProblem, config: MMConfig, X, grad):
     """X^{alpha,k+1} = argmin G^alpha(. | X^k) for every robot (Algorithm 1 line 6)."""
-    solve = lambda G, P, x, g, free: solve_subproblem(G, P, x, x, g, config.subproblem, free)[0]
+    def solve(G, P, x, g, free):
+        return solve_subproblem(G, P, x, x, g, config.subproblem, free)[0]
     return jax.vmap(solve, in_axes=(0, 0, 0, 0, _free_axis(problem)))(
         problem.gamma_soa, problem._solver_preconditioner(config), X, grad, problem.free)
 
@@ -226,10 +354,11 @@ def _amm_update(problem: MMProblem, config: MMConfig, st: MMState):
     start = Y.at[..., 1:].set(project_rotations(Y[..., 1:]))
     if problem.free is not None:  # fixed slots have Y = X exactly; unprojected, they stay bit-exact
         start = jnp.where(problem.free[..., None, None], start, Y)
-    solve = lambda G, P, x0, c, g, free: solve_subproblem(G, P, x0, c, g, config.subproblem, free)[0]
+    def solve(G, P, x0, c, g, free):
+        return solve_subproblem(G, P, x0, c, g, config.subproblem, free)[0]
     Z = jax.vmap(solve, in_axes=(0, 0, 0, 0, 0, _free_axis(problem)))(
         problem.gamma_soa, problem._solver_preconditioner(config), start, Y, gY, problem.free)
-    # G^alpha(Z | X^k) - Gbar^alpha(k): no objective evaluation needed (NOTES §3).
+    # G^alpha(Z | X^k) - Gbar^alpha(k): no objective evaluation needed (paper Eq. (19); docs/conventions.md §3).
     decrease = jax.vmap(majorizer_value)(problem.gamma_soa, Z, st.X, st.grad)
     soft_hits = st.soft_hits
     soft = jnp.zeros_like(decrease, dtype=bool)
@@ -271,7 +400,7 @@ def step(problem: MMProblem, config: MMConfig, st: MMState, comm: Collectives = 
         X_new, s_new, restart, soft_hits = _amm_update(problem, config, st)
     else:
         raise ValueError(f"unknown method {config.method!r}: use 'mm' or 'amm'")
-    grad, share, local = _gradients(problem, X_new, comm)
+    grad, share, _ = _gradients(problem, X_new, comm)
     new = MMState(
         X=X_new,
         grad=grad,
@@ -291,15 +420,7 @@ def step(problem: MMProblem, config: MMConfig, st: MMState, comm: Collectives = 
     return new, rec
 
 
-@partial(jax.jit, static_argnames=("length",))
-def run(problem: MMProblem, config: MMConfig, state: MMState, length: int, limit=None):
-    """``length`` outer iterations in one ``lax.scan``; returns (state, records).
-
-    Iterations at or beyond ``limit`` (a traced count of total iterations, e.g. the user's budget
-    when it is not a multiple of the chunk length) leave the state unchanged and record NaN, so
-    every chunk of a run uses the same compiled code.
-    """
-
+def _run(problem: MMProblem, config: MMConfig, state: MMState, length: int, limit=None):
     def body(st, _):
         if limit is None:
             return step(problem, config, st)
@@ -307,6 +428,45 @@ def run(problem: MMProblem, config: MMConfig, state: MMState, length: int, limit
         return jax.lax.cond(skip, lambda s: (s, _skipped_record(s)), lambda s: step(problem, config, s), st)
 
     return jax.lax.scan(body, state, None, length=length)
+
+
+_run.__name__ = _run.__qualname__ = "run"  # the name in compile logs
+
+
+class _CheckedJit:
+    """``jax.jit(run, static_argnames="length")`` that first checks the config against the problem
+    (:func:`check_consistent`; on concrete values only, so also when called inside another jit)."""
+
+    def __init__(self, fn, doc: str):
+        self._jit = jax.jit(fn, static_argnames=("length",))
+        self.__doc__ = doc
+        self.__name__ = self.__qualname__ = "run"
+        self.__module__ = __name__
+        self.__wrapped__ = fn
+
+    def __call__(self, problem: MMProblem, config: MMConfig, state: MMState, length: int, limit=None):
+        check_consistent(problem, config)
+        return self._jit(problem, config, state, length, limit)
+
+    def lower(self, problem: MMProblem, config: MMConfig, state: MMState, length: int, limit=None):
+        check_consistent(problem, config)
+        return self._jit.lower(problem, config, state, length, limit)
+
+    def __getattr__(self, name):  # trace, eval_shape, clear_cache, ... of the jitted function
+        return getattr(self._jit, name)
+
+
+run = _CheckedJit(_run, """``length`` outer iterations in one ``lax.scan``; returns (state, records).
+
+    Jitted with a static ``length``: the config's traced fields (xi, cg_tolerance, restart
+    constants) and the problem's arrays are arguments, so runs that differ only in those values
+    share one compilation. ValueError when the config's xi differs from the problem's, or asks for a
+    preconditioner the problem does not hold (checked before tracing, on concrete values).
+
+    Iterations at or beyond ``limit`` (a traced count of total iterations, e.g. the user's budget
+    when it is not a multiple of the chunk length) leave the state unchanged and record NaN, so
+    every chunk of a run uses the same compiled code.
+    """)
 
 
 def _skipped_record(st: MMState) -> IterationRecord:

@@ -9,8 +9,9 @@ every chunk and every call with the same shapes).
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable, Literal
+from typing import Literal
 
 import jax
 import numpy as np
@@ -111,7 +112,8 @@ def solve(
     prepared :class:`Partition`. ``init``: see :func:`mmpgo_jax.initialize` (``"chordal"`` is the
     paper's start); ``initial`` holds the file's VERTEX estimates for ``init="vertices"``.
     ``restart``: AMM's restart rule, ``"adaptive"`` (default), ``"average"`` or ``"paper"`` (see
-    :class:`MMConfig`; measured in benchmarks/restart_rules.md). Stops after ``iterations`` or, checked after each chunk of ``chunk_size`` iterations, when
+    :class:`MMConfig`; measured in benchmarks/restart_rules.md). Stops after ``iterations`` or,
+    checked after each chunk of ``chunk_size`` iterations, when
     ||grad F|| <= ``grad_tol``, f <= ``f_target``, or the relative decrease of f over the last chunk
     is below ``rel_decrease_tol``. ``callback(k, f_chunk)`` is called after each chunk (k = total
     iterations so far); returning True stops the run. With ``ground_truth`` (synthetic data), the
@@ -134,7 +136,7 @@ def solve(
     t0 = time.perf_counter()
     part = robots if isinstance(robots, Partition) else partition(graph, robots)
     X0 = initialize(graph, init, initial=initial, robots=part, fixed=fixed)
-    problem = MMProblem.build(part, xi, fixed=fixed)
+    problem = MMProblem.build(part, xi, config=config, fixed=fixed)
     state = init_state(problem, part.scatter(X0), config)
     start = jax.device_get(evaluate(problem, state))
     init_seconds = time.perf_counter() - t0
@@ -187,7 +189,8 @@ def centralized_optimum(
 
     With A = 1 the majorizer is F plus the proximal term xi/2 ||X - X^k||^2, so each outer iteration
     is a damped Riemannian Newton step on F itself. The default inner solve is near exact (CG to a
-    relative residual 1e-8 in float64, 1e-4 in float32, at most 1000 iterations) with a tiny xi: then the outer iteration is
+    relative residual 1e-8 in float64, 1e-4 in float32, at most 1000 iterations) with a tiny xi: then
+    the outer iteration is
     Newton's method and converges in tens of iterations. A cheap inner solve (the distributed
     default, 20 CG iterations) needs thousands on ill-conditioned files (parking-garage: its
     rotation weights span 9 decades). In float32, which stalls far above ``grad_tol``, it also stops

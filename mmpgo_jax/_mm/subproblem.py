@@ -8,9 +8,10 @@ truncated-Newton method:
   1. at the current Y, the Riemannian gradient and the Riemannian Hessian of G^alpha
      (Gamma projected to the tangent space, plus the Weingarten term of SO(d));
   2. the Newton system is solved by truncated preconditioned CG (Steihaug-Toint: it stops at
-     negative curvature or at a relative residual ``cg_tolerance``), preconditioned by the exact
-     inverse of Gamma's block-tridiagonal (chain) part, or by its diagonal blocks alone
-     (``preconditioner="block-jacobi"``); both are factored once, since Gamma is constant;
+     negative curvature or at a relative residual ``cg_tolerance``), preconditioned by the
+     inverses of Gamma's per-pose diagonal blocks (``preconditioner="block-jacobi"``, the default)
+     or by the exact inverse of its block-tridiagonal (chain) part (``preconditioner="chain"``);
+     both are factored once, since Gamma is constant;
   3. the step is retracted (rotations projected back to SO(d)) and accepted only if G^alpha
      decreases, else halved (``max_backtracks`` times) and finally rejected.
 
@@ -28,8 +29,9 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
-from .._core.geometry import bmm, mT, project_to_so, sym
+from .._core.geometry import bmm, mT, nearest_rotations, sym
 from .majorization import (
     GammaOperator,
     GammaSoA,
@@ -41,56 +43,87 @@ from .majorization import (
     to_soa,
 )
 
+# --- config validation (shared with MMConfig) ------------------------------------------------
+
+
+def concrete_value(x):
+    """``x`` as a numpy array, or None when it is traced (under jit / vmap: not checkable)."""
+    try:
+        return np.asarray(x)
+    except (jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError):
+        return None
+
+
+def check_choice(owner: str, name: str, value, allowed) -> None:
+    if not isinstance(value, str) or value not in allowed:
+        options = " or ".join(repr(a) for a in allowed)
+        raise ValueError(f"{owner}.{name}: unknown {name} {value!r}: use {options}")
+
+
+def check_count(owner: str, name: str, value, low: int) -> None:
+    """A Python (or numpy) integer >= low; traced values are accepted unchecked."""
+    v = concrete_value(value)
+    if v is None:
+        return
+    if isinstance(value, bool) or v.dtype.kind not in "iu" or v.size == 0 or np.any(v < low):
+        raise ValueError(f"{owner}.{name} must be an integer >= {low}, got {value!r}")
+
+
+def check_real(owner: str, name: str, value, low: float, high: float | None = None, *,
+               low_open: bool = False) -> None:
+    """A finite real number in [low, high] ((low, high] with ``low_open``); arrays are checked
+    elementwise; traced values (under jit / vmap) are accepted unchecked."""
+    v = concrete_value(value)
+    if v is None:
+        return
+    ok = not isinstance(value, bool) and v.dtype.kind in "iuf" and v.size > 0
+    if ok:
+        v = v.astype(np.float64)
+        ok = bool(np.all(np.isfinite(v)) and np.all(v > low if low_open else v >= low))
+        ok = ok and (high is None or bool(np.all(v <= high)))
+    if not ok:
+        lo = "(" if low_open else "["
+        rng = f"in {lo}{low:g}, {high:g}]" if high is not None else (f"> {low:g}" if low_open else f">= {low:g}")
+        raise ValueError(f"{owner}.{name} must be a finite number {rng}, got {value!r}")
+
+
+PRECONDITIONERS = ("block-jacobi", "chain")
+
 
 class SubproblemConfig(eqx.Module):
-    """Inner-solver budget, per robot and outer iteration."""
+    """Inner-solver budget, per robot and outer iteration.
+
+    Static (part of the compiled structure): ``preconditioner`` ("block-jacobi" or "chain") and
+    the loop budgets ``newton_steps`` (>= 1), ``cg_iterations`` (>= 1) and ``max_backtracks``
+    (>= 0; 0 tries the full step only). Traced (a new value reuses the compiled code, and a
+    batch of values can be ``vmap``-ped): ``cg_tolerance`` in (0, 1], CG's relative residual
+    (preconditioned norm) at which it stops. Every field is checked when the config is built
+    (ValueError naming the field and its range); traced values (e.g. under ``vmap``) are not.
+
+    The budgets stay static on purpose: they set the kind of loop XLA compiles (a fixed-length
+    ``fori_loop`` for the Newton steps), they are integers that nobody sweeps within one run, and a
+    batched budget under ``vmap`` would run every lane to the largest one anyway.
+    """
 
     newton_steps: int = eqx.field(static=True, default=1)
     preconditioner: str = eqx.field(static=True, default="block-jacobi")
     cg_iterations: int = eqx.field(static=True, default=20)
-    cg_tolerance: float = eqx.field(static=True, default=1e-2)
+    cg_tolerance: float = 1e-2
     max_backtracks: int = eqx.field(static=True, default=4)
 
-
-def _inverse_transpose_3x3(M):
-    r0, r1, r2 = M[..., 0, :], M[..., 1, :], M[..., 2, :]
-    c0, c1, c2 = jnp.cross(r1, r2), jnp.cross(r2, r0), jnp.cross(r0, r1)
-    det = jnp.sum(r0 * c0, axis=-1)
-    return jnp.stack([c0, c1, c2], axis=-2) / det[..., None, None], det
-
-
-def _polar_3x3(M, iterations: int = 6):
-    """Orthogonal polar factor of near-rotations by scaled Newton iteration (Higham).
-
-    Converges quadratically; from ||M - R|| ~ 0.1, four iterations reach machine precision. Inputs
-    with det(M) <= 0 (far from SO(3)) are mapped to a proper rotation by flipping the last row's
-    sign; the accept/reject test of the solver guards against such poor points.
-    """
-    X = M
-    for _ in range(iterations):
-        invT, det = _inverse_transpose_3x3(X)
-        scale = jnp.sqrt(jnp.sqrt(jnp.sum(invT**2, axis=(-1, -2)) / jnp.sum(X**2, axis=(-1, -2))))
-        scale = jnp.where(jnp.isfinite(scale) & (scale > 0), scale, 1.0)[..., None, None]
-        X = 0.5 * (scale * X + invT / scale)
-    _, det = _inverse_transpose_3x3(X)
-    flip = jnp.where(det < 0, -1.0, 1.0)
-    return X.at[..., 2, :].multiply(flip[..., None])
+    def __check_init__(self):
+        owner = "SubproblemConfig"
+        check_count(owner, "newton_steps", self.newton_steps, 1)
+        check_choice(owner, "preconditioner", self.preconditioner, PRECONDITIONERS)
+        check_count(owner, "cg_iterations", self.cg_iterations, 1)
+        check_real(owner, "cg_tolerance", self.cg_tolerance, 0.0, 1.0, low_open=True)
+        check_count(owner, "max_backtracks", self.max_backtracks, 0)
 
 
 def project_rotations(M):
-    """Nearest rotation to each block: closed form (d = 2), Newton polar (d = 3), SVD otherwise."""
-    d = M.shape[-1]
-    if d == 2:
-        a = M[..., 0, 0] + M[..., 1, 1]
-        b = M[..., 1, 0] - M[..., 0, 1]
-        r = jnp.sqrt(a * a + b * b)
-        safe = r > 0
-        c = jnp.where(safe, a / jnp.where(safe, r, 1.0), 1.0)
-        s = jnp.where(safe, b / jnp.where(safe, r, 1.0), 0.0)
-        return jnp.stack([jnp.stack([c, -s], -1), jnp.stack([s, c], -1)], -2)
-    if d == 3:
-        return _polar_3x3(M)
-    return project_to_so(M)
+    """Nearest rotation to each block (..., d, d): closed form (d = 2), Newton polar (d = 3), SVD
+    otherwise -- :func:`~mmpgo_jax._core.geometry.nearest_rotations` with ``method="fast"``."""
+    return nearest_rotations(M, method="fast")
 
 
 def tangent_projection(Y, V):
@@ -112,28 +145,8 @@ def _tangent_soa(Y, V):
 
 
 def _project_soa(M):
-    """Nearest rotations for blocks stored as (d, d, n)."""
-    d = M.shape[0]
-    if d == 2:
-        a = M[0, 0] + M[1, 1]
-        b = M[1, 0] - M[0, 1]
-        r = jnp.sqrt(a * a + b * b)
-        safe = r > 0
-        c = jnp.where(safe, a / jnp.where(safe, r, 1.0), 1.0)
-        s = jnp.where(safe, b / jnp.where(safe, r, 1.0), 0.0)
-        return jnp.stack([jnp.stack([c, -s]), jnp.stack([s, c])])
-    if d == 3:
-        X = M
-        for _ in range(6):
-            c0, c1, c2 = jnp.cross(X[1], X[2], axis=0), jnp.cross(X[2], X[0], axis=0), jnp.cross(X[0], X[1], axis=0)
-            det = jnp.sum(X[0] * c0, axis=0)
-            invT = jnp.stack([c0, c1, c2]) / det
-            scale = jnp.sqrt(jnp.sqrt(jnp.sum(invT**2, axis=(0, 1)) / jnp.sum(X**2, axis=(0, 1))))
-            scale = jnp.where(jnp.isfinite(scale) & (scale > 0), scale, 1.0)
-            X = 0.5 * (scale * X + invT / scale)
-        det = jnp.sum(X[0] * jnp.cross(X[1], X[2], axis=0), axis=0)
-        return X.at[2].multiply(jnp.where(det < 0, -1.0, 1.0))
-    return to_soa(project_to_so(from_soa(M)))
+    """Nearest rotations for blocks stored as (d, d, n) (the same projection, entries first)."""
+    return nearest_rotations(M, method="fast", layout="blocks-first")
 
 
 def _retract_soa(Y, V):

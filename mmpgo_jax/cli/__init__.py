@@ -248,10 +248,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("optimum", help="centralized optimum f* of a g2o file, with its global-optimality certificate")
     p.add_argument("file", help="g2o file, or a benchmark name (e.g. MITb, city10000)")
-    p.add_argument("--init", default="chordal", help="start: chordal (default), vertices, odometry, or a .g2o/.npz file")
+    p.add_argument("--init", default="chordal",
+                   help="start: chordal (default), vertices, odometry, or a .g2o/.npz file")
     p.add_argument("--grad-tol", type=finite_float(0.0, strict=True), default=1e-6,
                    help="stop when ||grad F|| falls below this (finite, > 0; default 1e-6)")
-    p.add_argument("--max-iterations", type=int_in(1, INT_MAX), default=5000, help="at most this many iterations, >= 1 (default 5000)")
+    p.add_argument("--max-iterations", type=int_in(1, INT_MAX), default=5000,
+                   help="at most this many iterations, >= 1 (default 5000)")
     p.add_argument("--no-certify", action="store_true", help="skip the dual certificate")
     p.add_argument("--out", "-o", help="write the optimum as g2o (VERTEX lines + the original edges)")
     p.add_argument("--tum", help="write the optimum as a TUM trajectory")
@@ -261,7 +263,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("demo", help="run AMM-PGO on a generated Cube dataset (no download needed)")
     p.add_argument("--out-dir", default="mmpgo-demo", help="folder for the plots and results (default ./mmpgo-demo)")
-    p.add_argument("--poses", type=int_in(2, INT_MAX), default=1000, help="poses of the generated Cube dataset, >= 2 (default 1000)")
+    p.add_argument("--poses", type=int_in(2, INT_MAX), default=1000,
+                   help="poses of the generated Cube dataset, >= 2 (default 1000)")
     p.add_argument("--robots", "-A", type=ROBOTS, default=10, help="robots, 1 .. --poses (default 10)")
     p.add_argument("--iterations", "-n", type=ITERATIONS, default=300, help="outer iterations, >= 0 (default 300)")
     p.add_argument("--seed", type=int_in(0), default=0, help="seed of the generated dataset, >= 0 (default 0)")
@@ -271,7 +274,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("bench", help="reproduce the paper's Tables I/II on the available datasets")
     p.add_argument("--quick", action="store_true", help="a small run for CI: one small dataset, few iterations")
     p.add_argument("--datasets", nargs="*", help="benchmark names (default: all available)")
-    p.add_argument("--iterations", "-n", type=int_in(1, INT_MAX), default=1000, help="outer iterations, >= 1 (default 1000)")
+    p.add_argument("--iterations", "-n", type=int_in(1, INT_MAX), default=1000,
+                   help="outer iterations, >= 1 (default 1000)")
     p.add_argument("--robots", "-A", type=ROBOTS, default=10, help="robots, >= 1 (default 10)")
     p.add_argument("--out-dir", default="bench-results", help="folder for the Markdown, CSV and JSON tables")
     p.add_argument("--no-progress", action="store_true")
@@ -335,7 +339,7 @@ def _run(args, argv) -> int:
 
 
 def _resolve_file(name: str, data: str | None, *, announce: bool = True) -> Path:
-    """The g2o file of a FILE argument (see :func:`~mmpgo_jax._datasets.find_benchmark`: a path
+    """The g2o file of a FILE argument (see :func:`~mmpgo_jax.find_benchmark`: a path
     is only a path; a bare name is looked up in the data folder). ``announce``: print ``using
     PATH (benchmark NAME)`` when the data folder supplied the file."""
     from .._io.datasets import benchmark_info, find_benchmark, names_a_path
@@ -421,7 +425,8 @@ def _cmd_info(args) -> int:
     ids = g2o.vertex_ids
     print(f"file        {path}")
     print(f"dimension   d = {g.dim}")
-    print(f"poses       n = {g.num_poses}" + ("" if ids[-1] == len(ids) - 1 and ids[0] == 0 else f"  (ids {ids[0]}..{ids[-1]}, remapped)"))
+    remapped = "" if ids[-1] == len(ids) - 1 and ids[0] == 0 else f"  (ids {ids[0]}..{ids[-1]}, remapped)"
+    print(f"poses       n = {g.num_poses}" + remapped)
     print(f"edges       m = {g.num_edges}")
     print(f"kappa       {kappa.min():.6g} .. {kappa.max():.6g}")
     print(f"tau         {tau.min():.6g} .. {tau.max():.6g}")
@@ -434,7 +439,8 @@ def _cmd_info(args) -> int:
         print(f"{'robot':>5} {'poses':>7} {'own edges':>10} {'inter edges':>12} {'receives':>9}  neighbours")
         for a in range(args.robots):
             nb = " ".join(map(str, st.neighbours[a].tolist()))
-            print(f"{a:>5} {st.poses[a]:>7} {st.own_edges[a]:>10} {st.inter_edges[a]:>12} {st.received_poses[a]:>9}  {nb}")
+            print(f"{a:>5} {st.poses[a]:>7} {st.own_edges[a]:>10} {st.inter_edges[a]:>12} {st.received_poses[a]:>9}"
+                  f"  {nb}")
     return 0
 
 
@@ -538,7 +544,9 @@ def _cmd_solve(args) -> int:
     check_outputs(args)
     data = _load_for_solve(args)
     if not 1 <= args.robots <= data.graph.num_poses:
-        raise CLIError(f"--robots must be between 1 and the number of poses ({data.graph.num_poses}), got {args.robots}")
+        raise CLIError(
+            f"--robots must be between 1 and the number of poses ({data.graph.num_poses}), got {args.robots}"
+        )
     ground_truth = data.poses_file(args.ground_truth, "--ground-truth file") if args.ground_truth else None
     init = data.start(args.init, _SOLVE_STARTS)
 
@@ -576,7 +584,8 @@ def _print_certificate(data: LoadedInput, poses, *, hint: bool) -> None:
     cert = certify(data.graph, poses)
     print(f"certificate {cert.summary()}")
     if hint and not cert.certified:
-        print("            (the certificate decides only at a critical point: run to a tight --grad-tol, e.g. --robots 1)")
+        print("            (the certificate decides only at a critical point: run to a tight --grad-tol, "
+              "e.g. --robots 1)")
 
 
 def _write_estimate(args, data: LoadedInput, poses) -> list[str]:
@@ -596,7 +605,7 @@ def _write_estimate(args, data: LoadedInput, poses) -> list[str]:
 
 def finish_solve(args, data: LoadedInput, result, fstar) -> None:
     """After a solve (single- or multi-device): --certify, then the --out/--tum/--history/--plot
-    files, all or none (:func:`~mmpgo_jax._atomic.atomic_group`)."""
+    files, all or none (:func:`~mmpgo_jax._io.atomic.atomic_group`)."""
     from .._io.atomic import atomic_group
 
     if args.certify:
@@ -628,11 +637,12 @@ def _cmd_optimum(args) -> int:
                               max_iterations=args.max_iterations, fixed=data.fixed, frame=data.frame)
     h = res.history
     total = res.init_seconds + res.compile_seconds + res.solve_seconds
-    print(f"f* = 2F      {res.f:.10g} ({res.iterations} iterations, {res.stop_reason}, ||grad F|| = {h.grad_norm[-1]:.2e}, "
-          f"{total:.1f} s)")
+    print(f"f* = 2F      {res.f:.10g} ({res.iterations} iterations, {res.stop_description}, "
+          f"||grad F|| = {h.grad_norm[-1]:.2e}, {total:.1f} s)")
     info = benchmark_info(data.path.name)
     if info is not None and info.fstar is not None:
-        print(f"published   {info.fstar:.6g} ({info.name}); relative difference {(res.f - info.fstar) / info.fstar:+.1e}")
+        rel = (res.f - info.fstar) / info.fstar
+        print(f"published   {info.fstar:.6g} ({info.name}); relative difference {rel:+.1e}")
     if not args.no_certify:
         _print_certificate(data, res.poses, hint=False)
     with atomic_group():
@@ -644,8 +654,9 @@ def _cmd_optimum(args) -> int:
 
 def _print_summary(result, fstar: float | None) -> None:
     h = result.history
-    print(f"method      {result.config.method.upper()}-PGO, {result.partition.num_robots} robots, restart={result.config.restart}")
-    print(f"iterations  {h.iterations} ({result.stop_reason})")
+    print(f"method      {result.config.method.upper()}-PGO, {result.partition.num_robots} robots, "
+          f"restart={result.config.restart}")
+    print(f"iterations  {h.iterations} ({result.stop_description})")
     print(f"f = 2F      {h.f[0]:.6f} -> {h.f[-1]:.6f}")
     if fstar is not None:
         print(f"f*          {fstar:.6g} (reference), relative gap (f - f*)/f* = {(h.f[-1] - fstar) / fstar:.3e}")
@@ -654,7 +665,8 @@ def _print_summary(result, fstar: float | None) -> None:
         a = result.accuracy
         print(f"ATE         {a.ate:.6g} RMSE, {a.ate_max:.6g} max (positions after rigid alignment); "
               f"rotation {a.rotation_deg:.4g} deg RMSE")
-        print(f"RPE         {a.rpe_translation:.6g} translation, {a.rpe_rotation_deg:.4g} deg rotation (consecutive poses, RMSE)")
+        print(f"RPE         {a.rpe_translation:.6g} translation, {a.rpe_rotation_deg:.4g} deg rotation "
+              "(consecutive poses, RMSE)")
     print(
         f"time        init {result.init_seconds:.2f} s, compile {result.compile_seconds:.2f} s, "
         f"iterations {result.solve_seconds:.2f} s ({result.ms_per_iteration:.2f} ms/iteration)"

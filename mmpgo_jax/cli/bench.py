@@ -1,16 +1,16 @@
 """``mmpgo bench``: reproduce the paper's Tables I/II on the benchmark files that are available.
 
 For every benchmark of Tables I/II found in the data folder (or those named with ``--datasets``),
-split among ``--robots`` robots (contiguous blocks, NOTES §4) and started from the centralized
-chordal initialization (NOTES §5), it runs
+split among ``--robots`` robots (contiguous blocks, docs/conventions.md §4) and started from the
+centralized chordal initialization (§5 there), it runs
 
 * MM-PGO,
 * AMM-PGO with the default (adaptive) restart rule,
 * AMM-PGO with Algorithm 2's restart test (``restart="paper"``),
 
 and reports f = 2F after 100 / 250 / 1000 iterations beside the paper's MM / AMM columns and the
-numbers of the authors' C++ code (NOTES §7); our f* (:func:`~mmpgo_jax._solve.centralized_optimum`)
-beside the paper's printed f* and SE-Sync's certified f* (NOTES §6); milliseconds per iteration
+numbers of the authors' C++ code (docs/conventions.md §7); our f* (:func:`~mmpgo_jax.centralized_optimum`)
+beside the paper's printed f* and SE-Sync's certified f* (§6 there); milliseconds per iteration
 and compile time; and the iterations and seconds each run needs to reach a relative
 suboptimality (f − f*)/f* ≤ 1e-2 / 1e-3 / 1e-4.
 
@@ -49,7 +49,7 @@ import numpy as np
 
 from .progress import progress_bar
 
-__all__ = ["run_bench", "machine_info", "command_line", "paper_rounding"]
+__all__ = ["command_line", "machine_info", "paper_rounding", "run_bench"]
 
 CHECKPOINTS = (100, 250, 1000)
 TOLS = (1e-2, 1e-3, 1e-4)
@@ -315,7 +315,8 @@ def _bench_one(job: _Job, args, iterations: int, no_progress: bool) -> _Result:
                "notes_f": getattr(info, "chordal_f", None)}
 
     if not no_progress:
-        print(f"[{job.name}] f*: centralized solve (1 robot, MM to ||grad F|| <= 1e-6) ...", file=sys.stderr, flush=True)
+        print(f"[{job.name}] f*: centralized solve (1 robot, MM to ||grad F|| <= 1e-6) ...", file=sys.stderr,
+              flush=True)
     t = time.perf_counter()
     # float32 cannot reach ||grad F|| <= 1e-6: do not spend the float64 budget on trying
     ref = centralized_optimum(graph, init=X0, max_iterations=5000 if float64_enabled() else 1000)
@@ -395,10 +396,11 @@ def _bench_one(job: _Job, args, iterations: int, no_progress: bool) -> _Result:
 # --------------------------------------------------------------------------------------------
 
 _F_HEADER = ["dataset", "method", "k", "f ours", "paper", "ours vs paper", "verdict", "authors' code", "ours vs code"]
-_STAR_HEADER = ["dataset", "d", "n", "m", "f chordal (ours)", "f chordal (NOTES §5)", "f* ours", "f* iters / s",
+_STAR_HEADER = ["dataset", "d", "n", "m", "f chordal (ours)", "f chordal (reference)", "f* ours", "f* iters / s",
                 "certificate λ_min(S)", "f* paper", "f* SE-Sync", "ours vs SE-Sync", "reference for gaps"]
 _SPEED_HEADER = ["dataset", "method", "ms/iter", "ms/iter code", "compile s", "f final", "gap final",
-                 "iters → 1e-2", "iters → 1e-3", "iters → 1e-4", "s → 1e-2", "s → 1e-3", "s → 1e-4", "code iters → 1e-3"]
+                 "iters → 1e-2", "iters → 1e-3", "iters → 1e-4", "s → 1e-2", "s → 1e-3", "s → 1e-4",
+                 "code iters → 1e-3"]
 
 
 def _f_rows(res: _Result) -> list[list[str]]:
@@ -413,7 +415,8 @@ def _f_rows(res: _Result) -> list[list[str]]:
 def _star_row(res: _Result) -> list[str]:
     s, c = res.fstar, res.chordal
     conv = "" if s["ours_converged"] else " (not converged)"
-    return [res.name, str(res.dim), str(res.num_poses), str(res.num_edges), _fmt(c["f"], ".6g"), _fmt(c["notes_f"], ".6g"),
+    return [res.name, str(res.dim), str(res.num_poses), str(res.num_edges), _fmt(c["f"], ".6g"),
+            _fmt(c["notes_f"], ".6g"),
             _fmt(s["ours"], ".9g") + conv, f"{s['ours_iterations']} / {s['ours_seconds']:.1f}",
             "—" if s.get("ours_certified") is None
             else f"{s['ours_min_eigenvalue']:.1e} ({'certified' if s['ours_certified'] else 'NOT certified'})",
@@ -427,7 +430,7 @@ def _speed_rows(res: _Result) -> list[list[str]]:
         tt = run["to_tol"]
         its = [_fmt(tt[_tk(tol)]["iterations"], "d", f"> {run['iterations']}") for tol in TOLS]
         secs = [_fmt(tt[_tk(tol)]["seconds"], ".2f") for tol in TOLS]
-        rows.append([res.name, key, f"{run['ms_per_iteration']:.2f}", _fmt(run["code_ms_per_iteration"], ".1f"),
+        rows.append([res.name, key, f"{run['ms_per_iteration']:.2f}", _fmt(run["code_ms_per_iteration"], ".3g"),
                      f"{run['compile_seconds']:.1f}", _fmt(run["f_final"], ".7g"), f"{run['rel_gap_final']:.2e}",
                      *its, *secs, _fmt(run["code_iters_to_1e-3"], "d")])
     return rows
@@ -449,8 +452,11 @@ def _markdown(results: list[_Result], meta: dict, done: bool) -> str:
       f"chordal initialization, xi = 1e-3; runs: " + "; ".join(f"**{k}** = {v}" for k, v in _RUN_NOTE.items()) + "\n")
     if meta["robots"] != PAPER_ROBOTS:
         w(f"- NOTE: the paper's and the authors' code numbers are for {PAPER_ROBOTS} robots; no verdicts are given.\n")
-    w("\nObjective values are f = 2F (NOTES §2). \"paper\" = Tables I/II as printed (4 significant digits; MM "
-      "column for MM, AMM column for both AMM variants); \"authors' code\" = NOTES §7 (their C++ MM, AMM with "
+    if meta.get("note"):
+        w(f"- note: {meta['note']}\n")
+    w("\nObjective values are f = 2F; the reference numbers and their sources are in docs/conventions.md. "
+      "\"paper\" = Tables I/II as printed (4 significant digits; MM column for MM, AMM column for both AMM "
+      "variants); \"authors' code\" = their C++ code run here (docs/conventions.md §7: MM, AMM with "
       "adaptive restart, AMM with Algorithm 2's test). \"ours vs …\" = (ours − reference)/reference. Verdict: MM "
       "\"matches\" when ours rounds to the printed value, else higher/lower; AMM \"≤ paper\" when ours is at or "
       "below the printed AMM value (within its rounding), else ABOVE.\n\n")
@@ -465,8 +471,9 @@ def _markdown(results: list[_Result], meta: dict, done: bool) -> str:
     w(_table(_STAR_HEADER, [_star_row(res) for res in results], "l" + "r" * 11 + "l") + "\n\n")
     w("## Speed and iterations to relative suboptimality (f − f*)/f* ≤ tol\n\n")
     w("ms/iter: compiled outer iterations (all robots, one process), excluding compilation; \"ms/iter code\": the "
-      "authors' C++ code, serial on one core (NOTES §7). s → tol = iterations × ms/iter (excluding compile and "
-      "initialization). \"> N\": not reached within the run. \"code iters → 1e-3\": the authors' adaptive AMM.\n\n")
+      "authors' C++ code, one thread, the robots one after another (docs/conventions.md §7). s → tol = iterations "
+      "× ms/iter (excluding compile and initialization). \"> N\": not reached within the run. \"code iters → "
+      "1e-3\": the authors' adaptive AMM.\n\n")
     w(_table(_SPEED_HEADER, [r for res in results for r in _speed_rows(res)]) + "\n\n")
     figs = [res.figure for res in results if res.figure]
     if figs:
@@ -479,9 +486,9 @@ def _markdown(results: list[_Result], meta: dict, done: bool) -> str:
 
 _CSV_FIELDS = ["dataset", "file", "dim", "num_poses", "num_edges", "robots", "run", "method", "restart", "k", "f",
                "paper_f", "rel_vs_paper", "verdict", "code_f", "rel_vs_code", "fstar_used", "fstar_source",
-               "fstar_ours", "fstar_ours_converged", "fstar_ours_certified", "fstar_paper", "fstar_sesync", "chordal_f", "ms_per_iteration",
-               "code_ms_per_iteration", "compile_seconds", "iters_to_1e-2", "iters_to_1e-3", "iters_to_1e-4",
-               "seconds_to_1e-2", "seconds_to_1e-3", "seconds_to_1e-4"]
+               "fstar_ours", "fstar_ours_converged", "fstar_ours_certified", "fstar_paper", "fstar_sesync", "chordal_f",
+               "ms_per_iteration", "code_ms_per_iteration", "compile_seconds", "iters_to_1e-2", "iters_to_1e-3",
+               "iters_to_1e-4", "seconds_to_1e-2", "seconds_to_1e-3", "seconds_to_1e-4"]
 
 
 def _csv(results: list[_Result]) -> str:
@@ -601,7 +608,7 @@ def run_bench(args) -> int:
     meta["total_seconds"] = time.perf_counter() - t_all
     _write_all(out, results, meta, done=True)
     print()
-    for name in ("bench.md", "bench.csv", "bench.json") + tuple(r.figure for r in results if r.figure):
+    for name in ("bench.md", "bench.csv", "bench.json", *(r.figure for r in results if r.figure)):
         print(f"wrote {out / name}")
     print(f"total {meta['total_seconds']:.1f} s", flush=True)
     return 0

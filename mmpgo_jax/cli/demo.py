@@ -1,8 +1,8 @@
 """``mmpgo demo``: MM-PGO vs AMM-PGO on a generated Cube dataset (no download needed).
 
-Generates a Cube dataset (the paper's Section VIII.A model, :func:`~mmpgo_jax._synthetic.cube_dataset`)
+Generates a Cube dataset (the paper's Section VIII.A model, :func:`~mmpgo_jax.cube_dataset`)
 with a lattice sized so that the walk fills it, computes the reference optimum f* with the
-centralized solver (:func:`~mmpgo_jax._solve.centralized_optimum`), runs MM-PGO and AMM-PGO from
+centralized solver (:func:`~mmpgo_jax.centralized_optimum`), runs MM-PGO and AMM-PGO from
 the centralized chordal initialization, prints a summary and writes into ``--out-dir``:
 
 * ``demo_trajectory.png``: the AMM-PGO estimate coloured by robot, and its convergence;
@@ -26,7 +26,7 @@ import numpy as np
 
 from .progress import progress_bar
 
-__all__ = ["run_demo", "demo_grid"]
+__all__ = ["demo_grid", "run_demo"]
 
 _TOLS = (1e-2, 1e-3, 1e-4)
 # cap on the centralized reference solve (it usually stops at its gradient tolerance far earlier)
@@ -96,9 +96,10 @@ def run_demo(args) -> int:
     fstar = ref.f
     converged = ref.stop_reason == "grad_tol"
     t_ref = ref.init_seconds + ref.compile_seconds + ref.solve_seconds
+    capped = "" if converged else (f"  (stopped at the {_FSTAR_MAX_ITERATIONS}-iteration cap before "
+                                   "||grad F|| <= 1e-6: gaps are relative to this value)")
     print(f"f*             {fstar:.8g} ({ref.iterations} iterations, ||grad F|| = {ref.history.grad_norm[-1]:.1e}, "
-          f"{t_ref:.1f} s){'' if converged else f'  (stopped at the {_FSTAR_MAX_ITERATIONS}-iteration cap before ||grad F|| <= 1e-6: gaps are relative to this value)'}",
-          flush=True)
+          f"{t_ref:.1f} s){capped}", flush=True)
     if converged and float64_enabled():
         print(f"certificate    {certify(graph, ref.poses).summary()}", flush=True)
 
@@ -111,7 +112,8 @@ def run_demo(args) -> int:
 
     # summary ------------------------------------------------------------------------------
     accuracy = {label: trajectory_accuracy(est, ds.ground_truth)
-                for label, est in [("chordal init", X0), ("f* solution", ref.poses)] + [(k, r.poses) for k, r in results.items()]}
+                for label, est in [("chordal init", X0), ("f* solution", ref.poses),
+                                   *((k, r.poses) for k, r in results.items())]}
 
     print()
     print(f"{iters} iterations, {A} robots, centralized chordal initialization, f* = {fstar:.8g}")
@@ -128,7 +130,8 @@ def run_demo(args) -> int:
     print("(it→tol: first iteration with (f - f*)/f* <= tol; — = not reached)")
     print()
     print("error vs ground truth after rigid alignment (rotation + translation, no scale):")
-    print(f"{'estimate':<14} {'ATE RMSE [m]':>12} {'max [m]':>8} {'rot RMSE [deg]':>14} {'RPE [m]':>8} {'RPE [deg]':>9}")
+    print(f"{'estimate':<14} {'ATE RMSE [m]':>12} {'max [m]':>8} {'rot RMSE [deg]':>14} {'RPE [m]':>8} "
+          f"{'RPE [deg]':>9}")
     for label, acc in accuracy.items():
         print(f"{label:<14} {acc.ate:>12.4f} {acc.ate_max:>8.4f} {acc.rotation_deg:>14.3f} "
               f"{acc.rpe_translation:>8.4f} {acc.rpe_rotation_deg:>9.3f}")

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import sys
-from typing import Sequence
+from collections.abc import Sequence
 
 import jax
 
@@ -28,10 +28,12 @@ def add_cli_options(p) -> None:
                    help="run as P >= 1 local CPU processes (jax.distributed on 127.0.0.1)")
     g.add_argument("--coordinator", type=host_port, default=None,
                    help="HOST:PORT of process 0, PORT 1..65535 (multi-host runs; with --num-processes, --process-id)")
-    g.add_argument("--num-processes", type=int_in(1), default=None, help="number of processes of a multi-host run, >= 1")
+    g.add_argument("--num-processes", type=int_in(1), default=None,
+                   help="number of processes of a multi-host run, >= 1")
     g.add_argument("--process-id", type=int_in(0), default=None,
                    help="this process's index 0..P-1 (process 0 writes the outputs)")
-    g.add_argument("--local-devices", type=int_in(1), default=None, help="CPU devices per process, >= 1 (with JAX_PLATFORMS=cpu)")
+    g.add_argument("--local-devices", type=int_in(1), default=None,
+                   help="CPU devices per process, >= 1 (with JAX_PLATFORMS=cpu)")
     g.add_argument("--timeout", type=finite_float(0.0, strict=True), default=600.0,
                    help="seconds before launched processes are killed, > 0 (default 600)")
     g.add_argument("--exchange", choices=("halo", "all_gather"), default="halo",
@@ -60,9 +62,12 @@ def cli_solve(args, argv: Sequence[str] | None = None) -> int:
         if args.processes > 1:
             _resolve_file(args.file, args.data, announce=False)  # fail before launching; process 0 announces
             argv = list(sys.argv[1:] if argv is None else argv)
-            run = run_multiprocess(argv, args.processes, local_devices=args.local_devices or 1, timeout_s=args.timeout, capture=False)
+            run = run_multiprocess(argv, args.processes, local_devices=args.local_devices or 1, timeout_s=args.timeout,
+                                   capture=False)
             if run.timed_out:
-                raise CLIError(f"the {args.processes} processes did not finish within {args.timeout:g} s and were stopped")
+                raise CLIError(
+                    f"the {args.processes} processes did not finish within {args.timeout:g} s and were stopped"
+                )
             return max((abs(rc) for rc in run.returncodes), default=0)
     if args.num_processes is not None or args.coordinator is not None:
         if args.num_processes is None or args.process_id is None or args.coordinator is None:
@@ -87,7 +92,9 @@ def _cli_solve_sharded(args) -> int:
     args.file = str(cli._resolve_file(args.file, args.data, announce=writer))
     data = cli._load_for_solve(args, announce=writer)
     if not 1 <= args.robots <= data.graph.num_poses:
-        raise cli.CLIError(f"--robots must be between 1 and the number of poses ({data.graph.num_poses}), got {args.robots}")
+        raise cli.CLIError(
+            f"--robots must be between 1 and the number of poses ({data.graph.num_poses}), got {args.robots}"
+        )
     init = data.start(args.init, cli._SOLVE_STARTS)
     local = jax.local_devices()
     if args.devices:
@@ -97,7 +104,8 @@ def _cli_solve_sharded(args) -> int:
     # The mesh: this process's devices, or (multi-process) every process's, ordered by process.
     devices = local if jax.process_count() == 1 else sorted(jax.devices(), key=lambda d: (d.process_index, d.id))
 
-    with progress_bar(f"{args.method.upper()}-PGO", args.iterations, disable=(not writer) or args.no_progress) as progress:
+    quiet = (not writer) or args.no_progress
+    with progress_bar(f"{args.method.upper()}-PGO", args.iterations, disable=quiet) as progress:
         result = solve_sharded(
             data.graph,
             args.robots,
