@@ -543,35 +543,27 @@ def _cmd_solve(args) -> int:
     args.file = str(_resolve_file(args.file, args.data))
     check_outputs(args)
     data = _load_for_solve(args)
-    if not 1 <= args.robots <= data.graph.num_poses:
-        raise CLIError(
-            f"--robots must be between 1 and the number of poses ({data.graph.num_poses}), got {args.robots}"
-        )
     ground_truth = data.poses_file(args.ground_truth, "--ground-truth file") if args.ground_truth else None
-    init = data.start(args.init, _SOLVE_STARTS)
-
+    options = solve_options(args, data)
     with progress_bar(f"{args.method.upper()}-PGO", args.iterations, disable=args.no_progress) as progress:
-        result = solve(
-            data.graph,
-            args.robots,
-            method=args.method,
-            iterations=args.iterations,
-            init=init,
-            initial=data.initial,
-            xi=args.xi,
-            restart=args.restart,
-            chunk_size=args.chunk,
-            grad_tol=args.grad_tol,
-            callback=progress,
-            ground_truth=ground_truth,
-            fixed=data.fixed,
-            frame=data.frame,
-        )
+        result = solve(data.graph, args.robots, callback=progress, ground_truth=ground_truth, **options)
     info = benchmark_info(data.path.name)
     fstar = info.fstar if info is not None else None
     _print_summary(result, fstar)
     finish_solve(args, data, result, fstar)
     return 0
+
+
+def solve_options(args, data: LoadedInput) -> dict:
+    """The keyword arguments of ``solve`` / ``solve_sharded`` from ``mmpgo solve``'s options (robot
+    count checked against the graph, the start resolved, FIX poses and the input's frame)."""
+    if not 1 <= args.robots <= data.graph.num_poses:
+        raise CLIError(
+            f"--robots must be between 1 and the number of poses ({data.graph.num_poses}), got {args.robots}"
+        )
+    return dict(method=args.method, iterations=args.iterations, init=data.start(args.init, _SOLVE_STARTS),
+                initial=data.initial, xi=args.xi, restart=args.restart, chunk_size=args.chunk,
+                grad_tol=args.grad_tol, fixed=data.fixed, frame=data.frame)
 
 
 def _print_certificate(data: LoadedInput, poses, *, hint: bool) -> None:

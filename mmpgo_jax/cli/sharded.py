@@ -91,11 +91,7 @@ def _cli_solve_sharded(args) -> int:
     writer = jax.process_index() == 0
     args.file = str(cli._resolve_file(args.file, args.data, announce=writer))
     data = cli._load_for_solve(args, announce=writer)
-    if not 1 <= args.robots <= data.graph.num_poses:
-        raise cli.CLIError(
-            f"--robots must be between 1 and the number of poses ({data.graph.num_poses}), got {args.robots}"
-        )
-    init = data.start(args.init, cli._SOLVE_STARTS)
+    options = cli.solve_options(args, data)
     local = jax.local_devices()
     if args.devices:
         if args.devices > len(local):
@@ -106,23 +102,8 @@ def _cli_solve_sharded(args) -> int:
 
     quiet = (not writer) or args.no_progress
     with progress_bar(f"{args.method.upper()}-PGO", args.iterations, disable=quiet) as progress:
-        result = solve_sharded(
-            data.graph,
-            args.robots,
-            devices=devices,
-            method=args.method,
-            iterations=args.iterations,
-            init=init,
-            initial=data.initial,
-            xi=args.xi,
-            restart=args.restart,
-            chunk_size=args.chunk,
-            grad_tol=args.grad_tol,
-            callback=progress,
-            exchange=args.exchange,
-            fixed=data.fixed,
-            frame=data.frame,
-        )
+        result = solve_sharded(data.graph, args.robots, devices=devices, callback=progress, exchange=args.exchange,
+                               **options)
     if not writer:
         return 0
     info = benchmark_info(data.path.name)
