@@ -301,31 +301,42 @@ def _run(args, argv) -> int:
         from .._core.precision import enable_float64
 
         enable_float64()
+    return run_reported(lambda: _dispatch(args, argv))
+
+
+def _dispatch(args, argv) -> int:
+    if args.command == "info":
+        return _cmd_info(args)
+    if args.command == "solve":
+        from .sharded import cli_solve, wants_sharding
+
+        if wants_sharding(args):
+            if args.ground_truth:
+                raise CLIError("--ground-truth is not available with --devices / --processes")
+            return cli_solve(args, sys.argv[1:] if argv is None else argv)
+        return _cmd_solve(args)
+    if args.command == "optimum":
+        return _cmd_optimum(args)
+    if args.command == "demo":
+        from .demo import run_demo
+
+        return run_demo(args)
+    if args.command == "bench":
+        from .bench import run_bench
+
+        return run_bench(args)
+    return 0
+
+
+def run_reported(command) -> int:
+    """``command()``'s exit status, with bad input reported as one line ``mmpgo: error: ...`` (2),
+    an interrupt (130) and a closed output pipe, e.g. ``mmpgo info FILE | head`` (141)."""
     from .._io.datasets import DatasetNotFoundError
     from .._io.g2o import G2OFormatError
 
     try:
-        if args.command == "info":
-            return _cmd_info(args)
-        if args.command == "solve":
-            from .sharded import cli_solve, wants_sharding
-
-            if wants_sharding(args):
-                if args.ground_truth:
-                    raise CLIError("--ground-truth is not available with --devices / --processes")
-                return cli_solve(args, sys.argv[1:] if argv is None else argv)
-            return _cmd_solve(args)
-        if args.command == "optimum":
-            return _cmd_optimum(args)
-        if args.command == "demo":
-            from .demo import run_demo
-
-            return run_demo(args)
-        if args.command == "bench":
-            from .bench import run_bench
-
-            return run_bench(args)
-    except BrokenPipeError:  # e.g. `mmpgo info FILE | head`: the reader left, nothing to report
+        return command()
+    except BrokenPipeError:  # the reader left: nothing to report
         with contextlib.suppress(OSError):
             os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 141
@@ -335,7 +346,6 @@ def _run(args, argv) -> int:
     except KeyboardInterrupt:
         print("mmpgo: interrupted", file=sys.stderr)
         return 130
-    return 0
 
 
 def _resolve_file(name: str, data: str | None, *, announce: bool = True) -> Path:

@@ -129,9 +129,7 @@ def build_parser():
 
 def main(argv: Sequence[str] | None = None) -> int:
     """``python -m mmpgo_jax.sharding solve FILE [options]``: one process of a sharded solve."""
-    from .._io.datasets import DatasetNotFoundError
-    from .._io.g2o import G2OFormatError
-    from . import CLIError, _exit_status, cli_warnings, print_error
+    from . import _exit_status, cli_warnings, run_reported
 
     argv = list(sys.argv[1:] if argv is None else argv)
     if not argv or argv[0] != "solve":
@@ -143,14 +141,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.precision == "float64":
         jax.config.update("jax_enable_x64", True)
     with cli_warnings():
-        try:
-            return cli_solve(args, argv)
-        except (G2OFormatError, DatasetNotFoundError, CLIError, ValueError, OSError) as err:
-            print_error(err)
-            return 2
-        except KeyboardInterrupt:
-            print("mmpgo: interrupted", file=sys.stderr)
-            return 130
+        return run_reported(lambda: cli_solve(args, argv))
 
 
 if __name__ == "__main__":
