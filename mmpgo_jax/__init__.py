@@ -16,9 +16,10 @@ Public API (the private modules are implementation details):
   :func:`align_poses`
 * sharding over devices and processes: :mod:`mmpgo_jax.sharding` (``solve_sharded``)
 * plots (imports matplotlib): :mod:`mmpgo_jax.plotting`
-* precision: :func:`enable_float64`
+* precision: :func:`enable_float64`; compilation: :func:`enable_compilation_cache` (JAX's persistent cache)
 """
 
+from ._core.compilation_cache import enable_compilation_cache
 from ._core.gauge import FixedPoses, express_in_frame
 from ._core.geometry import project_to_so, quaternion_to_rotation, rotation_2d
 from ._core.partition import Partition, contiguous_robots, partition, partition_stats
@@ -130,6 +131,7 @@ __all__ = [
     "default_float_dtype",
     "distributed_chordal_initialization",
     "edge_costs",
+    "enable_compilation_cache",
     "enable_float64",
     "euclidean_gradient",
     "express_in_frame",

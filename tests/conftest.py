@@ -6,6 +6,9 @@ from pathlib import Path
 import jax
 
 jax.config.update("jax_enable_x64", True)
+# The CLI turns JAX's persistent compilation cache on by default; in-process CLI tests must not
+# write to the user's cache folder (tests/test_compilation_cache.py checks the cache in subprocesses).
+os.environ.setdefault("MMPGO_COMPILATION_CACHE", "off")
 
 import pytest  # noqa: E402
 

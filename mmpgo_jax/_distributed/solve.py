@@ -23,8 +23,7 @@ from .._mm.outer import (
     IterationRecord,
     MMConfig,
     MMProblem,
-    evaluate,
-    init_state,
+    start_state,
     step,
 )
 from .._mm.solve import SolveResult, output_frame
@@ -195,8 +194,8 @@ def solve_sharded(
             part = partition(graph, plan.sharded_robot_of_pose, num_robots=plan.padded_robots)
         X0 = _initial_poses(graph, init, initial, user_part, multiprocess, fixed)
         problem = MMProblem.build(part, xi, config=config, fixed=fixed)
-        state0 = init_state(problem, part.scatter(X0), config)
-        start = jax.device_get(evaluate(problem, state0))
+        state0, start = start_state(problem, part.scatter(X0), config)
+        start = jax.device_get(start)
     problem_specs = _problem_specs(problem)
     state_specs = _specs(state0, part.num_robots)
     problem = _shard(problem, problem_specs, mesh)

@@ -361,6 +361,19 @@ def gamma_to_soa(gamma: GammaOperator) -> GammaSoA:
     )
 
 
+def host_soa(gamma: GammaOperator) -> tuple[GammaSoA, BlockJacobiSoA]:
+    """:func:`gamma_to_soa` and the block-Jacobi preconditioner of a batched operator, computed
+    with numpy on the host (set-up runs once: op-by-op JAX would compile every transposition)."""
+    def soa(x):
+        return jnp.asarray(np.moveaxis(np.asarray(x), -3, -1))
+
+    diag = np.asarray(gamma.diag)
+    band = np.asarray(gamma.band)
+    out = GammaSoA(diag=soa(diag), band=soa(band), band_T=soa(np.swapaxes(band, -1, -2)), src=gamma.src,
+                   dst=gamma.dst, blocks=soa(gamma.blocks))
+    return out, BlockJacobiSoA(soa(np.linalg.inv(diag)))
+
+
 def soa_to_gamma(gamma: GammaSoA) -> GammaOperator:
     """The stacked-layout :class:`GammaOperator` of a :class:`GammaSoA` (exact: a transposition)."""
     return GammaOperator(

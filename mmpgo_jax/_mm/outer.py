@@ -26,9 +26,8 @@ from .majorization import (
     build_chain_preconditioner,
     build_gamma_operator,
     from_soa,
-    gamma_to_soa,
     gradient_and_share,
-    preconditioner_to_soa,
+    host_soa,
     soa_to_gamma,
     stack,
     unstack,
@@ -226,10 +225,10 @@ class MMProblem(eqx.Module):
             raise ValueError(f"MMProblem.build: unknown preconditioner {preconditioner!r}: "
                              "use 'block-jacobi', 'chain' or 'both'")
         gamma = build_gamma_operator(partition.edges, xi, partition.max_poses, min_couplings=min_couplings)
-        soa = jax.vmap(gamma_to_soa)(gamma)
-        block_jacobi = chain = None
-        if preconditioner in ("block-jacobi", "both"):
-            block_jacobi = jax.vmap(preconditioner_to_soa)(BlockJacobi(jnp.linalg.inv(gamma.diag)))
+        soa, block_jacobi = host_soa(gamma)
+        chain = None
+        if preconditioner not in ("block-jacobi", "both"):
+            block_jacobi = None
         if preconditioner in ("chain", "both"):
             chain = build_chain_preconditioner(gamma)
         del gamma  # the stacked-layout copy is not kept: the solver reads gamma_soa
@@ -481,3 +480,12 @@ def evaluate(problem: MMProblem, state: MMState) -> IterationRecord:
         grad_norm=_riemannian_grad_norm(state.X, state.grad, problem.free),
         restarted=jnp.zeros_like(state.s, dtype=bool),
     )
+
+
+@jax.jit
+def start_state(problem: MMProblem, X0: Poses, config: MMConfig) -> tuple[MMState, IterationRecord]:
+    """``init_state`` and its ``evaluate`` record in one compiled call (op by op, the gradient
+    evaluation would dispatch and compile every primitive separately: seconds on any graph).
+    The config's xi is not checked against the problem's here (traced): see :func:`init_state`."""
+    state = init_state(problem, X0, config)
+    return state, evaluate(problem, state)

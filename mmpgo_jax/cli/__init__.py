@@ -25,6 +25,7 @@ import math
 import os
 import re
 import sys
+import time
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -183,6 +184,12 @@ def _add_common(p: argparse.ArgumentParser) -> None:
         default="float64",
         help="floating-point precision (default float64, as the paper and SE-Sync)",
     )
+    cache = p.add_mutually_exclusive_group()
+    cache.add_argument("--compilation-cache", metavar="DIR",
+                       help="folder of JAX's persistent compilation cache (default: $MMPGO_COMPILATION_CACHE, "
+                            "else ~/.cache/mmpgo-jax/jax): a second run of the same shapes skips compilation")
+    cache.add_argument("--no-compilation-cache", action="store_true",
+                       help="compile afresh, write no cache (also: MMPGO_COMPILATION_CACHE=off)")
 
 
 def _add_solver_options(p: argparse.ArgumentParser) -> None:
@@ -301,7 +308,21 @@ def _run(args, argv) -> int:
         from .._core.precision import enable_float64
 
         enable_float64()
+    _use_compilation_cache(args)
     return run_reported(lambda: _dispatch(args, argv))
+
+
+def _use_compilation_cache(args) -> None:
+    """The persistent compilation cache, on unless turned off; a folder that cannot be made only
+    costs the speed-up (one warning line), never the run."""
+    from .._core.compilation_cache import enable_compilation_cache
+
+    if getattr(args, "no_compilation_cache", False):
+        return
+    try:
+        enable_compilation_cache(getattr(args, "compilation_cache", None))
+    except OSError as err:
+        print(one_line(f"mmpgo: warning: compilation cache off: {err}"), file=sys.stderr)
 
 
 def _dispatch(args, argv) -> int:
@@ -552,15 +573,19 @@ def _cmd_solve(args) -> int:
 
     args.file = str(_resolve_file(args.file, args.data))
     check_outputs(args)
+    t = time.perf_counter()
     data = _load_for_solve(args)
     ground_truth = data.poses_file(args.ground_truth, "--ground-truth file") if args.ground_truth else None
+    read = time.perf_counter() - t
     options = solve_options(args, data)
     with progress_bar(f"{args.method.upper()}-PGO", args.iterations, disable=args.no_progress) as progress:
         result = solve(data.graph, args.robots, callback=progress, ground_truth=ground_truth, **options)
     info = benchmark_info(data.path.name)
     fstar = info.fstar if info is not None else None
     _print_summary(result, fstar)
+    t = time.perf_counter()
     finish_solve(args, data, result, fstar)
+    print_timing(result, read=read, write=time.perf_counter() - t)
     return 0
 
 
@@ -669,10 +694,16 @@ def _print_summary(result, fstar: float | None) -> None:
               f"rotation {a.rotation_deg:.4g} deg RMSE")
         print(f"RPE         {a.rpe_translation:.6g} translation, {a.rpe_rotation_deg:.4g} deg rotation "
               "(consecutive poses, RMSE)")
-    print(
-        f"time        init {result.init_seconds:.2f} s, compile {result.compile_seconds:.2f} s, "
-        f"iterations {result.solve_seconds:.2f} s ({result.ms_per_iteration:.2f} ms/iteration)"
-    )
+
+
+def print_timing(result, *, read: float, write: float) -> None:
+    """The time line: every phase of the run, in the order it ran."""
+    if "initialize_seconds" in result.stats:
+        setup = f"initialize {result.initialize_seconds:.2f} s, build {result.build_seconds:.2f} s"
+    else:
+        setup = f"initialize and build {result.init_seconds:.2f} s"
+    print(f"time        read {read:.2f} s, {setup}, compile {result.compile_seconds:.2f} s, "
+          f"iterations {result.solve_seconds:.2f} s ({result.ms_per_iteration:.2f} ms/iteration), write {write:.2f} s")
 
 
 def write_history_csv(path, result) -> None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import sys
+import time
 from collections.abc import Sequence
 
 import jax
@@ -90,7 +91,9 @@ def _cli_solve_sharded(args) -> int:
 
     writer = jax.process_index() == 0
     args.file = str(cli._resolve_file(args.file, args.data, announce=writer))
+    t = time.perf_counter()
     data = cli._load_for_solve(args, announce=writer)
+    read = time.perf_counter() - t
     options = cli.solve_options(args, data)
     local = jax.local_devices()
     if args.devices:
@@ -112,7 +115,9 @@ def _cli_solve_sharded(args) -> int:
     halo = f", halo of {result.extra['halo_size']} poses per device pair" if result.extra["halo_size"] else ""
     print(f"sharding    {result.extra['devices']} devices, {result.extra['processes']} processes, "
           f"{result.extra['exchange']} exchange{halo}")
+    t = time.perf_counter()
     cli.finish_solve(args, data, result, fstar)
+    cli.print_timing(result, read=read, write=time.perf_counter() - t)
     return 0
 
 

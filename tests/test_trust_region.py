@@ -1,0 +1,110 @@
+"""The robot subproblem's trust-region solver against dense linear algebra.
+
+``_truncated_cg`` (Steihaug-Toint in the preconditioner's norm) on small dense models: the
+unconstrained solution, the boundary step, negative curvature, and the model value it reports;
+``subproblem_steps`` stops on its gradient criterion.
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import mmpgo_jax as mg
+from mmpgo_jax._mm.outer import start_state
+from mmpgo_jax._mm.subproblem import SubproblemConfig, _truncated_cg, subproblem_steps
+
+N = 8
+
+
+def _spd(rng, n, cond=50.0):
+    Q, _ = np.linalg.qr(rng.standard_normal((n, n)))
+    return (Q * np.geomspace(1.0, cond, n)) @ Q.T
+
+
+def _model(H, g, v):
+    return g @ v + 0.5 * v @ H @ v
+
+
+def _tcg(H, Minv, g, radius, tol=1e-12, iterations=100):
+    config = SubproblemConfig(cg_tolerance=tol, cg_iterations=iterations)
+    Hj, Pj = jnp.asarray(H), jnp.asarray(Minv)
+    v, vnorm, model, boundary, k = jax.jit(
+        lambda g, r: _truncated_cg(lambda x: Hj @ x, lambda x: Pj @ x, g, r, config)
+    )(jnp.asarray(g), jnp.asarray(radius, jnp.float64))
+    return np.asarray(v), float(vnorm), float(model), bool(boundary), int(k)
+
+
+@pytest.fixture
+def dense():
+    rng = np.random.default_rng(3)
+    M = _spd(rng, N, 10.0)  # the trust region's norm
+    return dict(rng=rng, M=M, Minv=np.linalg.inv(M), g=rng.standard_normal(N))
+
+
+def test_unconstrained_step_is_the_newton_step(dense):
+    H = _spd(dense["rng"], N)
+    g = dense["g"]
+    v, vnorm, model, boundary, _ = _tcg(H, dense["Minv"], g, np.inf)
+    newton = -np.linalg.solve(H, g)
+    np.testing.assert_allclose(v, newton, rtol=1e-9, atol=1e-12)
+    assert not boundary
+    np.testing.assert_allclose(vnorm, np.sqrt(newton @ dense["M"] @ newton), rtol=1e-9)
+    np.testing.assert_allclose(model, _model(H, g, newton), rtol=1e-9)
+
+
+@pytest.mark.parametrize("shrink", [0.05, 0.3, 0.9])
+def test_step_stays_in_the_region_and_reports_its_model(dense, shrink):
+    H = _spd(dense["rng"], N)
+    g, M = dense["g"], dense["M"]
+    newton = -np.linalg.solve(H, g)
+    radius = shrink * np.sqrt(newton @ M @ newton)
+    v, vnorm, model, boundary, _ = _tcg(H, dense["Minv"], g, radius)
+    assert boundary
+    np.testing.assert_allclose(np.sqrt(v @ M @ v), radius, rtol=1e-9)  # the recurrences' norm is M's
+    np.testing.assert_allclose(vnorm, radius, rtol=1e-9)
+    np.testing.assert_allclose(model, _model(H, g, v), rtol=1e-9)
+    # at least the decrease of the preconditioned Cauchy point (Steihaug's first iterate)
+    z = -dense["Minv"] @ g
+    t = min(-(g @ z) / max(z @ H @ z, 1e-300), radius / np.sqrt(z @ M @ z))
+    assert model <= _model(H, g, t * z) + 1e-12
+
+
+def test_negative_curvature_goes_to_the_boundary(dense):
+    rng = dense["rng"]
+    Q, _ = np.linalg.qr(rng.standard_normal((N, N)))
+    H = (Q * np.linspace(-2.0, 5.0, N)) @ Q.T  # indefinite
+    g, M = dense["g"], dense["M"]
+    v, vnorm, model, boundary, _ = _tcg(H, dense["Minv"], g, 0.7)
+    assert boundary
+    np.testing.assert_allclose(np.sqrt(v @ M @ v), 0.7, rtol=1e-9)
+    np.testing.assert_allclose(model, _model(H, g, v), rtol=1e-9)
+    assert model < 0
+    # with an infinite radius there is no boundary: the step is kept finite (never NaN or inf)
+    v_inf, *_ = _tcg(H, dense["Minv"], g, np.inf)
+    assert np.all(np.isfinite(v_inf))
+
+
+def test_subproblem_stops_on_its_gradient_criterion():
+    """Every robot ends with ||grad G|| <= tolerance * ||grad G(start)||, or at the step cap."""
+    graph = mg.grid_2d_dataset(1, grid=8, num_poses=300).graph
+    part = mg.partition(graph, 4)
+    X0 = part.scatter(mg.initialize(graph, "odometry"))
+    problem = mg.MMProblem.build(part, 1e-3)
+    state, _ = start_state(problem, X0, mg.MMConfig())
+    for tol in (0.3, 1e-3):
+        config = SubproblemConfig(gradient_tolerance=tol, max_steps=40, cg_iterations=100)
+        solve = jax.jit(jax.vmap(lambda G, P, x, g: subproblem_steps(G, P, x, x, g, config)))
+        out = solve(problem.gamma_soa, problem.block_jacobi_soa, state.X, state.grad)
+        gnorm0 = np.sqrt(np.sum(np.asarray(jax.vmap(_tangent_norm2)(state.X, state.grad)), axis=-1))
+        steps = np.asarray(out.steps)
+        ok = (np.asarray(out.gnorm) <= tol * gnorm0 * (1 + 1e-12)) | (steps == config.max_steps)
+        assert np.all(ok), (np.asarray(out.gnorm), gnorm0, steps)
+        assert np.all(steps < config.max_steps)  # the criterion, not the cap, stopped these
+        assert np.all(steps >= 1)
+
+
+def _tangent_norm2(X, grad):
+    from mmpgo_jax._mm.subproblem import tangent_projection
+
+    return jnp.sum(tangent_projection(X, grad) ** 2, axis=(1, 2))
