@@ -169,9 +169,8 @@ def _inner(a, b):
     return jnp.sum(a * b)
 
 
-def _value_soa(gamma: GammaSoA, Y, center, g):
-    D = Y - center
-    return 0.5 * _inner(gamma(D), D) + _inner(g, D)
+def _norm(a):
+    return jnp.sqrt(_inner(a, a))
 
 
 def majorizer_value(gamma, Y, center, g):
@@ -283,12 +282,12 @@ def _solve(gamma, preconditioner, start, center, g, config: SubproblemConfig, fr
         return _TrustRegionState(
             steps=st.steps + 1, cg=st.cg + cg, Y=Y_new, egrad=egrad_new,
             value=jnp.where(accept, value_c, st.value),
-            gnorm=jnp.where(accept, jnp.sqrt(_inner(*(2 * [tangent(Y_new, egrad_new)]))), st.gnorm),
+            gnorm=jnp.where(accept, _norm(tangent(Y_new, egrad_new)), st.gnorm),
             radius=radius,
         )
 
     egrad, value = evaluate(start)
-    gnorm = jnp.sqrt(_inner(*(2 * [tangent(start, egrad)])))
+    gnorm = _norm(tangent(start, egrad))
     stop_at = config.gradient_tolerance * gnorm
     init = _TrustRegionState(steps=jnp.asarray(0), cg=jnp.asarray(0), Y=start, egrad=egrad, value=value,
                              gnorm=gnorm, radius=jnp.asarray(jnp.inf, value.dtype))
