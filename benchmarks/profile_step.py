@@ -25,7 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import mmpgo_jax as mg
-from mmpgo_jax._mm.majorization import preconditioner_to_soa, to_soa, unstack
+from mmpgo_jax._mm.majorization import preconditioner_to_soa, to_soa
 from mmpgo_jax._mm.outer import _gradients, start_state
 from mmpgo_jax._mm.subproblem import _retract_soa, _tangent_soa, subproblem_steps
 
@@ -61,7 +61,7 @@ def profile(name: str) -> dict:
         "chain": per_call_us(lambda P, v: vm(lambda p, x: preconditioner_to_soa(p)(x))(P, v), problem.chain, V),
         "tangent": per_call_us(lambda y, v: vm(_tangent_soa)(y, v), X, V),
         "retraction": per_call_us(lambda y, v: vm(_retract_soa)(y, 1e-3 * v), X, V),
-        "gradient": per_call_us(lambda Y: _gradients(problem, unstack(Y))[0], state.X),
+        "gradient": per_call_us(lambda Y: _gradients(problem, Y)[0], state.X),
     }
     sub = config.subproblem
     solve = vm(lambda G, P, x, g: subproblem_steps(G, P, x, x, g, sub))
