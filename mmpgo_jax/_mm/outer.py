@@ -76,9 +76,10 @@ class MMConfig(eqx.Module):
       the problem (e.g. for a batch of problems with different xi).
 
     Static fields (their values select the compiled code): ``method``, ``restart`` and the
-    subproblem's ``preconditioner`` and loop budgets. Everything else is an ordinary (traced) field:
+    subproblem's ``preconditioner`` and loop caps. Everything else is an ordinary (traced) field:
     ``xi``, ``slack_scale`` (>= 0), ``slack_decay`` (in [0, 1]), ``average_rates`` (two rates in
-    [0, 1]: slow, fast), ``soft_restart_hits`` (integer >= 1) and the subproblem's ``cg_tolerance``;
+    [0, 1]: slow, fast), ``soft_restart_hits`` (integer >= 1) and the subproblem's ``gradient_tolerance`` and
+    ``cg_tolerance``;
     a run with other values of these reuses the compiled code. Every field is checked when the
     config is built (ValueError naming the field and its range); values that are traced at that
     point (configs built under ``jit`` / ``vmap``) are not.
@@ -457,7 +458,7 @@ class _CheckedJit:
 
 run = _CheckedJit(_run, """``length`` outer iterations in one ``lax.scan``; returns (state, records).
 
-    Jitted with a static ``length``: the config's traced fields (xi, cg_tolerance, restart
+    Jitted with a static ``length``: the config's traced fields (xi, the inner tolerances, restart
     constants) and the problem's arrays are arguments, so runs that differ only in those values
     share one compilation. ValueError when the config's xi differs from the problem's, or asks for a
     preconditioner the problem does not hold (checked before tracing, on concrete values).

@@ -225,8 +225,8 @@ def centralized_optimum(
     is a damped Riemannian Newton step on F itself. The default inner solve is near exact (CG to a
     relative residual 1e-8 in float64, 1e-4 in float32, at most 1000 iterations) with a tiny xi: then
     the outer iteration is
-    Newton's method and converges in tens of iterations. A cheap inner solve (the distributed
-    default, 20 CG iterations) needs thousands on ill-conditioned files (parking-garage: its
+    Newton's method and converges in tens of iterations. A cheap inner solve (e.g. 20 CG
+    iterations per outer iteration) needs thousands on ill-conditioned files (parking-garage: its
     rotation weights span 9 decades). In float32, which stalls far above ``grad_tol``, it also stops
     once 25 iterations lower f by less than a relative 1e-7. Used by the benchmarks as f*; check a
     result with :func:`~mmpgo_jax.certify`. ``init`` / ``initial`` / ``fixed`` / ``frame``: as for
