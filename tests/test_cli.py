@@ -410,3 +410,14 @@ def test_optimum_command_writes_certified_optimum(tmp_path):
 
     proc = mmpgo("optimum", problem, "--init", "nowhere")
     assert proc.returncode == 2 and "Traceback" not in proc.stderr and "--init" in proc.stderr
+
+
+def test_version(capsys):
+    """``mmpgo --version`` prints the installed version (the one pyproject.toml declares)."""
+    import tomllib
+
+    from mmpgo_jax.cli import main
+
+    declared = tomllib.loads((Path(__file__).resolve().parents[1] / "pyproject.toml").read_text())["project"]["version"]
+    assert main(["--version"]) == 0
+    assert capsys.readouterr().out.strip() == f"mmpgo-jax {declared}"

@@ -221,7 +221,10 @@ def _add_strict(p: argparse.ArgumentParser) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from .. import __version__
+
     parser = _Parser(prog="mmpgo", description="Distributed PGO by majorization minimization (JAX)")
+    parser.add_argument("--version", action="version", version=f"mmpgo-jax {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("info", help="describe a pose graph and its partition among robots")
