@@ -88,8 +88,9 @@ _init = eqx.filter_jit(init_state)
 
 def setup_mm(graph, X0, robots, config, min_couplings=0, **padding):
     part = partition(graph, robots, **padding)
-    problem = MMProblem.build(part, config.xi, min_couplings=min_couplings) if min_couplings else MMProblem.build(part, config.xi)
-    state = _init(problem, _scatter(part, X0), config)
+    X0 = _scatter(part, X0)
+    problem = MMProblem.build(part, config.xi, min_couplings=min_couplings, poses=X0)
+    state = _init(problem, X0, config)
     return part, problem, state
 
 
@@ -289,7 +290,7 @@ def test_subproblem_decreases_and_converges(subproblem_setup):
     np.testing.assert_array_equal(np.asarray(part.slot_of_pose)[np.asarray(graph.i)], np.asarray(roles[3]))
     rng = np.random.default_rng(5)
     for xi in (XI, 0.5):
-        problem = MMProblem.build(part, xi)
+        problem = MMProblem.build(part, xi, poses=s["X"])
         for start, center, g in _random_trials(rng, stack(s["X"]), stack(s["grad"]), mask):
             for config in (SubproblemConfig(), CONVERGE):
                 Y, v, v0 = _solve_all(problem.gamma, _precond(problem, config), start, center, g, config)
@@ -360,7 +361,7 @@ def test_mm_problem_gamma_and_preconditioners(runs):
     np.testing.assert_allclose(np.asarray(problem.gamma.diag), blocks, rtol=1e-12, atol=1e-14)
     d = blocks.shape[-1] - 1
     shape = (part.max_poses, d, d + 1)
-    for kind in ("chain", "block-jacobi"):
+    for kind in ("two-level", "chain", "block-jacobi"):
         P = np.asarray(_dense_per_robot(_precond(problem, SubproblemConfig(preconditioner=kind)), shape))
         for Pa in P:
             np.testing.assert_allclose(Pa, Pa.T, atol=1e-10 * np.abs(Pa).max(), err_msg=kind)
@@ -553,7 +554,7 @@ def test_xi_zero_with_padding_slots(subproblem_setup):
     X, grad = stack(s["X"]), stack(s["grad"])
     out = {}
     for xi in (0.0, 1e-15):
-        problem = MMProblem.build(part, xi)
+        problem = MMProblem.build(part, xi, poses=s["X"])
         # solved to convergence: a stopping decision taken at a slightly different point would make
         # the two results differ by the last step, not by xi
         out[xi] = _solve_all(problem.gamma, _precond(problem, CONVERGE), X, X, grad, CONVERGE)
@@ -611,7 +612,7 @@ def test_traced_config_numbers_compile_once_and_match_static(problem2d):
     length = 30
     results, compiles = {}, []
     for name, cfg in variants.items():
-        problem = MMProblem.build(part, config=cfg)
+        problem = MMProblem.build(part, config=cfg, poses=X0)
         assert float(problem.xi) == cfg.xi
         st0 = _init(problem, X0, cfg)
         (st, rec), n = _compiles_of_run(lambda p=problem, c=cfg, s=st0: jax.block_until_ready(run(p, c, s, length)))
@@ -669,12 +670,12 @@ def test_xi_of_config_and_problem_cannot_disagree(problem2d):
     part = partition(problem2d["graph"], problem2d["robots"])
     X0 = _scatter(part, problem2d["X0"])
     cfg = MMConfig(method="mm", xi=0.25)
-    problem = MMProblem.build(part, config=cfg)
+    problem = MMProblem.build(part, config=cfg, poses=X0)
     assert float(problem.xi) == 0.25
-    assert float(MMProblem.build(part, 0.25, config=cfg).xi) == 0.25  # both given, equal: fine
+    assert float(MMProblem.build(part, 0.25, config=cfg, poses=X0).xi) == 0.25  # both given, equal: fine
     assert float(MMProblem.build(part).xi) == MMConfig().xi  # the default
     with pytest.raises(ValueError, match=r"differs from config\.xi"):
-        MMProblem.build(part, 0.5, config=cfg)
+        MMProblem.build(part, 0.5, config=cfg, poses=X0)
     other = MMConfig(method="mm", xi=1e-3)
     with pytest.raises(ValueError, match=r"MMConfig\.xi = 0\.001 differs from the xi the MMProblem was built with"):
         init_state(problem, X0, other)
@@ -709,22 +710,30 @@ def test_mm_problem_holds_only_what_run_reads(problem2d):
     host_side = {".partition.pose_index", ".partition.pose_mask", ".partition.robot_of_pose",
                  ".partition.slot_of_pose", ".xi"}
     sizes = {}
-    for kind in ("block-jacobi", "chain"):
+    for kind in ("two-level", "block-jacobi", "chain"):
         cfg = MMConfig(method="amm", subproblem=SubproblemConfig(preconditioner=kind))
-        problem = MMProblem.build(part, config=cfg)
+        problem = MMProblem.build(part, config=cfg, poses=X0)
         assert problem.preconditioners == (kind,)
         assert (problem.chain is None) == (kind != "chain")
-        assert (problem.block_jacobi_soa is None) == (kind == "chain")
+        assert (problem.two_level is None) == (kind != "two-level")
+        assert (problem.block_jacobi_soa is None) == (kind != "block-jacobi")
         reads = _leaves_run_reads(problem, cfg, init_state(problem, X0, cfg))
         unread = {p for p, used in reads.items() if not used}
         assert unread == host_side, unread
         sizes[kind] = sum(x.nbytes for x in jax.tree.leaves(problem))
-    # without a config both preconditioners are built (any config can run it): larger
-    both = MMProblem.build(part)
-    assert both.preconditioners == ("block-jacobi", "chain")
+    # without a config every preconditioner is built (any config can run it): larger; the
+    # two-level one only when the start poses are given
+    assert MMProblem.build(part).preconditioners == ("block-jacobi", "chain")
+    both = MMProblem.build(part, poses=X0)
+    assert both.preconditioners == ("two-level", "block-jacobi", "chain")
     assert sum(x.nbytes for x in jax.tree.leaves(both)) > max(sizes.values())
     # the stacked-layout views are exact transpositions of what is stored
     np.testing.assert_array_equal(np.asarray(both.gamma.diag), np.moveaxis(np.asarray(both.gamma_soa.diag), -1, -3))
-    bj = MMProblem.build(part, config=MMConfig())
-    with pytest.raises(ValueError, match="holds only the block-jacobi preconditioner"):
+    bj_config = MMConfig(subproblem=SubproblemConfig(preconditioner="block-jacobi"))
+    bj = MMProblem.build(part, config=bj_config)
+    with pytest.raises(ValueError, match="holds block-jacobi preconditioner, the config asks for 'chain'"):
         run(bj, MMConfig(subproblem=SubproblemConfig(preconditioner="chain")), init_state(bj, X0), 2)
+    with pytest.raises(ValueError, match=r"asks for 'two-level'.*poses=partition\.scatter\(X0\)"):
+        run(bj, MMConfig(), init_state(bj, X0), 2)
+    with pytest.raises(ValueError, match="two-level preconditioner is made of the start poses"):
+        MMProblem.build(part, config=MMConfig())

@@ -193,8 +193,9 @@ def solve_sharded(
         else:
             part = partition(graph, plan.sharded_robot_of_pose, num_robots=plan.padded_robots)
         X0 = _initial_poses(graph, init, initial, user_part, multiprocess, fixed)
-        problem = MMProblem.build(part, xi, config=config, fixed=fixed)
-        state0, start = start_state(problem, part.scatter(X0), config)
+        X0 = part.scatter(X0)
+        problem = MMProblem.build(part, xi, config=config, fixed=fixed, poses=X0)
+        state0, start = start_state(problem, X0, config)
         start = jax.device_get(start)
     problem_specs = _problem_specs(problem)
     state_specs = _specs(state0, part.num_robots)

@@ -443,7 +443,8 @@ def sweep(
                 fix = fixed_of[names[gi]]
                 if fix is None and any_fixed:  # one pytree structure per batch: an all-free mask
                     fix = np.zeros(g.num_poses, dtype=bool)
-                problem = MMProblem.build(part, x, config=config, min_couplings=kc, fixed=fix)
+                problem = MMProblem.build(part, x, config=config, min_couplings=kc, fixed=fix,
+                                          poses=part.scatter(start_of(gi, a)))
                 return part, problem
 
             def batchable(problem: MMProblem, n_common: int) -> MMProblem:
@@ -461,7 +462,7 @@ def sweep(
                 )
                 return MMProblem(partition=common, gamma_soa=problem.gamma_soa,
                                  block_jacobi_soa=problem.block_jacobi_soa, chain=problem.chain, free=problem.free,
-                                 xi=problem.xi)
+                                 xi=problem.xi, two_level=problem.two_level)
 
             n_common = max(glist[k[0]].num_poses for k in gkeys)
             # bytes of one configuration (all have the same padded shape)

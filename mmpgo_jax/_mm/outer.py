@@ -30,6 +30,7 @@ from .majorization import (
     host_soa,
     soa_to_gamma,
     stack,
+    to_soa,
     unstack,
 )
 from .subproblem import (
@@ -44,6 +45,7 @@ from .subproblem import (
     solve_subproblem,
     tangent_projection,
 )
+from .two_level import TwoLevelSoA, build_two_level
 
 METHODS = ("mm", "amm")
 RESTARTS = ("paper", "adaptive", "average")
@@ -118,9 +120,11 @@ def check_consistent(problem: MMProblem, config: MMConfig) -> None:
     check_xi(problem, config)
     kind = config.subproblem.preconditioner
     if kind not in problem.preconditioners:
+        held = " and ".join(problem.preconditioners) or "no"
+        poses = ", poses=partition.scatter(X0)" if kind == "two-level" else ""
         raise ValueError(
-            f"this MMProblem holds only the {' and '.join(problem.preconditioners)} preconditioner, the config asks "
-            f"for {kind!r}: build it with MMProblem.build(..., config=config) (or preconditioner={kind!r})"
+            f"this MMProblem holds {held} preconditioner, the config asks for {kind!r}: build it with "
+            f"MMProblem.build(..., config=config{poses}) (or preconditioner={kind!r})"
         )
 
 
@@ -139,10 +143,11 @@ def check_xi(problem: MMProblem, config: MMConfig) -> None:
 class MMProblem(eqx.Module):
     """Constant data of a run: the partition and Gamma^alpha of every robot (built once).
 
-    Only what the solver reads is stored: Gamma^alpha and the configured preconditioner in the
-    solver's structure-of-arrays layout (``gamma_soa``; ``block_jacobi_soa`` and/or ``chain``, the
-    other one None). ``gamma`` / ``block_jacobi`` (stacked layout) are views computed on access.
-    ``xi`` (a 0-d array, traced like the other leaves) is the xi Gamma was built with.
+    Only what the solver reads is stored: Gamma^alpha and the preconditioners in the solver's
+    structure-of-arrays layout (``gamma_soa``; ``two_level``, ``block_jacobi_soa`` and ``chain``,
+    each None when it was not built). ``gamma`` / ``block_jacobi`` (stacked layout) are views
+    computed on access. ``xi`` (a 0-d array, traced like the other leaves) is the xi Gamma was
+    built with.
 
     ``free`` (A, n_max) bool marks the slots the solver may move: all but the fixed poses (g2o FIX;
     see :class:`~mmpgo_jax.FixedPoses`), which keep their value in X^0; None when no pose is fixed
@@ -156,6 +161,7 @@ class MMProblem(eqx.Module):
     chain: ChainPreconditioner | None  # exact inverse of Gamma's chain part (preconditioner="chain")
     free: jax.Array | None  # (A, n_max) bool, or None when no pose is fixed
     xi: jax.Array  # () the xi of Gamma
+    two_level: TwoLevelSoA | None = None  # block-Jacobi + coarse correction (preconditioner="two-level")
 
     @property
     def gamma(self) -> GammaOperator:
@@ -167,17 +173,23 @@ class MMProblem(eqx.Module):
         """Inverses of Gamma's diagonal blocks, stacked layout (computed on access)."""
         if self.block_jacobi_soa is not None:
             return BlockJacobi(from_soa(self.block_jacobi_soa.diag_inverse))
+        if self.two_level is not None:
+            return BlockJacobi(from_soa(self.two_level.diag_inverse))
         return BlockJacobi(jnp.linalg.inv(self.gamma.diag))
+
+    def _held(self) -> dict:
+        return {"two-level": self.two_level, "block-jacobi": self.block_jacobi_soa, "chain": self.chain}
 
     @property
     def preconditioners(self) -> tuple[str, ...]:
         """The preconditioner kinds this problem holds (a config asking for another one fails)."""
-        return tuple(k for k, v in (("block-jacobi", self.block_jacobi_soa), ("chain", self.chain)) if v is not None)
+        return tuple(k for k, v in self._held().items() if v is not None)
 
     def preconditioner(self, config: MMConfig):
         """The configured preconditioner, acting on stacked poses (n_max, d, d+1) per robot.
 
-        A kind the problem does not hold is computed (on the host for "chain": not under jit)."""
+        "block-jacobi" and "chain" are computed when the problem does not hold them (on the host
+        for "chain": not under jit); "two-level" needs the start poses (``build(..., poses=X0)``)."""
         kind = config.subproblem.preconditioner
         if kind == "chain":
             if self.chain is not None:
@@ -188,28 +200,35 @@ class MMProblem(eqx.Module):
             return build_chain_preconditioner(self.gamma)
         if kind == "block-jacobi":
             return self.block_jacobi
-        raise ValueError(f"unknown preconditioner {kind!r}: use 'chain' or 'block-jacobi'")
+        if kind == "two-level":
+            if self.two_level is None:
+                raise ValueError("this MMProblem holds no two-level preconditioner: build it with "
+                                 "MMProblem.build(..., poses=partition.scatter(X0))")
+            return StackedLayout(self.two_level)
+        raise ValueError(f"unknown preconditioner {kind!r}: use {' or '.join(map(repr, PRECONDITIONERS))}")
 
     def _solver_preconditioner(self, config: MMConfig):
-        kind = config.subproblem.preconditioner
-        if kind == "block-jacobi" and self.block_jacobi_soa is not None:
-            return self.block_jacobi_soa
-        if kind == "chain" and self.chain is not None:
-            return self.chain
+        held = self._held().get(config.subproblem.preconditioner)
+        if held is not None:
+            return held
         check_consistent(self, config)  # raises: the configured preconditioner was not built
         raise AssertionError("unreachable")
 
     @staticmethod
     def build(partition: Partition, xi: float | None = None, *, config: MMConfig | None = None,
-              preconditioner: str | None = None, min_couplings: int = 0, fixed=None) -> MMProblem:
+              preconditioner: str | None = None, min_couplings: int = 0, fixed=None,
+              poses=None) -> MMProblem:
         """Gamma^alpha of every robot, its preconditioner and the fixed-pose mask (host, once).
 
         ``xi``: the proximal term; default ``config.xi`` (1e-3 without a config). Given both and
         different: ValueError. ``config``: the MMConfig the problem will run with: only the
-        preconditioner it reads is built. ``preconditioner``: "block-jacobi", "chain" or "both"
-        (overrides the config's); without either, both are built (any config can run the problem).
-        ``min_couplings`` pads Gamma's loop-closure list (to batch problems of one shape);
-        ``fixed``: a :class:`~mmpgo_jax.FixedPoses` (or (n,) bool mask) of poses that never move."""
+        preconditioner it reads is built. ``preconditioner``: "two-level", "block-jacobi", "chain"
+        or "all" (overrides the config's); without either, all are built (any config can run the
+        problem). ``poses``: the start X^0 (``partition.scatter(poses)``), which the two-level
+        preconditioner's coarse space is made of; needed for "two-level" (the default), left out
+        of "all" when not given. ``min_couplings`` pads Gamma's loop-closure list (to batch
+        problems of one shape); ``fixed``: a :class:`~mmpgo_jax.FixedPoses` (or (n,) bool mask) of
+        poses that never move."""
         if config is not None and config.xi is not None:
             if xi is None:
                 xi = config.xi
@@ -221,17 +240,24 @@ class MMProblem(eqx.Module):
         check_real("MMProblem.build", "xi", xi, 0.0)
         xi = float(xi)
         if preconditioner is None:
-            preconditioner = config.subproblem.preconditioner if config is not None else "both"
-        if preconditioner not in (*PRECONDITIONERS, "both"):
+            preconditioner = config.subproblem.preconditioner if config is not None else "all"
+        if preconditioner not in (*PRECONDITIONERS, "all"):
             raise ValueError(f"MMProblem.build: unknown preconditioner {preconditioner!r}: "
-                             "use 'block-jacobi', 'chain' or 'both'")
+                             f"use {', '.join(map(repr, PRECONDITIONERS))} or 'all'")
+        if preconditioner == "two-level" and poses is None:
+            raise ValueError("MMProblem.build: the two-level preconditioner is made of the start poses: "
+                             "give poses=partition.scatter(X0) (or preconditioner='block-jacobi')")
+        wanted = PRECONDITIONERS if preconditioner == "all" else (preconditioner,)
         gamma = build_gamma_operator(partition.edges, xi, partition.max_poses, min_couplings=min_couplings)
         soa, block_jacobi = host_soa(gamma)
-        chain = None
-        if preconditioner not in ("block-jacobi", "both"):
+        chain = build_chain_preconditioner(gamma) if "chain" in wanted else None
+        two_level = None
+        if "two-level" in wanted and poses is not None:
+            two_level = build_two_level(gamma.diag, gamma.band, gamma.src, gamma.dst, gamma.blocks,
+                                        block_jacobi.diag_inverse, stack(poses), partition.pose_mask,
+                                        soa.diag.dtype)
+        if "block-jacobi" not in wanted:
             block_jacobi = None
-        if preconditioner in ("chain", "both"):
-            chain = build_chain_preconditioner(gamma)
         del gamma  # the stacked-layout copy is not kept: the solver reads gamma_soa
         free = None  # no fixed pose: the solver runs without a mask (same compiled code as ever)
         if fixed is not None:
@@ -243,7 +269,16 @@ class MMProblem(eqx.Module):
             free[np.asarray(partition.robot_of_pose)[mask], np.asarray(partition.slot_of_pose)[mask]] = False
             free = jnp.asarray(free)
         return MMProblem(partition=partition, gamma_soa=soa, block_jacobi_soa=block_jacobi, chain=chain,
-                         free=free, xi=jnp.asarray(xi, soa.diag.dtype))
+                         free=free, xi=jnp.asarray(xi, soa.diag.dtype), two_level=two_level)
+
+
+class StackedLayout(eqx.Module):
+    """A structure-of-arrays preconditioner applied to stacked poses (n_max, d, d+1)."""
+
+    inner: eqx.Module
+
+    def __call__(self, V):
+        return from_soa(self.inner(to_soa(V)))
 
 
 class MMState(eqx.Module):

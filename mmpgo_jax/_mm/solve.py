@@ -147,7 +147,7 @@ def solve(
     X0 = initialize(graph, init, initial=initial, robots=part, fixed=fixed)
     X0 = jax.block_until_ready(part.scatter(X0))
     clock.lap("initialize")
-    problem = jax.block_until_ready(MMProblem.build(part, xi, config=config, fixed=fixed))
+    problem = jax.block_until_ready(MMProblem.build(part, xi, config=config, fixed=fixed, poses=X0))
     clock.lap("build")
     start_fn = compile_once(start_state, problem, X0, config)
     clock.lap("compile")
