@@ -88,15 +88,20 @@ def test_one_compilation_matches_separate_solves(amm_sweep, cube):
 
 
 def test_default_inner_solver_matches_solve(cube):
-    """Default inner budget: same compile-once property; agreement within the solver's own
-    floating-point reproducibility (measured 7e-8 on this dataset, see STABLE above)."""
+    """Default inner solver: same compile-once property; the same f as solve() on the partition
+    padded as the sweep pads it. (Against the unpadded partition the agreement is only up to the
+    rounding of longer reductions, which can move an inexact CG stop by one iteration: measured
+    2e-5 in f here.)"""
     its = 8
     res, traces, compiles = _sweep_logging_compiles(cube.graph, ROBOTS, methods=("mm",), iterations=its,
                                                     chunk_size=its, fstar=15000.0)
     assert traces == 1 and len(compiles) == 1
+    (group,) = res.groups
     for a in ROBOTS:
-        ref = mm.solve(cube.graph, a, method="mm", iterations=its, chunk_size=its)
-        np.testing.assert_allclose(res.history("graph0", a, "mm"), ref.history.f, rtol=1e-6)
+        part = mm.partition(cube.graph, a, min_max_poses=group["n_max"], min_max_edges=group["e_max"],
+                            num_robots=max(ROBOTS))
+        ref = mm.solve(cube.graph, part, method="mm", iterations=its, chunk_size=its)
+        np.testing.assert_allclose(res.history("graph0", a, "mm"), ref.history.f, rtol=1e-12)
     gap = res.relative_gap("graph0", 5, "mm")
     np.testing.assert_allclose(gap, (res.history("graph0", 5, "mm") - 15000.0) / 15000.0)
 

@@ -29,15 +29,20 @@ def _dense_gamma(problem, robot):
 
 def _dense_prolongation(X0, mask, b):
     """P (n k) x (m k): on aggregate a, column a k + 0 is the translation shift, a k + 1 + r the
-    r-th row of [t_s | R_s] at the aggregate's slots s (zero on padding slots)."""
+    r-th row of [t_s - mean t | R_s] at the aggregate's slots s (zero on padding slots)."""
     n, d, k = X0.shape
     m = -(-n // b)
     P = np.zeros((n, k, m, k))
-    for s in range(n):
-        if mask[s]:
-            P[s, 0, s // b, 0] = 1.0
+    for a in range(m):
+        slots = [s for s in range(a * b, min(n, (a + 1) * b)) if mask[s]]
+        if not slots:
+            continue
+        mean = X0[slots, :, 0].mean(axis=0)
+        for s in slots:
+            P[s, 0, a, 0] = 1.0
             for r in range(d):
-                P[s, :, s // b, 1 + r] = X0[s, r]
+                P[s, :, a, 1 + r] = X0[s, r]
+                P[s, 0, a, 1 + r] -= mean[r]
     return P.reshape(n * k, m * k)
 
 
@@ -83,19 +88,28 @@ def test_coarse_matrix_and_application_match_dense_algebra(chain):
 
 def test_coarse_space_holds_gammas_null_space():
     """Noise-free measurements, X^0 = the truth, one robot and xi = 0: the shift and the rows of X^0
-    cost nothing, so the coarse matrix has exactly d + 1 zero eigenvalues (the gauge), with
-    eigenvectors constant over the aggregates."""
+    cost nothing, so P^T Gamma P has exactly d + 1 zero eigenvalues (the gauge), whose eigenvectors,
+    prolonged, are null vectors of Gamma itself; the library's basis is that P."""
     data = mg.grid_2d_dataset(5, grid=12, num_poses=120, loop_closure_prob=0.1, sigma_t=0.0, sigma_R=0.0)
     part = mg.partition(data.graph, 1)
     X0 = part.scatter(data.ground_truth)
     problem = mg.MMProblem.build(part, 0.0, poses=X0)
-    coarse = np.linalg.pinv(np.asarray(problem.two_level.coarse_inverse[0]))
-    w, V = np.linalg.eigh(0.5 * (coarse + coarse.T))
+    b = problem.two_level.aggregate
+    n, k = part.max_poses, 3
+    P = _dense_prolongation(np.asarray(stack(X0))[0], np.asarray(part.pose_mask)[0], b)
+    basis = np.asarray(problem.two_level.basis[0])  # (q, c, slot)
+    P_lib = np.zeros((n, k, -(-n // b), k))
+    P_lib[np.arange(n), :, np.arange(n) // b, :] = np.moveaxis(basis, -1, 0)
+    np.testing.assert_allclose(P_lib.reshape(P.shape), P, atol=1e-12)
+    G = _dense_gamma(problem, 0)
+    w, V = np.linalg.eigh(P.T @ G @ P)
     scale = np.abs(w).max()
-    assert np.all(np.abs(w[:3]) < 1e-9 * scale) and w[3] > 1e-6 * scale, w[:5]
-    m = coarse.shape[0] // 3
-    null = V[:, :3].reshape(m, 3, 3)  # (aggregate, coarse unknown, vector)
-    np.testing.assert_allclose(null, np.broadcast_to(null[:1], null.shape), atol=1e-7)
+    assert np.all(np.abs(w[:3]) < 1e-9 * scale) and w[3] > 1e-7 * scale, w[:5]
+    fine = P @ V[:, :3]
+    assert np.abs(G @ fine).max() < 1e-9 * np.abs(G).max() * np.abs(fine).max()
+    # and the library's coarse inverse is a generalized inverse of it: C C^+ C = C
+    C, Cp = P.T @ G @ P, np.asarray(problem.two_level.coarse_inverse[0])
+    np.testing.assert_allclose(C @ Cp @ C, C, atol=1e-8 * scale)
 
 
 def test_two_level_needs_far_fewer_cg_iterations_on_a_long_chain(chain):
@@ -120,3 +134,21 @@ def test_build_needs_the_start_poses_for_the_default(chain):
     with pytest.raises(ValueError, match="made of the start poses"):
         mg.MMProblem.build(part, config=mg.MMConfig())
     assert mg.MMProblem.build(part, config=mg.MMConfig(), poses=X0).preconditioners == ("two-level",)
+
+
+def test_padding_does_not_change_the_preconditioner(chain):
+    """A partition padded to more slots and robots (to batch it with others) gets the same
+    aggregates and the same M^{-1} on its real slots."""
+    data, part, X0, problem = chain
+    padded = mg.partition(data.graph, 2, min_max_poses=part.max_poses + 37, num_robots=3)
+    Xp = padded.scatter(part.gather(X0))
+    pre_p = mg.MMProblem.build(padded, 1e-3, poses=Xp).two_level
+    assert pre_p.aggregate == problem.two_level.aggregate
+    n = part.max_poses
+    V = np.random.default_rng(1).standard_normal((2, 2, 3, n))
+    Vp = np.zeros((3, 2, 3, padded.max_poses))
+    Vp[:2, ..., :n] = V
+    out = np.asarray(jax.vmap(lambda p, v: p(v))(problem.two_level, jnp.asarray(V)))
+    out_p = np.asarray(jax.vmap(lambda p, v: p(v))(pre_p, jnp.asarray(Vp)))
+    np.testing.assert_allclose(out_p[:2, ..., :n], out, rtol=1e-10, atol=1e-12 * np.abs(out).max())
+    np.testing.assert_array_equal(out_p[2], 0.0)

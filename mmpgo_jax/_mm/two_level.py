@@ -22,10 +22,9 @@ preconditioner is the additive two-level one
 
 symmetric positive definite; P^T Gamma P is small and dense and, Gamma being constant, it is
 factored once, when the problem is built (a pseudo-inverse: a robot with no anchor, xi = 0, has a
-singular Gamma). The aggregate size balances the two levels (:func:`aggregate_size`): about 96
-coarse unknowns per robot, so that the dense coarse product stays cheaper than a Gamma product,
-but never more than ~sqrt(n) slots per aggregate (measured on the benchmark files, 2026-12-02:
-benchmarks/profile_step.md). An X^0 far from consistent only makes the coarse space less
+singular Gamma). Aggregates have 16 slots (:func:`aggregate_size`; measured on the benchmark
+files, the time per iteration is flat between 8 and 32, benchmarks/profile_step.md), so the coarse
+level has n/16 * (d + 1) unknowns per robot. An X^0 far from consistent only makes the coarse space less
 useful: the preconditioner stays positive definite and the accept test of the trust region guards
 every step.
 """
@@ -39,19 +38,16 @@ import numpy as np
 
 from .majorization import soa_bmm, soa_T
 
-MIN_AGGREGATE = 8
-SMALL_COARSE = 96
+AGGREGATE = 16  # slots per aggregate (measured, benchmarks/profile_step.md: flat between 8 and 32)
 MAX_COARSE = 1536  # coarse unknowns per robot: bounds the (A, m k, m k) dense factor's memory
 
 
-def aggregate_size(max_poses: int, pose_dim: int) -> int:
-    """Slots per aggregate for robots of ``max_poses`` slots (``pose_dim`` = d + 1 unknowns per
-    slot and row): enough for about ``SMALL_COARSE`` coarse unknowns (the dense coarse product
-    then costs less than a Gamma product), but no more than about sqrt(n) (on large robots the
-    coarse level keeps sqrt(n) aggregates, so that it still reaches the smooth modes), at least 8,
-    and in any case few enough aggregates for at most ``MAX_COARSE`` coarse unknowns."""
-    b = max(MIN_AGGREGATE, min(round(float(np.sqrt(max_poses))), -(-max_poses * pose_dim // SMALL_COARSE)))
-    return max(b, -(-max_poses * pose_dim // MAX_COARSE))
+def aggregate_size(robot_poses: int, pose_dim: int) -> int:
+    """Slots per aggregate when the largest robot has ``robot_poses`` poses (``pose_dim`` = d + 1
+    unknowns per slot and row): 16, or more on robots so large that the coarse level would exceed
+    ``MAX_COARSE`` unknowns (over 8192 poses per robot in 2D, 6144 in 3D). It depends on the real
+    poses, not on the padded slot count, so padding a partition does not change the preconditioner."""
+    return max(AGGREGATE, -(-robot_poses * pose_dim // MAX_COARSE))
 
 
 class TwoLevelSoA(eqx.Module):
@@ -111,12 +107,28 @@ def build_two_level(diag, band, src, dst, blocks, diag_inverse, X0, pose_mask, d
     src, dst = np.asarray(src), np.asarray(dst)
     X0, mask = np.asarray(X0, np.float64), np.asarray(pose_mask, bool)
     A, n, k, _ = diag.shape
-    b = aggregate_size(n, k)
+    b = aggregate_size(int(mask.sum(axis=1).max(initial=0)), k)
     basis = np.zeros((A, k, k, n))
     basis[:, 0, 0, :] = 1.0  # the translation shift
     basis[:, :, 1:, :] = np.transpose(X0, (0, 3, 2, 1))  # column 1 + r: row r of [t | R]
     basis *= mask[:, None, None, :]
+    # The same space, better conditioned: translations relative to their aggregate's mean (minus a
+    # multiple of the shift column), so that metres-large coordinates do not swamp the rotations.
+    m = -(-n // b)
+    agg = np.arange(n) // b
+    count = np.zeros((A, m))
+    np.add.at(count, (slice(None), agg), mask)
+    mean = np.zeros((A, k, m))
+    np.add.at(mean, (slice(None), slice(None), agg), basis[:, 0, :, :])
+    mean /= np.maximum(count, 1)[:, None, :]
+    basis[:, 0, 1:, :] -= mean[:, 1:, agg] * mask[:, None, :]
     coarse = _coarse_matrices(diag, band, src, dst, blocks, basis, b)
-    inverse = np.linalg.pinv(coarse, rcond=1e-13, hermitian=True)
+    # weights float arithmetic cannot represent: no coarse level (the run reports f = inf itself)
+    coarse[~np.isfinite(coarse).all(axis=(1, 2))] = 0.0
+    # symmetric diagonal scaling before the pseudo-inverse (empty aggregates: zero rows stay zero)
+    dg = np.einsum("aii->ai", coarse)
+    scale = np.where(dg > 0, 1.0 / np.sqrt(np.where(dg > 0, dg, 1.0)), 0.0)
+    scaled = coarse * scale[:, :, None] * scale[:, None, :]
+    inverse = np.linalg.pinv(scaled, rcond=1e-13, hermitian=True) * scale[:, :, None] * scale[:, None, :]
     return TwoLevelSoA(diag_inverse=jnp.asarray(diag_inverse, dtype), basis=jnp.asarray(basis, dtype),
                        coarse_inverse=jnp.asarray(inverse, dtype), aggregate=b)
