@@ -30,8 +30,9 @@ the work of reaching it small on long chains (CG iterations per subproblem on ki
 rounding of its evaluation (Assumption 1's first half) for any settings, so the outer MM/AMM
 guarantees on F hold; letting steps through at that rounding level (a regularized ratio, as in
 Manopt's trust regions) is what lets a near-exact inner solve (one robot, A = 1) keep converging
-instead of stalling on noise. Everything is fixed-shape and ``vmap``-able (robots that have met the criterion wait, masked,
-for the others); Gamma is applied as a block-sparse operator (band + loop closures).
+instead of stalling on noise. Everything is fixed-shape and ``vmap``-able (robots that have met
+the criterion wait, masked, for the others); Gamma is applied as a block-sparse operator (band +
+loop closures).
 """
 
 from __future__ import annotations
