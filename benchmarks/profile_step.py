@@ -79,13 +79,13 @@ def profile(name: str) -> dict:
         out[f"cg {kind}"] = f"{cg.mean():.0f} / {cg.max()}"
         res = mg.solve(graph, 10, method="amm", iterations=300, subproblem=sub)
         out[f"amm {kind}"] = res.ms_per_iteration
-    # the aggregate size: AMM ms/iteration with 8 and 32 slots per aggregate instead of 16
+    # the aggregate size: AMM ms/iteration with 8 and 32 slots per aggregate instead of the default
     for size in (8, 32):
-        default, two_level.AGGREGATE = two_level.AGGREGATE, size
+        default, two_level.aggregate_size = two_level.aggregate_size, lambda n, k, size=size: size
         try:
             out[f"amm b={size}"] = mg.solve(graph, 10, method="amm", iterations=300).ms_per_iteration
         finally:
-            two_level.AGGREGATE = default
+            two_level.aggregate_size = default
     out["poses_per_robot"] = part.max_poses
     return out
 

@@ -22,9 +22,8 @@ preconditioner is the additive two-level one
 
 symmetric positive definite; P^T Gamma P is small and dense and, Gamma being constant, it is
 factored once, when the problem is built (a pseudo-inverse: a robot with no anchor, xi = 0, has a
-singular Gamma). Aggregates have 16 slots (:func:`aggregate_size`; measured on the benchmark
-files, the time per iteration is flat between 8 and 32, benchmarks/profile_step.md), so the coarse
-level has n/16 * (d + 1) unknowns per robot. An X^0 far from consistent only makes the coarse space less
+singular Gamma). Aggregates have 16 slots, more on large robots (:func:`aggregate_size`,
+measured in benchmarks/profile_step.md). An X^0 far from consistent only makes the coarse space less
 useful: the preconditioner stays positive definite and the accept test of the trust region guards
 every step.
 """
@@ -38,16 +37,21 @@ import numpy as np
 
 from .majorization import soa_bmm, soa_T
 
-AGGREGATE = 16  # slots per aggregate (measured, benchmarks/profile_step.md: flat between 8 and 32)
-MAX_COARSE = 1536  # coarse unknowns per robot: bounds the (A, m k, m k) dense factor's memory
+MIN_AGGREGATE = 16  # slots per aggregate at least
+SMALL_COARSE = 96  # coarse unknowns per robot the aggregate size aims at on large robots
+MAX_COARSE = 1536  # coarse unknowns per robot at most: bounds the (A, m k, m k) dense factor's memory
 
 
 def aggregate_size(robot_poses: int, pose_dim: int) -> int:
     """Slots per aggregate when the largest robot has ``robot_poses`` poses (``pose_dim`` = d + 1
-    unknowns per slot and row): 16, or more on robots so large that the coarse level would exceed
-    ``MAX_COARSE`` unknowns (over 8192 poses per robot in 2D, 6144 in 3D). It depends on the real
+    unknowns per slot and row): 16 on robots of up to 512 (2D) / 384 (3D) poses; on larger ones
+    enough for about 96 coarse unknowns (the dense coarse product then stays cheaper than a Gamma
+    product: city10000's 1000-pose robots ran at 11.1 ms per AMM iteration with 16 slots, 7.1 with
+    32), but not more than about sqrt(n) (so that the coarse level keeps reaching the smooth modes of
+    very large robots), and never more than ``MAX_COARSE`` coarse unknowns. It depends on the real
     poses, not on the padded slot count, so padding a partition does not change the preconditioner."""
-    return max(AGGREGATE, -(-robot_poses * pose_dim // MAX_COARSE))
+    b = max(MIN_AGGREGATE, min(round(float(np.sqrt(robot_poses))), -(-robot_poses * pose_dim // SMALL_COARSE)))
+    return max(b, -(-robot_poses * pose_dim // MAX_COARSE))
 
 
 class TwoLevelSoA(eqx.Module):
