@@ -385,14 +385,18 @@ def soa_to_gamma(gamma: GammaSoA) -> GammaOperator:
     )
 
 
-class BlockJacobiSoA(eqx.Module):
+class SoAPreconditioner(eqx.Module):
+    """Marker base: a preconditioner that already acts on structure-of-arrays poses (d, d+1, n)."""
+
+
+class BlockJacobiSoA(SoAPreconditioner):
     diag_inverse: jax.Array  # (d+1, d+1, n_max)
 
     def __call__(self, V):
         return soa_bmm(V, self.diag_inverse)
 
 
-class AoSPreconditioner(eqx.Module):
+class AoSPreconditioner(SoAPreconditioner):
     """Adapter: apply a stacked-layout preconditioner to structure-of-arrays poses."""
 
     inner: eqx.Module
@@ -404,6 +408,6 @@ class AoSPreconditioner(eqx.Module):
 def preconditioner_to_soa(pre):
     if isinstance(pre, BlockJacobi):
         return BlockJacobiSoA(to_soa(pre.diag_inverse))
-    if isinstance(pre, (BlockJacobiSoA, AoSPreconditioner)):
+    if isinstance(pre, SoAPreconditioner):
         return pre
     return AoSPreconditioner(pre)

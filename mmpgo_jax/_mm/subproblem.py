@@ -53,7 +53,6 @@ from .majorization import (
     soa_T,
     to_soa,
 )
-from .two_level import TwoLevelSoA
 
 # --- config validation (shared with MMConfig) ------------------------------------------------
 
@@ -254,7 +253,7 @@ class _TrustRegionState(eqx.Module):
 
 def _solve(gamma, preconditioner, start, center, g, config: SubproblemConfig, free=None):
     """The trust-region loop in the structure-of-arrays layout; returns its final state."""
-    precond_soa = preconditioner if isinstance(preconditioner, TwoLevelSoA) else preconditioner_to_soa(preconditioner)
+    precond_soa = preconditioner_to_soa(preconditioner)
 
     def tangent(Y, V):
         return _tangent_soa(Y, V) if free is None else jnp.where(free, _tangent_soa(Y, V), 0.0)

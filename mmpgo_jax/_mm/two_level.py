@@ -35,7 +35,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .majorization import soa_bmm, soa_T
+from .majorization import SoAPreconditioner, soa_bmm, soa_T
 
 MIN_AGGREGATE = 16  # slots per aggregate at least
 SMALL_COARSE = 96  # coarse unknowns per robot the aggregate size aims at on large robots
@@ -54,7 +54,7 @@ def aggregate_size(robot_poses: int, pose_dim: int) -> int:
     return max(b, -(-robot_poses * pose_dim // MAX_COARSE))
 
 
-class TwoLevelSoA(eqx.Module):
+class TwoLevelSoA(SoAPreconditioner):
     """M^{-1} = block-Jacobi + P (P^T Gamma P)^+ P^T in the structure-of-arrays layout (one robot,
     or batched over robots in front). ``aggregate`` (static) is the number of slots per
     aggregate."""
