@@ -60,6 +60,7 @@ from ._init.distributed_chordal import distributed_chordal_initialization
 from ._io.datasets import (
     BENCHMARKS,
     DatasetNotFoundError,
+    FStarReference,
     available_benchmarks,
     benchmark_info,
     data_dir,
@@ -75,7 +76,7 @@ from ._io.g2o import (
     write_g2o,
     write_tum,
 )
-from ._mm.driver import RESULTS, Termination
+from ._mm.driver import RESULTS, Monitor, Termination
 from ._mm.outer import MMConfig, MMProblem, MMState, init_state, run, step
 from ._mm.solve import (
     History,
@@ -93,6 +94,7 @@ __all__ = [
     "BENCHMARKS",
     "RESULTS",
     "DatasetNotFoundError",
+    "FStarReference",
     "FixedPoses",
     "G2OFile",
     "G2OFormatError",
@@ -102,6 +104,7 @@ __all__ = [
     "MMConfig",
     "MMProblem",
     "MMState",
+    "Monitor",
     "NonFiniteError",
     "OptimalityCertificate",
     "Partition",

@@ -25,8 +25,7 @@ SETUP = '''\
 
 import jax
 import matplotlib.pyplot as plt
-import numpy as np
-{third_party}
+{numpy}{third_party}
 import mmpgo_jax as mm
 {first_party}
 mm.enable_float64()  # explicit: the paper's numbers are float64
@@ -34,11 +33,14 @@ ITERATIONS = int(os.environ.get("MMPGO_NOTEBOOK_ITERATIONS", "{default}"))
 print("iterations:", ITERATIONS, "| data folder:", mm.data_dir(), "| jax", jax.__version__, jax.default_backend())'''
 
 
-def setup_cell(default: int, *, stdlib=("os",), third_party: str = "", first_party: str = "", after: str = ""):
-    """The set-up cell: ``import`` lines for ``stdlib``, extra third-party / first-party import lines, the
-    common set-up with iteration budget ``default``, then ``after`` (notebook constants)."""
+def setup_cell(default: int, *, stdlib=("os",), third_party: str = "", first_party: str = "", after: str = "",
+               numpy: bool = True):
+    """The set-up cell: ``import`` lines for ``stdlib``, numpy (unless ``numpy=False``), extra third-party /
+    first-party import lines, the common set-up with iteration budget ``default``, then ``after``
+    (notebook constants)."""
     src = SETUP.format(
         stdlib="\n".join(f"import {m}" for m in stdlib),
+        numpy="import numpy as np\n" if numpy else "",
         third_party=third_party + "\n" if third_party else "",
         first_party=first_party + "\n" if first_party else "",
         default=default,
@@ -64,14 +66,16 @@ def quickstart() -> nbformat.NotebookNode:
             '    path = mm.find_benchmark("MITb")\n'
             '    g2o = mm.read_g2o(path)\n'
             '    graph, name = g2o.graph, "MITb"\n'
-            '    fstar = mm.BENCHMARKS["MITb"].fstar  # certified optimum (SE-Sync)\n'
+            '    reference = mm.BENCHMARKS["MITb"].fstar_reference  # the certified f* where the registry has one\n'
+            '    fstar, fstar_label = reference.value, reference.label\n'
             'except mm.DatasetNotFoundError as err:\n'
             '    print("MIT not found, using a generated Cube dataset instead:", str(err).split(".")[0])\n'
             '    data = mm.cube_dataset(0, num_poses=1000, grid=8)\n'
             '    graph, name, ground_truth = data.graph, data.name, data.ground_truth\n'
             '    fstar = mm.centralized_optimum(graph, grad_tol=1e-5, max_iterations=500).f\n'
+            '    fstar_label = "f* (centralized solve)"\n'
             'print(f"{name}: d={graph.dim}, n={graph.num_poses} poses, m={graph.num_edges} measurements, "\n'
-            '      f"f*={fstar:.6g}")'),
+            '      f"{fstar_label} = {fstar:.10g}")'),
         new_markdown_cell("## 2. Partition among robots\nContiguous blocks of poses (as in the paper); "
                           "inter-robot edges are the ones whose majorization couples robots."),
         new_code_cell(
@@ -87,7 +91,7 @@ def quickstart() -> nbformat.NotebookNode:
             'result = mm.solve(graph, part, method="amm", iterations=ITERATIONS, init="chordal")\n'
             'f = result.history.f\n'
             'print(f"f: {f[0]:.6g} (chordal start) -> {f[-1]:.6g} after {result.iterations} iterations; "\n'
-            '      f"relative gap {(f[-1] - fstar) / fstar:.2e}")\n'
+            '      f"relative gap to the {fstar_label}: {(f[-1] - fstar) / fstar:.2e}")\n'
             'print(f"compile {result.compile_seconds:.1f} s, {result.ms_per_iteration:.2f} ms per iteration")'),
         new_markdown_cell("## 4. Trajectory and convergence"),
         new_code_cell(
@@ -101,7 +105,7 @@ def quickstart() -> nbformat.NotebookNode:
             'mm_run = mm.solve(graph, part, method="mm", iterations=ITERATIONS)\n'
             'ax_c.semilogy(np.maximum((mm_run.history.f - fstar) / fstar, 1e-14), "--", label="MM-PGO")\n'
             'ax_c.set_xlabel("iteration")\n'
-            'ax_c.set_ylabel("(f - f*) / f*")\n'
+            'ax_c.set_ylabel(f"(f - f*) / f*, f* = {fstar_label}")\n'
             'ax_c.grid(alpha=0.4)\n'
             'ax_c.legend()\n'
             'ax_c.set_title("relative suboptimality")\n'
@@ -132,7 +136,7 @@ def reproduce_tables() -> nbformat.NotebookNode:
             "`mmpgo_jax.BENCHMARKS`). The default budget (`MMPGO_NOTEBOOK_ITERATIONS`, 100) "
             "fills the 100-iteration column; set it to 1000 for all three columns."),
         setup_cell(100, stdlib=("os", "time"), third_party="from IPython.display import Markdown, display",
-                   after="ROBOTS = 10\nCHECKPOINTS = (100, 250, 1000)"),
+                   after="ROBOTS = 10\nCHECKPOINTS = (100, 250, 1000)", numpy=False),
         new_code_cell(
             '# MMPGO_NOTEBOOK_DATASETS: comma-separated names ("MITb,garage"), "all", or empty (default:\n'
             '# the paper\'s benchmarks found in the data folder with at most 3500 poses, which keeps this\n'
@@ -160,9 +164,10 @@ def reproduce_tables() -> nbformat.NotebookNode:
             '        runs[(info.name, method)] = r\n'
             '        print(f"{info.name:>10} {method.upper():>3}: f = {r.f:.6g} after {r.iterations} iterations "\n'
             '              f"({time.perf_counter() - t:.1f} s, {r.ms_per_iteration:.2f} ms/iteration)")'),
-        new_markdown_cell("## Ours beside the paper\n`paper` = Table I/II; `f*` = certified optimum "
-                          "(SE-Sync; sources of the reference numbers: `docs/conventions.md`). Columns appear "
-                          "for checkpoints within the budget."),
+        new_markdown_cell("## Ours beside the paper\n`paper` = Table I/II; `f*` = the registry's reference "
+                          "optimum (`BenchmarkInfo.fstar_reference`: this project's certified f* where it has "
+                          "one, else the published, rounded value; sources: `docs/conventions.md`). Columns "
+                          "appear for checkpoints within the budget."),
         new_code_cell(
             'cps = [k for k in CHECKPOINTS if k <= ITERATIONS]\n'
             'if not cps:\n'
@@ -179,40 +184,36 @@ def reproduce_tables() -> nbformat.NotebookNode:
             '    for k in cols:\n'
             '        ref = paper.get(k if cps else 100) if paper else None\n'
             '        cells += [f"{r.history.f[k]:.6g}", "–" if ref is None else f"{ref:.6g}"]\n'
-            '    fs = "–" if info.fstar is None else f"{info.fstar:.6g}"\n'
+            '    ref = info.fstar_reference\n'
+            '    fs = "–" if ref is None else f"{ref.value:.10g} ({ref.label})"\n'
             '    lines.append(f"| {name} | {method.upper()}-PGO | {fs} | " + " | ".join(cells) + " |")\n'
             'display(Markdown("\\n".join(lines) if runs else "_no benchmark files available_"))'),
-        new_markdown_cell("## Convergence\nRelative suboptimality against the certified f*; the paper's "
-                          "numbers as markers (where the printed 4 digits lie above f*)."),
+        new_markdown_cell("## Convergence\nRelative suboptimality against the registry's reference f* (each "
+                          "title says which: the certified f* where there is one). Every value Tables I/II print "
+                          "within the run is a marker, its bar the range its 4 digits stand for; a print at or "
+                          "below f* sits at the floor of the axis. The axis ends with the run: "
+                          "`MMPGO_NOTEBOOK_ITERATIONS=1000` shows all three checkpoints."),
         new_code_cell(
+            'from mmpgo_jax.plotting import plot_convergence\n\n'
             'names = list(dict.fromkeys(name for name, _ in runs))\n'
             'if names:\n'
             '    ncols = min(3, len(names))\n'
             '    nrows = -(-len(names) // ncols)\n'
-            '    fig, axes = plt.subplots(nrows, ncols, figsize=(5 * ncols, 3.8 * nrows), squeeze=False)\n'
+            '    fig, axes = plt.subplots(nrows, ncols, figsize=(5.5 * ncols, 4 * nrows), squeeze=False)\n'
             '    for ax in axes.flat[len(names):]:\n'
             '        ax.set_visible(False)\n'
             '    for ax, name in zip(axes.flat, names, strict=False):  # the spare axes are hidden\n'
             '        info = mm.BENCHMARKS[name]\n'
-            '        if info.fstar is None:\n'
+            '        ref = info.fstar_reference\n'
+            '        if ref is None:\n'
+            '            ax.set_title(f"{name}: no reference f*")\n'
             '            continue\n'
-            '        for method, style in (("mm", "--"), ("amm", "-")):\n'
-            '            f = runs[(name, method)].history.f\n'
-            '            gap = np.maximum((f - info.fstar) / info.fstar, 1e-12)\n'
-            '            (line,) = ax.semilogy(gap, style, label=f"{method.upper()} (ours)")\n'
-            '            paper = info.paper_mm if method == "mm" else info.paper_amm\n'
-            '            # the paper prints 4 digits: values at or below f* carry no gap information\n'
-            '            pts = {k: v for k, v in (paper or {}).items() if v > info.fstar}\n'
-            '            if pts:\n'
-            '                ks = sorted(pts)\n'
-            '                ax.semilogy(ks, [(pts[k] - info.fstar) / info.fstar for k in ks], "o",\n'
-            '                            mfc="none", color=line.get_color(), label=f"{method.upper()} (paper)")\n'
-            '        ax.set_title(name)\n'
-            '        ax.set_xlabel("iteration")\n'
-            '        ax.set_ylabel("(f - f*) / f*")\n'
-            '        ax.grid(alpha=0.4)\n'
-            '        ax.legend(fontsize=8)\n'
-            '    plt.tight_layout()\n'
+            '        curves = {f"{m.upper()}-PGO": runs[(name, m)].history for m in ("mm", "amm")}\n'
+            '        paper = {"MM-PGO (paper)": dict(info.paper_mm or {}),\n'
+            '                 "AMM-PGO (paper)": dict(info.paper_amm or {})}\n'
+            '        plot_convergence(ax, curves, ref.value, references=paper, printed_digits=4)\n'
+            '        ax.set_title(f"{name}: gap to the {ref.label} {ref.value:.10g}", fontsize=9)\n'
+            '    fig.tight_layout()\n'
             '    plt.show()'),
     ]
     return _notebook(cells)

@@ -17,7 +17,7 @@ from jax.sharding import PartitionSpec as P
 from .._core.gauge import FixedPoses
 from .._core.partition import Partition, partition
 from .._core.pose_graph import PoseGraph, Poses
-from .._mm.driver import RESULTS, Termination, compile_once, drive
+from .._mm.driver import RESULTS, Monitor, Termination, compile_once, drive
 from .._mm.majorization import unstack
 from .._mm.outer import (
     IterationRecord,
@@ -155,6 +155,7 @@ def solve_sharded(
     exchange: Literal["halo", "all_gather"] = "halo",
     fixed: FixedPoses | None = None,
     frame: FixedPoses | Literal["raw"] | None = None,
+    monitor: Monitor | None = None,
 ) -> SolveResult:
     """:func:`mmpgo_jax.solve` with the robots sharded over the devices of a 1-D mesh.
 
@@ -181,6 +182,8 @@ def solve_sharded(
     config = MMConfig(method=method, restart=restart, xi=xi, subproblem=subproblem or SubproblemConfig())
     multiprocess = jax.process_count() > 1
 
+    monitor = monitor or Monitor()
+    monitor.phase("initializing")
     t0 = time.perf_counter()
     plan = plan_shards(graph, robots, num_devices, reorder=reorder)
     # The partition, the constant data and the state at X^0 are built whole on this process's CPU
@@ -194,6 +197,7 @@ def solve_sharded(
             part = partition(graph, plan.sharded_robot_of_pose, num_robots=plan.padded_robots)
         X0 = _initial_poses(graph, init, initial, user_part, multiprocess, fixed)
         X0 = part.scatter(X0)
+        monitor.phase("building")
         problem = MMProblem.build(part, xi, config=config, fixed=fixed, poses=X0)
         state0, start = start_state(problem, X0, config)
         start = jax.device_get(start)
@@ -229,7 +233,7 @@ def solve_sharded(
 
     start_record = (start.f, start.grad_norm, user_restarts(np.asarray(start.restarted)[None])[0])
     out = drive(compile_chunk, state, start_record, termination, fetch=fetch, callback=callback,
-                agree=_agree if multiprocess else None)
+                agree=_agree if multiprocess else None, monitor=monitor)
     X = _to_host(out.state.X)
     return SolveResult(
         poses=output_frame(part.gather(unstack(jnp.asarray(X))), fixed, frame),

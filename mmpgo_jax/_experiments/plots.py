@@ -30,6 +30,7 @@ __all__ = [
     "RELATIVE_FLOOR",
     "plot_convergence",
     "plot_trajectory",
+    "printed_half_unit",
     "robot_colors",
     "save_convergence_figure",
     "save_solve_figure",
@@ -191,6 +192,14 @@ def plot_trajectory(ax, graph, poses, robot_of_pose, *, inter_robot_edges: bool 
 # --------------------------------------------------------------------------------------------
 
 
+def printed_half_unit(value: float, digits: int) -> float:
+    """Half a unit of the last of ``digits`` significant digits: a value printed with that many
+    digits lies within this distance of the printed number."""
+    if value == 0 or not math.isfinite(value):
+        return 0.0
+    return 0.5 * 10.0 ** (math.floor(math.log10(abs(value))) - (digits - 1))
+
+
 def _raw_gap(f: np.ndarray, fstar: float, relative: bool) -> np.ndarray:
     g = np.asarray(f, dtype=np.float64) - fstar
     return g / abs(fstar) if relative else g
@@ -200,10 +209,40 @@ def _floor(gaps: list[np.ndarray], fstar: float, relative: bool) -> float:
     """Where values <= 0 are drawn: a power of ten below the smallest positive value, at least
     :data:`RELATIVE_FLOOR` (times |f*| for the absolute gap)."""
     lowest = RELATIVE_FLOOR * (1.0 if relative else max(abs(fstar), np.finfo(float).tiny))
-    pos = np.concatenate([g[g > 0] for g in gaps]) if gaps else np.zeros(0)
+    pos = np.concatenate([np.ravel(g)[np.ravel(g) > 0] for g in gaps]) if gaps else np.zeros(0)
     if len(pos) == 0:
         return lowest
     return max(lowest, 10.0 ** (math.floor(math.log10(pos.min())) - 1))
+
+
+def _half_units(values: np.ndarray, digits: int | None) -> np.ndarray:
+    return np.array([printed_half_unit(float(v), digits) if digits else 0.0 for v in np.ravel(values)])
+
+
+def _reference_series(label, ks, fs, last, fstar, floor, relative, digits):
+    """(label, legend label, iterations, y, yerr) of one set of reference points (see
+    :func:`plot_convergence`): the points within the run, their gaps, the rounding bars."""
+    outside = [int(k) for k in ks[ks > last]] if last is not None else []
+    if last is not None:
+        ks, fs = ks[ks <= last], fs[ks <= last]
+    name, y, yerr = label, fs, None
+    if fstar is not None:
+        g = _raw_gap(fs, fstar, relative)
+        if digits:
+            half = _half_units(fs, digits)
+            y = np.maximum(g, floor)
+            lower = np.minimum(np.maximum(_raw_gap(fs - half, fstar, relative), floor), y)
+            upper = np.maximum(_raw_gap(fs + half, fstar, relative), y)
+            yerr = np.vstack([y - lower, upper - y])
+            name = f"{label}, ± rounding"
+        else:
+            keep = g > 0
+            ks, y = ks[keep], g[keep]
+            if not keep.all():
+                name = f"{label}; {int((~keep).sum())} pt(s) ≤ f* not shown"
+    if outside:
+        name += f"; k = {', '.join(map(str, outside))} after this run"
+    return label, name, ks, y, yerr
 
 
 def plot_convergence(
@@ -214,6 +253,7 @@ def plot_convergence(
     *,
     references: Mapping[str, Mapping[int, float]] | None = None,
     tolerances: bool = True,
+    printed_digits: int | None = None,
 ):
     """Plot convergence curves on ``ax``, one per ``label -> History`` (or f array) in ``histories``.
 
@@ -223,11 +263,16 @@ def plot_convergence(
 
     Curve values <= 0 (an iterate at or below the reference f*) are drawn at a floor one decade
     below the smallest positive value (never below :data:`RELATIVE_FLOOR`), and the axis label
-    says so.  ``references`` maps a label to ``{iteration: f}`` points (e.g. the paper's table),
-    drawn as markers in the colour of the curve whose label is the longest prefix of the
-    reference's label (e.g. "MM (paper)" takes the colour of "MM"), else black; reference points
-    at or below f* carry no gap information (a printed, rounded value) and are left out, which
-    the legend says.
+    says so.  The iteration axis ends with the longest curve.  ``references`` maps a label to
+    ``{iteration: f}`` points (e.g. the paper's table), drawn as markers in the colour of the
+    curve whose label is the longest prefix of the reference's label (e.g. "MM (paper)" takes the
+    colour of "MM"), else black; points past the longest curve are left out and named in the
+    legend.  With ``printed_digits`` (e.g. 4 for the paper's tables) a reference value is a
+    rounded print: every point is drawn, with a bar over the values it may stand for (± half a
+    unit of its last digit); a print at or below f* sits at the floor, its bar reaching up to
+    the largest gap it allows.  Without it, points at or below f* are left out (the legend says
+    how many).  Sets of reference points are drawn slightly apart in x, so that coinciding
+    points (e.g. MM and AMM both printed as f*) stay visible.
     """
     curves = {label: _f_array(h) for label, h in histories.items()}
     refs = {}
@@ -236,32 +281,34 @@ def plot_convergence(
             ks = sorted(pts)
             refs[label] = (np.asarray(ks, dtype=float), np.asarray([pts[k] for k in ks], dtype=np.float64))
 
+    last = max((len(f) - 1 for f in curves.values()), default=None)
     if fstar is None:
         ys = dict(curves)
-        ref_ys = {label: (ks, fs) for label, (ks, fs) in refs.items()}
         floor, clipped_any = None, False
     else:
         fstar = float(fstar)
         raw = {label: _raw_gap(f, fstar, relative) for label, f in curves.items()}
-        floor = _floor(list(raw.values()), fstar, relative)
-        clipped_any = any(bool(np.any(g <= 0)) for g in raw.values())
+        tops = [_raw_gap(fs + _half_units(fs, printed_digits), fstar, relative) for _, fs in refs.values()]
+        floor = _floor([*raw.values(), *tops], fstar, relative)
+        at_floor = [*raw.values()] + ([_raw_gap(fs[ks <= last], fstar, relative) for ks, fs in refs.values()]
+                                      if printed_digits and last is not None else [])
+        clipped_any = any(bool(np.any(g <= 0)) for g in at_floor)
         ys = {label: np.maximum(g, floor) for label, g in raw.items()}
-        ref_ys = {}
-        for label, (ks, fs) in refs.items():
-            g = _raw_gap(fs, fstar, relative)
-            keep = g > 0
-            name = label if keep.all() else f"{label}; {int((~keep).sum())} pt(s) ≤ f* not shown"
-            ref_ys[name] = (ks[keep], g[keep])
+    series = [_reference_series(label, ks, fs, last, fstar, floor, relative, printed_digits)
+              for label, (ks, fs) in refs.items()]
 
     colors = {}
     for label, y in ys.items():
         (line,) = ax.plot(np.arange(len(y)), y, lw=1.5, label=label)
         colors[label] = line.get_color()
     markers = "osD^v"
-    for n_ref, (label, (ks, y)) in enumerate(ref_ys.items()):
-        color = max(((len(lab), c) for lab, c in colors.items() if label.startswith(lab)), default=(0, "k"))[1]
-        ax.plot(ks, y, markers[n_ref % len(markers)], ls="", ms=6, mfc="none", mew=1.5, color=color, label=label)
-
+    for n_ref, (prefix, label, ks, y, yerr) in enumerate(series):
+        color = max(((len(lab), c) for lab, c in colors.items() if prefix.startswith(lab)), default=(0, "k"))[1]
+        style = dict(fmt=markers[n_ref % len(markers)], ms=6, mfc="none", mew=1.5, color=color, label=label)
+        dodge = (n_ref - (len(series) - 1) / 2) * 0.01 * (last or 0)  # side by side where points coincide
+        ax.errorbar(ks + dodge, y, yerr=yerr, capsize=3, **style)
+    if last:
+        ax.set_xlim(0, 1.02 * last)  # a little room for markers at the last iteration
     ax.set_xlabel("iteration")
     if fstar is None:
         ax.set_ylabel("f = 2F")
@@ -278,7 +325,7 @@ def plot_convergence(
         else:
             ax.set_ylabel("suboptimality f − f*" + floor_note)
     ax.grid(True, which="major", lw=0.3, alpha=0.5)
-    if ys or ref_ys:
+    if ys or series:
         ax.legend(fontsize=8, loc="best", framealpha=0.85)
     return ax
 
@@ -291,24 +338,26 @@ def save_convergence_figure(
     *,
     references: Mapping[str, Mapping[int, float]] | None = None,
     fstar_label: str | None = None,
+    printed_digits: int | None = None,
 ) -> None:
     """PNG comparing convergence curves (e.g. MM vs AMM): f − f* and (f − f*)/f*, log scale.
 
-    Without ``fstar`` a single panel shows f.  ``references``: see :func:`plot_convergence`.
+    Without ``fstar`` a single panel shows f.  ``references``, ``printed_digits``: see
+    :func:`plot_convergence`.
     ``fstar_label`` describes the reference in the title (default "f* = <value>"; e.g.
     "f* = 61.1541 (centralized)").
     """
     if fstar is None:
         fig = _new_figure((6.5, 4.5))
         ax = fig.add_subplot(1, 1, 1)
-        plot_convergence(ax, curves, None, references=references)
+        plot_convergence(ax, curves, None, references=references, printed_digits=printed_digits)
         ax.set_title("objective f")
     else:
         fig = _new_figure((12, 4.6))
         ax1 = fig.add_subplot(1, 2, 1)
         ax2 = fig.add_subplot(1, 2, 2)
-        plot_convergence(ax1, curves, fstar, relative=False, references=references)
-        plot_convergence(ax2, curves, fstar, relative=True, references=references)
+        plot_convergence(ax1, curves, fstar, relative=False, references=references, printed_digits=printed_digits)
+        plot_convergence(ax2, curves, fstar, relative=True, references=references, printed_digits=printed_digits)
         ax1.set_title("suboptimality gap f − f*")
         ax2.set_title("relative suboptimality gap (f − f*) / f*")
     sup = title
@@ -320,11 +369,14 @@ def save_convergence_figure(
     _save_png(fig, path)
 
 
-def save_solve_figure(path, graph, result, *, fstar: float | None = None, title: str = "") -> None:
+def save_solve_figure(path, graph, result, *, fstar: float | None = None, title: str = "",
+                      fstar_label: str = "f*") -> None:
     """One PNG for a :class:`~mmpgo_jax.SolveResult`: trajectory (left), convergence (right).
 
     Left: the estimate's positions coloured by robot (top view for 2D, 3D axes for 3D) with the
     inter-robot edges.  Right: f vs iteration and, when ``fstar`` is given, (f − f*)/f* below it.
+    ``fstar_label`` names the reference in the legend and the gap's title (e.g. "certified f*",
+    :attr:`~mmpgo_jax.FStarReference.label`).
     """
     d = int(np.asarray(result.poses.t).shape[-1])
     rop = np.asarray(result.partition.robot_of_pose)
@@ -348,7 +400,7 @@ def save_solve_figure(path, graph, result, *, fstar: float | None = None, title:
     plot_convergence(ax_f, {label: f}, None)
     ax_f.set_yscale("linear")
     if fstar is not None:
-        ax_f.axhline(fstar, color="k", ls="--", lw=0.8, label=f"f* = {fstar:.6g}")
+        ax_f.axhline(fstar, color="k", ls="--", lw=0.8, label=f"{fstar_label} = {fstar:.10g}")
         ax_f.legend(fontsize=8, loc="best")
         lo = min(float(fstar), float(f.min()))
         hi = float(f.max())
@@ -359,7 +411,7 @@ def save_solve_figure(path, graph, result, *, fstar: float | None = None, title:
         ax_g = fig.add_subplot(gs[1, 1], sharex=ax_f)
         plot_convergence(ax_g, {label: f}, fstar, relative=True)
         gap = (f[-1] - fstar) / abs(fstar)
-        ax_g.set_title(f"relative gap after {len(f) - 1} iterations: {gap:.3e}")
+        ax_g.set_title(f"relative gap to the {fstar_label} after {len(f) - 1} iterations: {gap:.3e}")
     if title:
         fig.suptitle(title)
     _save_png(fig, path)

@@ -36,6 +36,7 @@ __all__ = [
     "ENV_VAR",
     "BenchmarkInfo",
     "DatasetNotFoundError",
+    "FStarReference",
     "available_benchmarks",
     "benchmark_info",
     "data_dir",
@@ -49,6 +50,30 @@ _REPO_DIR = _PACKAGE_DIR.parent
 _DEFAULT_DIR = _REPO_DIR.parent / "shared" / "datasets"
 
 IterTable = Mapping[int, float]
+
+
+@dataclass(frozen=True)
+class FStarReference:
+    """The optimum a relative gap (f - f*)/|f*| is measured against, and where it comes from:
+    ``"certified"`` (this project's f*, certified globally optimal, 12 digits), ``"sesync"``
+    (SE-Sync's published value, rounded), ``"paper"`` (Tables I/II, 4 digits) or
+    ``"uncertified"`` (a centralized solve the certificate did not confirm)."""
+
+    value: float
+    source: str
+
+    LABELS = MappingProxyType({"certified": "certified f*", "sesync": "published f* (SE-Sync, rounded)",
+                               "paper": "published f* (paper, 4 digits)",
+                               "uncertified": "uncertified f* (centralized solve)"})
+
+    @property
+    def label(self) -> str:
+        """E.g. "certified f*": what a printed gap says it is measured against."""
+        return self.LABELS.get(self.source, f"f* ({self.source})")
+
+    def gap(self, f):
+        """(f - f*)/|f*| (elementwise for arrays)."""
+        return (f - self.value) / abs(self.value)
 
 
 @dataclass(frozen=True)
@@ -81,6 +106,9 @@ class BenchmarkInfo:
     code_ms_per_iter_amm: float | None = None
     code_iters_to_1e_3: int | None = None  # their adaptive AMM's iterations to rel. gap 1e-3 (conventions §7)
     availability: str = "shipped"  # "shipped" | "public" (obtainable, not shipped) | "unavailable"
+    # this project's optimum: centralized_optimum, 12 digits, and its certificate (benchmarks/certified_optimum.py)
+    ours_fstar: float | None = None
+    ours_certificate: Mapping | None = None
     notes: str = ""
     aliases: tuple[str, ...] = field(default=(), compare=False)
 
@@ -88,9 +116,29 @@ class BenchmarkInfo:
         return hash((self.name, self.file))
 
     @property
+    def certified_fstar(self) -> float | None:
+        """This project's f* (12 digits) where SE-Sync's dual certificate proved it the global optimum."""
+        certified = bool(self.ours_certificate and self.ours_certificate.get("certified"))
+        return self.ours_fstar if certified else None
+
+    @property
+    def fstar_references(self) -> tuple[FStarReference, ...]:
+        """Every optimum the registry holds, best first: :attr:`certified_fstar`, SE-Sync's
+        published value, the paper's printed one (both rounded)."""
+        values = (("certified", self.certified_fstar), ("sesync", self.sesync_fstar), ("paper", self.paper_fstar))
+        return tuple(FStarReference(float(v), source) for source, v in values if v is not None)
+
+    @property
+    def fstar_reference(self) -> FStarReference | None:
+        """The reference of every relative gap: the first of :attr:`fstar_references`, or None."""
+        refs = self.fstar_references
+        return refs[0] if refs else None
+
+    @property
     def fstar(self) -> float | None:
-        """Best known optimum: the certified SE-Sync value, else the paper's printed f*."""
-        return self.sesync_fstar if self.sesync_fstar is not None else self.paper_fstar
+        """Best known optimum (the value of :attr:`fstar_reference`)."""
+        ref = self.fstar_reference
+        return None if ref is None else ref.value
 
     def path(self, data: str | os.PathLike | None = None) -> Path:
         """Location of this benchmark's file in the data folder (raises :class:`DatasetNotFoundError`)."""
@@ -115,6 +163,8 @@ def _load_registry() -> dict[str, BenchmarkInfo]:
               "code_amm_adaptive")
     for row in doc["benchmarks"]:
         row = dict(row)
+        if row.get("ours_certificate") is not None:
+            row["ours_certificate"] = MappingProxyType(dict(row["ours_certificate"]))
         for key in tables:
             row[key] = _iter_table(row.get(key))
         stem = row["file"].rsplit(".", 1)[0]

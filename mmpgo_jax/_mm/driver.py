@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import jax
 import numpy as np
 
-__all__ = ["RESULTS", "History", "NonFiniteError", "Termination", "compile_once", "drive"]
+__all__ = ["RESULTS", "History", "Monitor", "NonFiniteError", "Termination", "compile_once", "drive"]
 
 
 class RESULTS(enum.Enum):
@@ -45,6 +45,24 @@ class RESULTS(enum.Enum):
         if self is RESULTS.rel_decrease_tol:
             return f"f fell by less than a relative {t.rel_decrease_tol:g} over the last chunk"
         return "stopped by the callback"
+
+
+class Monitor:
+    """Hooks to watch a run from outside (e.g. the CLI's progress bar); each does nothing here.
+
+    ``phase(name)``: a phase begins: "initializing" (partition, start poses), "building" (the
+    majorization data, the state at the start), "compiling", "iterating" (the compiled chunks;
+    their time alone is ``solve_seconds``), "finishing" (the iterations are over; the result is
+    being put together). ``chunk(done, f, grad_norm)``: after each chunk, with
+    the iterations so far and the chunk's f = 2F and ||grad F||. Unlike ``callback`` it cannot stop
+    the run, and it needs no fetch beyond the one the driver does anyway.
+    """
+
+    def phase(self, name: str) -> None:
+        """Called when phase ``name`` begins."""
+
+    def chunk(self, done: int, f: np.ndarray, grad_norm: np.ndarray) -> None:
+        """Called after each chunk of iterations."""
 
 
 class NonFiniteError(ValueError):
@@ -186,6 +204,7 @@ def drive(
     fetch: Callable | None,
     callback: Callable[[int, np.ndarray], bool | None] | None = None,
     agree: Callable[[RESULTS | None], RESULTS | None] | None = None,
+    monitor: Monitor | None = None,
 ) -> Driven:
     """Run compiled chunks of the outer loop from ``state`` until ``termination`` says stop.
 
@@ -197,6 +216,7 @@ def drive(
     ``fetch=None``: the run cannot stop early (no tolerance, no callback), so the records stay on
     the device and are fetched once at the end. ``callback(k, f)`` after each chunk (k iterations
     so far; True stops the run). ``agree``: the stop decision every process takes (multi-process).
+    ``monitor``: told of the "compiling" and "iterating" phases and of each chunk (:class:`Monitor`).
     """
     f0, g0, r0 = jax.device_get(start)
     fs, gs, rs = [np.asarray(f0)[..., None]], [np.asarray(g0)[..., None]], [np.expand_dims(np.asarray(r0), -2)]
@@ -204,18 +224,21 @@ def drive(
     lazy = fetch is None
     t = termination
     rules = (t.grad_tol, t.f_target, t.rel_decrease_tol)
-    if lazy and (callback is not None or agree is not None or any(v is not None for v in rules)):
-        raise ValueError("fetch=None needs a run without stopping rules or callback")
+    if lazy and any(v is not None for v in (callback, agree, monitor, *rules)):
+        raise ValueError("fetch=None needs a run without stopping rules, callback or monitor")
     compile_seconds = solve_seconds = 0.0
     result = RESULTS.iterations
     iterations = termination.iterations
     pending = []
+    monitor = monitor or Monitor()
     if iterations > 0:
         length = termination.length
         limit = np.asarray(iterations)
+        monitor.phase("compiling")
         t = time.perf_counter()
         chunk = compile_chunk(state, length, limit)
         compile_seconds = time.perf_counter() - t
+        monitor.phase("iterating")
         done = 0
         t = time.perf_counter()
         while done < iterations:
@@ -231,6 +254,7 @@ def drive(
             gs.append(g[..., :take])
             rs.append(r[..., :take, :])
             reason = termination(fs, gs)
+            monitor.chunk(done, fs[-1], gs[-1])
             if callback is not None and callback(done, f[..., :take]):
                 reason = reason or RESULTS.callback
             if agree is not None:
@@ -239,6 +263,7 @@ def drive(
                 result = reason
                 break
             t = time.perf_counter()
+        monitor.phase("finishing")
         if lazy:
             for rec, take in pending:
                 f, g, r = jax.device_get((rec.f, rec.grad_norm, rec.restarted))

@@ -22,7 +22,7 @@ from .._core.pose_graph import PoseGraph, Poses
 from .._core.precision import float64_enabled
 from .._experiments.metrics import TrajectoryAccuracy, trajectory_accuracy
 from .._init.chordal import initialize
-from .driver import RESULTS, History, NonFiniteError, Termination, compile_once, drive
+from .driver import RESULTS, History, Monitor, NonFiniteError, Termination, compile_once, drive
 from .majorization import unstack
 from .outer import MMConfig, MMProblem, run, start_state
 from .subproblem import SubproblemConfig
@@ -114,6 +114,7 @@ def solve(
     ground_truth: Poses | None = None,
     fixed: FixedPoses | None = None,
     frame: FixedPoses | Literal["raw"] | None = None,
+    monitor: Monitor | None = None,
 ) -> SolveResult:
     """Run MM-PGO (``method="mm"``) or AMM-PGO (``"amm"``) on ``graph`` split among ``robots``.
 
@@ -125,8 +126,10 @@ def solve(
     checked after each chunk of ``chunk_size`` iterations, when
     ||grad F|| <= ``grad_tol``, f <= ``f_target``, or the relative decrease of f over the last chunk
     is below ``rel_decrease_tol``. ``callback(k, f_chunk)`` is called after each chunk (k = total
-    iterations so far); returning True stops the run. With ``ground_truth`` (synthetic data), the
-    result's ``accuracy`` holds ATE / RPE of the final estimate after rigid alignment.
+    iterations so far); returning True stops the run. ``monitor`` (a :class:`Monitor`, e.g. a
+    progress bar) is told when each phase begins and of every chunk's f and ||grad F||. With
+    ``ground_truth`` (synthetic data), the result's ``accuracy`` holds ATE / RPE of the final
+    estimate after rigid alignment.
 
     ``fixed`` (e.g. :attr:`G2OFile.fixed_poses`): poses held at their values by the start and by
     every iteration. ``frame``: the frame of ``result.poses`` (see :func:`output_frame`): by
@@ -142,15 +145,20 @@ def solve(
     """
     termination = Termination(iterations, chunk_size, grad_tol, f_target, rel_decrease_tol)
     config = MMConfig(method=method, restart=restart, xi=xi, subproblem=subproblem or SubproblemConfig())
+    monitor = monitor or Monitor()
     clock = _Clock()
+    monitor.phase("initializing")
     part = robots if isinstance(robots, Partition) else partition(graph, robots)
     X0 = initialize(graph, init, initial=initial, robots=part, fixed=fixed)
     X0 = jax.block_until_ready(part.scatter(X0))
     clock.lap("initialize")
+    monitor.phase("building")
     problem = jax.block_until_ready(MMProblem.build(part, xi, config=config, fixed=fixed, poses=X0))
     clock.lap("build")
+    monitor.phase("compiling")
     start_fn = compile_once(start_state, problem, X0, config)
     clock.lap("compile")
+    monitor.phase("building")
     state, start = start_fn(problem, X0, config)
     start = jax.device_get(start)
     clock.lap("build")
@@ -160,7 +168,8 @@ def solve(
         return lambda st, lim: compiled(problem, config, st, lim)
 
     out = drive(compile_chunk, state, (start.f, start.grad_norm, start.restarted), termination,
-                fetch=lambda rec: jax.device_get((rec.f, rec.grad_norm, rec.restarted)), callback=callback)
+                fetch=lambda rec: jax.device_get((rec.f, rec.grad_norm, rec.restarted)), callback=callback,
+                monitor=monitor)
     poses = output_frame(part.gather(unstack(out.state.X)), fixed, frame)
     return SolveResult(
         poses=poses,
@@ -218,6 +227,9 @@ def centralized_optimum(
     subproblem: SubproblemConfig | None = None,
     fixed: FixedPoses | None = None,
     frame: FixedPoses | Literal["raw"] | None = None,
+    callback: Callable[[int, np.ndarray], bool | None] | None = None,
+    monitor: Monitor | None = None,
+    chunk_size: int = 25,
 ) -> SolveResult:
     """Centralized mode: one robot (A = 1) and MM run to a tight gradient tolerance.
 
@@ -228,10 +240,12 @@ def centralized_optimum(
     Newton's method and converges in tens of iterations. A cheap inner solve (e.g. 20 CG
     iterations per outer iteration) needs thousands on ill-conditioned files (parking-garage: its
     rotation weights span 9 decades). In float32, which stalls far above ``grad_tol``, it also stops
-    once 25 iterations lower f by less than a relative 1e-7. Used by the benchmarks as f*; check a
-    result with :func:`~mmpgo_jax.certify`. ``init`` / ``initial`` / ``fixed`` / ``frame``: as for
-    :func:`solve` (with two or more fixed poses the optimum is a constrained one, which the
-    certificate does not cover).
+    once a chunk of ``chunk_size`` iterations lowers f by less than a relative 1e-7 (the
+    stopping rules are checked, and ``callback`` / ``monitor`` told, after each chunk; a chunk of 1
+    stops at the first iterate with ||grad F|| <= ``grad_tol``). Used by the benchmarks as f*; check a
+    result with :func:`~mmpgo_jax.certify`. ``init`` / ``initial`` / ``fixed`` / ``frame`` /
+    ``callback`` / ``monitor``: as for :func:`solve` (with two or more fixed poses the optimum is a
+    constrained one, which the certificate does not cover).
     """
     # float32 cannot resolve a 1e-8 residual: CG would always run to its cap
     tol = 1e-8 if float64_enabled() else 1e-4
@@ -245,10 +259,12 @@ def centralized_optimum(
         initial=initial,
         xi=xi,
         subproblem=sub,
-        chunk_size=25,
+        chunk_size=chunk_size,
         grad_tol=grad_tol,
         # float32 stalls far above grad_tol: stop once a chunk no longer lowers f
         rel_decrease_tol=None if float64_enabled() else 1e-7,
         fixed=fixed,
         frame=frame,
+        callback=callback,
+        monitor=monitor,
     )

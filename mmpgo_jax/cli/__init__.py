@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .progress import progress_bar
+from .progress import progress_bar, write_line
 
 
 class CLIError(Exception):
@@ -86,7 +86,7 @@ def cli_warnings():
 
         def show(message, category, filename, lineno, file=None, line=None):
             if _is_mmpgo_warning(category, filename):
-                print(f"mmpgo: warning: {one_line(message)}", file=sys.stderr, flush=True)
+                write_line(f"mmpgo: warning: {one_line(message)}", sys.stderr)
             else:
                 original(message, category, filename, lineno, file, line)
 
@@ -268,6 +268,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", "-o", help="write the optimum as g2o (VERTEX lines + the original edges)")
     p.add_argument("--tum", help="write the optimum as a TUM trajectory")
     p.add_argument("--largest-component", action="store_true", help="solve only the largest connected component")
+    p.add_argument("--no-progress", action="store_true", help="do not show a progress bar")
     _add_strict(p)
     _add_common(p)
 
@@ -562,7 +563,7 @@ def _load_for_solve(args, *, announce: bool = True) -> LoadedInput:
     fixed = None if g2o.fixed_poses is None else g2o.fixed_poses.restrict(keep)
     frame = fixed or FixedPoses([0], g2o.vertex_R[keep[:1]], g2o.vertex_t[keep[:1]])
     if announce:
-        print(f"note: solving the largest component only ({graph.num_poses} of {g2o.graph.num_poses} poses)")
+        write_line(f"note: solving the largest component only ({graph.num_poses} of {g2o.graph.num_poses} poses)")
     return LoadedInput(path, g2o, keep, graph, g2o.vertex_ids[keep], information, initial, fixed, frame, comps)
 
 
@@ -571,25 +572,37 @@ _OPTIMUM_STARTS = ("chordal", "vertices", "odometry")
 
 
 def _cmd_solve(args) -> int:
-    from .._io.datasets import benchmark_info
     from .._mm.solve import solve
 
     args.file = str(_resolve_file(args.file, args.data))
     check_outputs(args)
-    t = time.perf_counter()
-    data = _load_for_solve(args)
-    ground_truth = data.poses_file(args.ground_truth, "--ground-truth file") if args.ground_truth else None
-    read = time.perf_counter() - t
-    options = solve_options(args, data)
-    with progress_bar(f"{args.method.upper()}-PGO", args.iterations, disable=args.no_progress) as progress:
-        result = solve(data.graph, args.robots, callback=progress, ground_truth=ground_truth, **options)
-    info = benchmark_info(data.path.name)
-    fstar = info.fstar if info is not None else None
+    with progress_bar(f"{args.method.upper()}-PGO", args.iterations, disable=args.no_progress,
+                      show_gradient=args.grad_tol is not None) as progress:
+        progress.phase("reading")
+        t = time.perf_counter()
+        data = _load_for_solve(args)
+        ground_truth = data.poses_file(args.ground_truth, "--ground-truth file") if args.ground_truth else None
+        read = time.perf_counter() - t
+        options = solve_options(args, data)
+        result = solve(data.graph, args.robots, monitor=progress, ground_truth=ground_truth, **options)
+    fstar = reference_fstar(data)
     _print_summary(result, fstar)
     t = time.perf_counter()
     finish_solve(args, data, result, fstar)
     print_timing(result, read=read, write=time.perf_counter() - t)
     return 0
+
+
+def reference_fstar(data: LoadedInput):
+    """The f* that gaps of a solve of ``data`` are measured against (the registry's
+    :attr:`~mmpgo_jax.BenchmarkInfo.fstar_reference`: certified where it can be), or None for a
+    file that is not a benchmark or a problem it does not describe (a part of the graph)."""
+    from .._io.datasets import benchmark_info
+
+    info = benchmark_info(data.path.name)
+    if info is None or data.keep is not None or info.num_poses != data.graph.num_poses:
+        return None
+    return info.fstar_reference
 
 
 def solve_options(args, data: LoadedInput) -> dict:
@@ -635,7 +648,8 @@ def _write_estimate(args, data: LoadedInput, poses) -> list[str]:
 
 def finish_solve(args, data: LoadedInput, result, fstar) -> None:
     """After a solve (single- or multi-device): --certify, then the --out/--tum/--history/--plot
-    files, all or none (:func:`~mmpgo_jax._io.atomic.atomic_group`)."""
+    files, all or none (:func:`~mmpgo_jax._io.atomic.atomic_group`). ``fstar``: the
+    :class:`~mmpgo_jax.FStarReference` of the plot's gaps, or None."""
     from .._io.atomic import atomic_group
 
     if args.certify:
@@ -648,7 +662,8 @@ def finish_solve(args, data: LoadedInput, result, fstar) -> None:
         if args.plot:
             from .._experiments.plots import save_solve_figure
 
-            save_solve_figure(args.plot, data.graph, result, fstar=fstar, title=data.path.name)
+            save_solve_figure(args.plot, data.graph, result, fstar=None if fstar is None else fstar.value,
+                              fstar_label="f*" if fstar is None else fstar.label, title=data.path.name)
             written.append(args.plot)
     for path in written:  # only now are they in place
         print(f"wrote {path}")
@@ -661,18 +676,23 @@ def _cmd_optimum(args) -> int:
 
     args.file = str(_resolve_file(args.file, args.data))
     check_outputs(args)
-    data = _load_for_solve(args)
-    init = data.start(args.init, _OPTIMUM_STARTS)
-    res = centralized_optimum(data.graph, init=init, initial=data.initial, grad_tol=args.grad_tol,
-                              max_iterations=args.max_iterations, fixed=data.fixed, frame=data.frame)
+    # float64: the gradient is checked after every Newton step (the bar moves with each, and the solve
+    # stops at the first ||grad F|| <= tol); float32's stall rule compares f over chunks of 25
+    chunk = 1 if args.precision == "float64" else 25
+    with progress_bar("optimum", None, disable=args.no_progress, show_gradient=True) as progress:
+        progress.phase("reading")
+        data = _load_for_solve(args)
+        init = data.start(args.init, _OPTIMUM_STARTS)
+        res = centralized_optimum(data.graph, init=init, initial=data.initial, grad_tol=args.grad_tol,
+                                  max_iterations=args.max_iterations, fixed=data.fixed, frame=data.frame,
+                                  monitor=progress, chunk_size=chunk)
     h = res.history
     total = res.init_seconds + res.compile_seconds + res.solve_seconds
-    print(f"f* = 2F      {res.f:.10g} ({res.iterations} iterations, {res.stop_description}, "
+    print(f"f* = 2F      {res.f:.12g} ({res.iterations} iterations, {res.stop_description}, "
           f"||grad F|| = {h.grad_norm[-1]:.2e}, {total:.1f} s)")
-    info = benchmark_info(data.path.name)
-    if info is not None and info.fstar is not None:
-        rel = (res.f - info.fstar) / info.fstar
-        print(f"published   {info.fstar:.6g} ({info.name}); relative difference {rel:+.1e}")
+    info = benchmark_info(data.path.name) if reference_fstar(data) is not None else None
+    for ref in () if info is None else info.fstar_references:
+        print(f"registry    {ref.value:.12g}, {ref.label} of {info.name}: relative difference {ref.gap(res.f):+.1e}")
     if not args.no_certify:
         _print_certificate(data, res.poses, hint=False)
     with atomic_group():
@@ -682,14 +702,16 @@ def _cmd_optimum(args) -> int:
     return 0
 
 
-def _print_summary(result, fstar: float | None) -> None:
+def _print_summary(result, fstar) -> None:
+    """The result of a solve; ``fstar``: the :class:`~mmpgo_jax.FStarReference` of its gap, or None."""
     h = result.history
     print(f"method      {result.config.method.upper()}-PGO, {result.partition.num_robots} robots, "
           f"restart={result.config.restart}")
     print(f"iterations  {h.iterations} ({result.stop_description})")
     print(f"f = 2F      {h.f[0]:.6f} -> {h.f[-1]:.6f}")
     if fstar is not None:
-        print(f"f*          {fstar:.6g} (reference), relative gap (f - f*)/f* = {(h.f[-1] - fstar) / fstar:.3e}")
+        print(f"f*          {fstar.value:.12g} ({fstar.label})")
+        print(f"gap         {fstar.gap(h.f[-1]):.3e} = (f - f*)/f*, relative to the {fstar.label}")
     print(f"|grad F|    {h.grad_norm[-1]:.3e}")
     if result.accuracy is not None:
         a = result.accuracy

@@ -56,6 +56,7 @@ TOLS = (1e-2, 1e-3, 1e-4)
 QUICK_ITERATIONS = 100
 QUICK_CUBE_POSES = 300
 PAPER_ROBOTS = 10
+PAPER_DIGITS = 4  # significant digits of the paper's tables
 
 # (key, label, method, restart, paper column, authors' code column)
 RUNS = (
@@ -136,9 +137,9 @@ def command_line() -> str:
 
 def paper_rounding(value: float) -> float:
     """Half a unit of the 4th significant digit (the paper prints 4 significant digits)."""
-    if value == 0 or not math.isfinite(value):
-        return 0.0
-    return 0.5 * 10.0 ** (math.floor(math.log10(abs(value))) - 3)
+    from .._experiments.plots import printed_half_unit
+
+    return printed_half_unit(value, PAPER_DIGITS)
 
 
 def _rel(a: float | None, b: float | None) -> float | None:
@@ -314,12 +315,10 @@ def _bench_one(job: _Job, args, iterations: int, no_progress: bool) -> _Result:
     chordal = {"f": f0, "seconds": time.perf_counter() - t,
                "notes_f": getattr(info, "chordal_f", None)}
 
-    if not no_progress:
-        print(f"[{job.name}] f*: centralized solve (1 robot, MM to ||grad F|| <= 1e-6) ...", file=sys.stderr,
-              flush=True)
     t = time.perf_counter()
     # float32 cannot reach ||grad F|| <= 1e-6: do not spend the float64 budget on trying
-    ref = centralized_optimum(graph, init=X0, max_iterations=5000 if float64_enabled() else 1000)
+    with progress_bar(f"[{job.name}] f* (1 robot)", None, disable=no_progress, leave=False, show_gradient=True) as bar:
+        ref = centralized_optimum(graph, init=X0, max_iterations=5000 if float64_enabled() else 1000, monitor=bar)
     ref_seconds = time.perf_counter() - t
     ours = ref.f
     converged = ref.stop_reason == "grad_tol"
@@ -327,12 +326,13 @@ def _bench_one(job: _Job, args, iterations: int, no_progress: bool) -> _Result:
     certificate = certify(graph, ref.poses) if converged else None
     sesync = getattr(info, "sesync_fstar", None)
     paper_fstar = getattr(info, "paper_fstar", None)
-    if converged:
-        used, source = ours, "ours"
-    elif sesync is not None:
-        used, source = float(sesync), "SE-Sync (ours did not converge)"
-    elif paper_fstar is not None:
-        used, source = float(paper_fstar), "paper, 4 digits (ours did not converge)"
+    registry = None if info is None else info.fstar_reference
+    if registry is not None and registry.source == "certified":
+        used, source = registry.value, "certified f* (registry)"
+    elif converged:
+        used, source = ours, "ours (this run)"
+    elif registry is not None:
+        used, source = registry.value, f"{registry.label} (ours did not converge)"
     else:
         used, source = ours, "ours, NOT converged"
     fstar = {
@@ -352,8 +352,8 @@ def _bench_one(job: _Job, args, iterations: int, no_progress: bool) -> _Result:
     res = _Result(job.name, file, graph.dim, n, graph.num_edges, A, iterations, chordal, fstar)
 
     for key, label, method, restart, pcol, ccol in RUNS:
-        with progress_bar(f"[{job.name}] {label}", iterations, disable=no_progress, leave=False) as cb:
-            r = solve(graph, A, method=method, restart=restart, iterations=iterations, init=X0, callback=cb)
+        with progress_bar(f"[{job.name}] {label}", iterations, disable=no_progress, leave=False) as bar:
+            r = solve(graph, A, method=method, restart=restart, iterations=iterations, init=X0, monitor=bar)
         h = r.history
         at = {}
         for k in _checkpoints(h.iterations):
@@ -466,8 +466,9 @@ def _markdown(results: list[_Result], meta: dict, done: bool) -> str:
     w("f* ours = centralized solve (1 robot, MM run to ||grad F|| ≤ 1e-6 from the chordal start). Certificate: "
       "smallest eigenvalue of SE-Sync's dual certificate matrix S = M − Λ at our f* (`mmpgo_jax.certify`); "
       "\"certified\" = S + ηI is positive definite (η = 1e-8 · max diag M), i.e. our f* is the global optimum. "
-      "The gaps and iteration counts below use \"reference for gaps\": our f* when it converged, else SE-Sync's "
-      "certified f*.\n\n")
+      "The gaps and iteration counts below use \"reference for gaps\": the certified f* of the registry "
+      "(`ours_fstar`, 12 digits, `benchmarks/certified_optimum.py`) where it has one, else our f* of this run "
+      "when it converged, else the published (rounded) value.\n\n")
     w(_table(_STAR_HEADER, [_star_row(res) for res in results], "l" + "r" * 11 + "l") + "\n\n")
     w("## Speed and iterations to relative suboptimality (f − f*)/f* ≤ tol\n\n")
     w("ms/iter: compiled outer iterations (all robots, one process), excluding compilation; \"ms/iter code\": the "
@@ -546,11 +547,12 @@ def _figure(out: Path, res: _Result, info) -> str:
         for col, lab in (("paper_mm", "MM-PGO (paper, Table I/II)"), ("paper_amm", "AMM-PGO (paper, Table I/II)")):
             tab = getattr(info, col, None)
             if tab:
-                refs[lab] = {k: v for k, v in tab.items() if k <= res.iterations}
+                refs[lab] = dict(tab)
     used = res.fstar["used"]
     save_convergence_figure(out / fname, curves, used,
                             f"{res.name}: {res.num_poses} poses, {res.num_edges} edges, {res.robots} robots",
-                            references=refs or None, fstar_label=f"f* = {used:.9g} ({res.fstar['source']})")
+                            references=refs or None, fstar_label=f"f* = {used:.12g} ({res.fstar['source']})",
+                            printed_digits=PAPER_DIGITS)
     return fname
 
 

@@ -87,30 +87,29 @@ def cli_solve(args, argv: Sequence[str] | None = None) -> int:
 def _cli_solve_sharded(args) -> int:
     """Mirror of ``mmpgo solve`` (cli._cmd_solve) with :func:`solve_sharded`; process 0 writes."""
     from .. import cli
-    from .._io.datasets import benchmark_info
 
     writer = jax.process_index() == 0
     args.file = str(cli._resolve_file(args.file, args.data, announce=writer))
-    t = time.perf_counter()
-    data = cli._load_for_solve(args, announce=writer)
-    read = time.perf_counter() - t
-    options = cli.solve_options(args, data)
-    local = jax.local_devices()
-    if args.devices:
-        if args.devices > len(local):
-            raise cli.CLIError(f"--devices {args.devices}: this process has only {len(local)} devices")
-        local = local[: args.devices]
-    # The mesh: this process's devices, or (multi-process) every process's, ordered by process.
-    devices = local if jax.process_count() == 1 else sorted(jax.devices(), key=lambda d: (d.process_index, d.id))
-
     quiet = (not writer) or args.no_progress
-    with progress_bar(f"{args.method.upper()}-PGO", args.iterations, disable=quiet) as progress:
-        result = solve_sharded(data.graph, args.robots, devices=devices, callback=progress, exchange=args.exchange,
+    with progress_bar(f"{args.method.upper()}-PGO", args.iterations, disable=quiet,
+                      show_gradient=args.grad_tol is not None) as progress:
+        progress.phase("reading")
+        t = time.perf_counter()
+        data = cli._load_for_solve(args, announce=writer)
+        read = time.perf_counter() - t
+        options = cli.solve_options(args, data)
+        local = jax.local_devices()
+        if args.devices:
+            if args.devices > len(local):
+                raise cli.CLIError(f"--devices {args.devices}: this process has only {len(local)} devices")
+            local = local[: args.devices]
+        # The mesh: this process's devices, or (multi-process) every process's, ordered by process.
+        devices = local if jax.process_count() == 1 else sorted(jax.devices(), key=lambda d: (d.process_index, d.id))
+        result = solve_sharded(data.graph, args.robots, devices=devices, monitor=progress, exchange=args.exchange,
                                **options)
     if not writer:
         return 0
-    info = benchmark_info(data.path.name)
-    fstar = info.fstar if info is not None else None
+    fstar = cli.reference_fstar(data)
     cli._print_summary(result, fstar)
     halo = f", halo of {result.extra['halo_size']} poses per device pair" if result.extra["halo_size"] else ""
     print(f"sharding    {result.extra['devices']} devices, {result.extra['processes']} processes, "
