@@ -968,12 +968,15 @@ def read_toro(path, *, dtype=None, strict_information: bool = False) -> G2OFile:
     return _read(path, dtype=dtype, strict_information=strict_information, family=_TORO)
 
 
-def _read(path, *, dtype, strict_information: bool, family: _Family) -> G2OFile:
+def _read(path, *, dtype, strict_information: bool, family: _Family, need: str = "edges",
+          warn: bool = True) -> G2OFile:
+    """``need="any"``: a robot's file of a multi-robot folder, which may hold VERTEX lines only."""
     spath = os.fspath(path)
     fdt = dtype or jnp.asarray(0.0).dtype
-    p = _parse(spath, need="edges", strict=strict_information, limits=_Limits.of(fdt), family=family)
+    p = _parse(spath, need=need, strict=strict_information, limits=_Limits.of(fdt), family=family)
     out = _build(spath, p, fdt)
-    _warn_indefinite(out)
+    if warn:
+        _warn_indefinite(out)
     return out
 
 
@@ -1099,6 +1102,19 @@ def write_g2o(path, graph: PoseGraph, poses: Poses | None, *, vertex_ids=None, i
     round-trip precision. ``poses`` may be None (no VERTEX lines); ``fixed`` (n,) bool adds a FIX
     line.
     """
+    vertex_lines, edge_lines, fixed = g2o_lines(graph, poses, vertex_ids=vertex_ids, information=information,
+                                                fixed=fixed)
+    ids = _check_vertex_ids(vertex_ids, graph.num_poses)
+    fix_lines = ["FIX " + " ".join(map(str, ids[fixed].tolist()))] if fixed.any() else []
+    with atomic_write(path, "w") as f:
+        f.write("\n".join(vertex_lines + fix_lines + edge_lines))
+        f.write("\n")
+
+
+def g2o_lines(graph: PoseGraph, poses: Poses | None, *, vertex_ids=None, information=None,
+              fixed=None) -> tuple[list[str], list[str], np.ndarray]:
+    """The VERTEX lines (one per pose, [] without ``poses``) and EDGE lines (one per edge) of
+    :func:`write_g2o`, and the (n,) fixed mask (checked; all False when ``fixed`` is None)."""
     d = graph.dim
     if d not in (2, 3):
         raise ValueError(f"only 2D and 3D graphs can be written, got dimension {d}")
@@ -1130,17 +1146,10 @@ def write_g2o(path, graph: PoseGraph, poses: Poses | None, *, vertex_ids=None, i
         else:
             vals = np.concatenate([t, rotation_to_quaternion(R).reshape(n, 4)], 1)
         vertex_lines = _fmt_rows(ids[:, None], vals, _VERTEX_TAG[d] + " ")
-    fix_lines: list[str] = []
-    if fixed is not None:
-        fixed = np.asarray(fixed, dtype=bool)
-        if fixed.shape != (n,):
-            raise ValueError(f"fixed must have shape ({n},), got {fixed.shape}")
-        if fixed.any():
-            fix_lines = ["FIX " + " ".join(map(str, ids[fixed].tolist()))]
-
-    with atomic_write(path, "w") as f:
-        f.write("\n".join(vertex_lines + fix_lines + edge_lines))
-        f.write("\n")
+    fixed = np.zeros(n, dtype=bool) if fixed is None else np.asarray(fixed, dtype=bool)
+    if fixed.shape != (n,):
+        raise ValueError(f"fixed must have shape ({n},), got {fixed.shape}")
+    return vertex_lines, edge_lines, fixed
 
 
 def write_tum(path, poses: Poses, *, vertex_ids=None, timestamps=None) -> None:
