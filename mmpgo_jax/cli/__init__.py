@@ -192,9 +192,28 @@ def _add_common(p: argparse.ArgumentParser) -> None:
                        help="compile afresh, write no cache (also: MMPGO_COMPILATION_CACHE=off)")
 
 
+ROBOT_SOURCES = ("blocks", "metis", "random", "symbols", "labels", "files")
+DEFAULT_ROBOTS = 10
+
+
+def _add_robots_from(p: argparse.ArgumentParser, choices=ROBOT_SOURCES) -> None:
+    """``--robots-from`` (and ``--labels``): how the graph is split among robots (README, "Multi-robot inputs")."""
+    data = [c for c in choices if c in ("symbols", "labels", "files")]
+    p.add_argument("--robots-from", choices=choices, default=None,
+                   help="how to split the graph: blocks (contiguous blocks of poses, the paper's; default), metis "
+                        "(METIS balanced parts), random (random balanced parts, seed 0) among --robots robots"
+                        + ("; or the robots of the data: " + ", ".join(data) + " (GTSAM symbol keys, a --labels "
+                           "file, one g2o file per robot in the folder FILE; default for a folder)" if data else ""))
+    if "labels" in choices:
+        p.add_argument("--labels", metavar="CSV",
+                       help="label file, 'vertex_id,robot' per line (implies --robots-from labels)")
+
+
 def _add_solver_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--robots", "-A", type=ROBOTS, default=10,
-                   help="number of robots, >= 1 and at most the number of poses (contiguous blocks; default 10)")
+    p.add_argument("--robots", "-A", type=ROBOTS, default=None,
+                   help="number of robots, >= 1 and at most the number of poses (for --robots-from blocks, metis, "
+                        f"random; default {DEFAULT_ROBOTS})")
+    _add_robots_from(p)
     p.add_argument("--method", choices=("amm", "mm"), default="amm", help="AMM-PGO (default) or MM-PGO")
     p.add_argument("--iterations", "-n", type=ITERATIONS, default=1000, help="outer iterations, >= 0 (default 1000)")
     p.add_argument(
@@ -220,6 +239,10 @@ def _add_strict(p: argparse.ArgumentParser) -> None:
                         "SE-Sync's isotropic weights)")
 
 
+_FILE_HELP = ("g2o file, TORO .graph file, folder with one g2o file per robot, or a benchmark name "
+              "(e.g. MITb, city10000)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     from .. import __version__
 
@@ -228,17 +251,23 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("info", help="describe a pose graph and its partition among robots")
-    p.add_argument("file", help="g2o file, or a benchmark name (e.g. MITb, city10000)")
+    p.add_argument("file", help=_FILE_HELP)
     p.add_argument("--robots", "-A", type=ROBOTS, default=None,
                    help="also describe the split among A robots (1 .. number of poses)")
+    _add_robots_from(p)
     _add_strict(p)
     _add_common(p)
 
     p = sub.add_parser("solve", help="run MM-PGO / AMM-PGO on a g2o file")
-    p.add_argument("file", help="g2o file, or a benchmark name (e.g. MITb, city10000)")
+    p.add_argument("file", help=_FILE_HELP)
     _add_solver_options(p)
     p.add_argument("--out", "-o", help="write the estimate as g2o (VERTEX lines + the original edges)")
     p.add_argument("--tum", help="write the estimate as a TUM trajectory (index tx ty tz qx qy qz qw)")
+    p.add_argument("--tum-dir", metavar="DIR",
+                   help="write one TUM trajectory per robot, DIR/<robot>.tum, and the whole one, DIR/all_robots.tum")
+    p.add_argument("--out-dir", metavar="DIR",
+                   help="write the estimate as one g2o file per robot, DIR/<robot>.g2o (the per-robot folder layout, "
+                        "which reads back with --robots-from files)")
     p.add_argument("--history", help="write the per-iteration history as CSV")
     p.add_argument("--plot", help="write convergence and trajectory plots to this PNG")
     p.add_argument(
@@ -287,6 +316,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--iterations", "-n", type=int_in(1, INT_MAX), default=1000,
                    help="outer iterations, >= 1 (default 1000)")
     p.add_argument("--robots", "-A", type=ROBOTS, default=10, help="robots, >= 1 (default 10)")
+    _add_robots_from(p, ("blocks", "metis", "random"))
     p.add_argument("--out-dir", default="bench-results", help="folder for the Markdown, CSV and JSON tables")
     p.add_argument("--no-progress", action="store_true")
     _add_common(p)
@@ -377,7 +407,11 @@ def _resolve_file(name: str, data: str | None, *, announce: bool = True) -> Path
     is only a path; a bare name is looked up in the data folder). ``announce``: print ``using
     PATH (benchmark NAME)`` when the data folder supplied the file."""
     from .._io.datasets import benchmark_info, find_benchmark, names_a_path
+    from .._io.multi_robot import robot_files
 
+    folder = Path(name).expanduser()
+    if names_a_path(name) and folder.is_dir() and robot_files(folder):
+        return folder  # one g2o file per robot
     path = find_benchmark(name, data)
     if announce and not names_a_path(name):
         info = benchmark_info(name)
@@ -386,14 +420,91 @@ def _resolve_file(name: str, data: str | None, *, announce: bool = True) -> Path
 
 
 def read_input(path, args=None):
-    """``read_g2o(path)`` of the FILE argument, refusing indefinite information matrices with
-    ``--strict-information``."""
-    from .._io.g2o import read_g2o
+    """The graph of the FILE argument (a g2o file, a TORO ``.graph`` file, or a folder with one g2o
+    file per robot), refusing indefinite information matrices with ``--strict-information``, with
+    the robots of the data for ``--robots-from symbols / labels / files``."""
+    from .._io.g2o import read_g2o, read_toro
+    from .._io.multi_robot import read_robot_folder, read_robot_labels, robots_from_symbols
 
-    return read_g2o(path, strict_information=bool(getattr(args, "strict_information", False)))
+    strict = bool(getattr(args, "strict_information", False))
+    how = robots_source(args, folder=os.path.isdir(path))
+    if os.path.isdir(path):
+        g2o = read_robot_folder(path, strict_information=strict)
+    elif str(path).lower().endswith(".graph"):
+        g2o = read_toro(path, strict_information=strict)
+    else:
+        g2o = read_g2o(path, strict_information=strict)
+    if how == "symbols":
+        g2o = robots_from_symbols(g2o)
+    elif how == "labels":
+        g2o = read_robot_labels(args.labels, g2o)
+    elif how == "files" and not os.path.isdir(path):
+        raise CLIError(f"--robots-from files: {path} is a file; give a folder with one g2o file per robot")
+    return g2o
+
+
+def robots_source(args, *, folder: bool = False) -> str:
+    """``--robots-from``, checked against ``--labels`` and ``--robots``; the default is ``blocks``,
+    ``files`` for a folder."""
+    how = getattr(args, "robots_from", None)
+    labels = getattr(args, "labels", None)
+    if labels is not None and how not in (None, "labels"):
+        raise CLIError(f"--labels goes with --robots-from labels, not --robots-from {how}")
+    how = how or ("labels" if labels is not None else "files" if folder else "blocks")
+    if how == "labels" and labels is None:
+        raise CLIError("--robots-from labels needs --labels CSV (lines 'vertex_id,robot')")
+    if how in ("symbols", "labels", "files") and getattr(args, "robots", None) is not None:
+        raise CLIError(f"--robots applies to --robots-from blocks, metis or random; with --robots-from {how} "
+                       "the robots come from the data")
+    return how
+
+
+def robot_split(args, g2o, graph=None, keep=None):
+    """(robot of each pose, robot names, description) of the split ``args`` ask for, on ``graph``
+    (default ``g2o.graph``; ``keep``: the poses of ``g2o`` that ``graph`` holds)."""
+    from .._core.partition import split_robots
+
+    graph = g2o.graph if graph is None else graph
+    how = robots_source(args, folder=os.path.isdir(g2o.path or ""))
+    if how in ("symbols", "labels", "files"):
+        rop = np.asarray(g2o.robot_of_pose)
+        names = np.asarray(g2o.robot_names)
+        if keep is not None:  # robots without a pose in the kept component are left out
+            used, rop = np.unique(rop[keep], return_inverse=True)
+            names = names[used]
+        return rop.reshape(-1), [str(x) for x in names], f"from {how}"
+    A = DEFAULT_ROBOTS if getattr(args, "robots", None) is None else args.robots
+    if not 1 <= A <= graph.num_poses:
+        raise CLIError(f"--robots must be between 1 and the number of poses ({graph.num_poses}), got {A}")
+    label = {"blocks": "contiguous blocks", "metis": "METIS parts", "random": "random balanced parts, seed 0"}[how]
+    return split_robots(graph, how, A), [str(a) for a in range(A)], label
 
 
 _OUTPUTS = (("out", "--out"), ("tum", "--tum"), ("history", "--history"), ("plot", "--plot"))
+_OUTPUT_DIRS = (("tum_dir", "--tum-dir"), ("out_dir", "--out-dir"))
+
+
+def _check_output_dirs(args) -> None:
+    """--tum-dir / --out-dir: an existing folder, or one that can be made in an existing, writable
+    folder; not the same folder."""
+    seen = {}
+    for attr, flag in _OUTPUT_DIRS:
+        value = getattr(args, attr, None)
+        if value is None:
+            continue
+        if value == "":
+            raise CLIError(f"{flag}: empty folder name")
+        target = os.path.realpath(os.path.abspath(value))
+        if os.path.exists(target) and not os.path.isdir(target):
+            raise CLIError(f"{flag} {value}: not a folder")
+        parent = target if os.path.isdir(target) else os.path.dirname(target)
+        if not os.path.isdir(parent):
+            raise CLIError(f"{flag} {value}: folder {os.path.dirname(value) or '.'!r} does not exist")
+        if not os.access(parent, os.W_OK | os.X_OK):
+            raise CLIError(f"{flag} {value}: folder {parent!r} is not writable")
+        if target in seen:
+            raise CLIError(f"{seen[target]} and {flag} {value}: the same folder")
+        seen[target] = f"{flag} {value}"
 
 
 def check_outputs(args) -> None:
@@ -402,6 +513,7 @@ def check_outputs(args) -> None:
     device or other non-regular file), and no two may be the same file (symbolic links resolved)."""
     from .._io.atomic import resolve_target
 
+    _check_output_dirs(args)
     seen: dict = {}
     for attr, flag in _OUTPUTS:
         value = getattr(args, attr, None)
@@ -447,8 +559,6 @@ def _describe_components(graph, vertex_ids=None) -> tuple[list[np.ndarray], str]
 
 
 def _cmd_info(args) -> int:
-    from .._core.partition import contiguous_robots, partition_stats
-
     path = _resolve_file(args.file, args.data)
     g2o = read_input(path, args)
     g = g2o.graph
@@ -466,16 +576,38 @@ def _cmd_info(args) -> int:
     print(f"tau         {tau.min():.6g} .. {tau.max():.6g}")
     print(f"graph       {conn}")
     print(f"vertices    {int(g2o.has_vertex.sum())} VERTEX lines, {int(g2o.fixed.sum())} fixed")
-    if args.robots:
-        rop = contiguous_robots(g.num_poses, args.robots)
-        st = partition_stats(g, rop)
-        print(f"\npartition   {args.robots} robots (contiguous blocks), {st.total_inter_edges} inter-robot edges")
-        print(f"{'robot':>5} {'poses':>7} {'own edges':>10} {'inter edges':>12} {'receives':>9}  neighbours")
-        for a in range(args.robots):
-            nb = " ".join(map(str, st.neighbours[a].tolist()))
-            print(f"{a:>5} {st.poses[a]:>7} {st.own_edges[a]:>10} {st.inter_edges[a]:>12} {st.received_poses[a]:>9}"
-                  f"  {nb}")
+    if args.robots or args.robots_from or args.labels or g2o.robot_names is not None:
+        rop, names, label = robot_split(args, g2o)
+        _print_robot_table(g, rop, names, label, np.float32 if args.precision == "float32" else np.float64)
+    else:
+        from .._io.multi_robot import robots_from_symbols
+
+        with contextlib.suppress(ValueError):  # a hint only: ids that are GTSAM symbol keys
+            names = robots_from_symbols(g2o).robot_names
+            print(f"robots      the vertex ids are GTSAM symbol keys of {len(names)} robots ({', '.join(names)}): "
+                  "--robots-from symbols splits by them")
     return 0
+
+
+def _print_robot_table(graph, rop, names, label: str, dtype) -> None:
+    """Per robot: name, poses, own and inter-robot edges, poses (bytes) received and sent per
+    iteration, neighbours."""
+    from .._core.partition import partition_stats
+
+    st = partition_stats(graph, rop)
+    A = len(names)
+    bpp = st.bytes_per_pose(dtype)
+    print(f"\npartition   {A} robots ({label}), {st.total_inter_edges} inter-robot edges; per iteration "
+          f"{int(st.sent_poses.sum())} poses exchanged, {int(st.sent_bytes(dtype).sum())} bytes "
+          f"({np.dtype(dtype).name}, {bpp} bytes per pose)")
+    width = max(5, *(len(x) for x in names))
+    print(f"{'robot':>{width}} {'poses':>7} {'own edges':>10} {'inter edges':>12} {'receives':>9} {'bytes':>9} "
+          f"{'sends':>7} {'bytes':>9}  neighbours")
+    named = np.asarray(names)
+    rows = [f"{names[a]:>{width}} {st.poses[a]:>7} {st.own_edges[a]:>10} {st.inter_edges[a]:>12} "
+            f"{st.received_poses[a]:>9} {st.received_poses[a] * bpp:>9} {st.sent_poses[a]:>7} "
+            f"{st.sent_poses[a] * bpp:>9}  {' '.join(named[st.neighbours[a]].tolist())}" for a in range(A)]
+    print("\n".join(rows))
 
 
 @dataclass(frozen=True, eq=False)
@@ -494,6 +626,9 @@ class LoadedInput:
     fixed: object  # FixedPoses | None
     frame: object  # FixedPoses
     components: list
+    robot_of_pose: np.ndarray | None = None  # the split the options ask for (None: not resolved)
+    robot_names: list | None = None
+    robots_label: str = ""
 
     @property
     def fixed_mask(self) -> np.ndarray:
@@ -548,9 +683,11 @@ def _load_for_solve(args, *, announce: bool = True) -> LoadedInput:
     path = _resolve_file(args.file, args.data, announce=False)
     g2o = read_input(path, args)
     comps, conn = _describe_components(g2o.graph, g2o.vertex_ids)
+    splits = hasattr(args, "robots_from")  # solve: the robots; optimum: one robot
     if len(comps) == 1:
+        robots = robot_split(args, g2o) if splits else (None, None, "")
         return LoadedInput(path, g2o, None, g2o.graph, g2o.vertex_ids, g2o.information, g2o.initial,
-                           g2o.fixed_poses, g2o.frame, comps)
+                           g2o.fixed_poses, g2o.frame, comps, *robots)
     if not args.largest_component:
         raise CLIError(
             f"{path}: the pose graph is {conn}. Each component is only determined up to its own "
@@ -563,7 +700,9 @@ def _load_for_solve(args, *, announce: bool = True) -> LoadedInput:
     frame = fixed or FixedPoses([0], g2o.vertex_R[keep[:1]], g2o.vertex_t[keep[:1]])
     if announce:
         print(f"note: solving the largest component only ({graph.num_poses} of {g2o.graph.num_poses} poses)")
-    return LoadedInput(path, g2o, keep, graph, g2o.vertex_ids[keep], information, initial, fixed, frame, comps)
+    robots = robot_split(args, g2o, graph, keep) if splits else (None, None, "")
+    return LoadedInput(path, g2o, keep, graph, g2o.vertex_ids[keep], information, initial, fixed, frame, comps,
+                       *robots)
 
 
 _SOLVE_STARTS = ("chordal", "distributed-chordal", "vertices", "odometry")
@@ -582,10 +721,10 @@ def _cmd_solve(args) -> int:
     read = time.perf_counter() - t
     options = solve_options(args, data)
     with progress_bar(f"{args.method.upper()}-PGO", args.iterations, disable=args.no_progress) as progress:
-        result = solve(data.graph, args.robots, callback=progress, ground_truth=ground_truth, **options)
+        result = solve(data.graph, data.robot_of_pose, callback=progress, ground_truth=ground_truth, **options)
     info = benchmark_info(data.path.name)
     fstar = info.fstar if info is not None else None
-    _print_summary(result, fstar)
+    _print_summary(result, fstar, data)
     t = time.perf_counter()
     finish_solve(args, data, result, fstar)
     print_timing(result, read=read, write=time.perf_counter() - t)
@@ -593,12 +732,8 @@ def _cmd_solve(args) -> int:
 
 
 def solve_options(args, data: LoadedInput) -> dict:
-    """The keyword arguments of ``solve`` / ``solve_sharded`` from ``mmpgo solve``'s options (robot
-    count checked against the graph, the start resolved, FIX poses and the input's frame)."""
-    if not 1 <= args.robots <= data.graph.num_poses:
-        raise CLIError(
-            f"--robots must be between 1 and the number of poses ({data.graph.num_poses}), got {args.robots}"
-        )
+    """The keyword arguments of ``solve`` / ``solve_sharded`` from ``mmpgo solve``'s options (the
+    start resolved, FIX poses and the input's frame; the robots are ``data.robot_of_pose``)."""
     return dict(method=args.method, iterations=args.iterations, init=data.start(args.init, _SOLVE_STARTS),
                 initial=data.initial, xi=args.xi, restart=args.restart, chunk_size=args.chunk,
                 grad_tol=args.grad_tol, fixed=data.fixed, frame=data.frame)
@@ -619,10 +754,18 @@ def _print_certificate(data: LoadedInput, poses, *, hint: bool) -> None:
 
 
 def _write_estimate(args, data: LoadedInput, poses) -> list[str]:
-    """--out (g2o, with the FIX lines) and --tum files of an estimate; returns the paths written."""
+    """--out (g2o, with the FIX lines), --tum, --tum-dir and --out-dir files of an estimate; returns
+    the paths written."""
     from .._io.g2o import write_g2o, write_tum
+    from .._io.multi_robot import write_robot_folder, write_robot_tum
 
     written = []
+    robots = dict(robot_of_pose=data.robot_of_pose, robot_names=data.robot_names, vertex_ids=data.vertex_ids)
+    if getattr(args, "tum_dir", None):
+        written += write_robot_tum(args.tum_dir, poses, **robots)
+    if getattr(args, "out_dir", None):
+        written += write_robot_folder(args.out_dir, data.graph, poses, information=data.information,
+                                      fixed=data.fixed_mask, **robots)
     if args.out:
         write_g2o(args.out, data.graph, poses, vertex_ids=data.vertex_ids, information=data.information,
                   fixed=data.fixed_mask)
@@ -682,9 +825,10 @@ def _cmd_optimum(args) -> int:
     return 0
 
 
-def _print_summary(result, fstar: float | None) -> None:
+def _print_summary(result, fstar: float | None, data: LoadedInput | None = None) -> None:
     h = result.history
-    print(f"method      {result.config.method.upper()}-PGO, {result.partition.num_robots} robots, "
+    split = f" ({data.robots_label})" if data is not None and data.robots_label else ""
+    print(f"method      {result.config.method.upper()}-PGO, {result.partition.num_robots} robots{split}, "
           f"restart={result.config.restart}")
     print(f"iterations  {h.iterations} ({result.stop_description})")
     print(f"f = 2F      {h.f[0]:.6f} -> {h.f[-1]:.6f}")

@@ -105,13 +105,13 @@ def _cli_solve_sharded(args) -> int:
 
     quiet = (not writer) or args.no_progress
     with progress_bar(f"{args.method.upper()}-PGO", args.iterations, disable=quiet) as progress:
-        result = solve_sharded(data.graph, args.robots, devices=devices, callback=progress, exchange=args.exchange,
+        result = solve_sharded(data.graph, data.robot_of_pose, devices=devices, callback=progress, exchange=args.exchange,
                                **options)
     if not writer:
         return 0
     info = benchmark_info(data.path.name)
     fstar = info.fstar if info is not None else None
-    cli._print_summary(result, fstar)
+    cli._print_summary(result, fstar, data)
     halo = f", halo of {result.extra['halo_size']} poses per device pair" if result.extra["halo_size"] else ""
     print(f"sharding    {result.extra['devices']} devices, {result.extra['processes']} processes, "
           f"{result.extra['exchange']} exchange{halo}")
