@@ -157,8 +157,9 @@ def metis_robots(graph: PoseGraph, parts: int, *, seed: int = 0, ufactor: int = 
     options = pymetis.Options()
     options.seed = int(seed)
     options.ufactor = int(ufactor)
-    _, membership = pymetis.part_graph(int(parts), xadj=xadj.astype(np.int64), adjncy=dst[order].astype(np.int64),
-                                       eweights=w[order].astype(np.int64), options=options, recursive=False)
+    adjacency = pymetis.CSRAdjacency(xadj.astype(np.int64), dst[order].astype(np.int64))
+    _, membership = pymetis.part_graph(int(parts), adjacency, eweights=w[order].astype(np.int64), options=options,
+                                       recursive=False)
     part = np.asarray(membership, dtype=np.int64)
     counts = np.bincount(part, minlength=parts)
     if np.any(counts == 0):

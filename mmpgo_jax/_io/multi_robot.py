@@ -230,8 +230,10 @@ def robot_files(folder) -> list[Path]:
 def read_robot_folder(folder, *, dtype=None, strict_information: bool = False) -> G2OFile:
     """Read a folder with one g2o file per robot (see the module docstring) as one graph.
 
-    The result's ``path`` is the folder; its edges are those of the files in file-name order
-    (inter-robot copies counted once), ``information`` as read, ``initial`` the VERTEX values.
+    The result's ``path`` is the folder; its edges are those of the files (inter-robot copies
+    counted once) sorted by (tail, head) pose, ties in file-name and line order (a folder has no
+    edge order of its own; :func:`write_robot_folder` of a graph in that order reads back to the
+    same arrays); ``information`` as read, ``initial`` the VERTEX values.
     ``vertex_line`` / ``edge_line`` are None (the lines are in several files).
     """
     sfolder = os.fspath(folder)
@@ -296,6 +298,9 @@ def read_robot_folder(folder, *, dtype=None, strict_information: bool = False) -
     tau = np.concatenate([np.asarray(g.graph.tau) for g in parts])
     info = np.concatenate([g.information for g in parts])
     keep = _drop_second_copies(gi, gj, ri, rj, e_file, e_line, R, t, info, parts, vertex_ids)
+    # a folder has no edge order of its own: (tail, head), then file and line (lexsort is stable)
+    keep = np.flatnonzero(keep)
+    keep = keep[np.lexsort((gj[keep], gi[keep]))]
 
     fdt = np.asarray(parts[0].graph.kappa).dtype
     graph = PoseGraph.from_arrays(gi[keep], gj[keep], R[keep], t[keep], kappa[keep], tau[keep],
