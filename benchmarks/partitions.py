@@ -138,9 +138,9 @@ def write_md(path: Path, rows, meta) -> None:
         for r in rs:
             lines.append(
                 f"| {r['robots']} | {r['split']} | {r['min_poses']}–{r['max_poses']} | {r['inter_edges']} | "
-                f"{r['poses_sent']} ({r['bytes_per_iteration']}) | {r['method'].upper()} | {fmt(r['ms_per_iteration'], 'ms')} | "
-                f"{fmt(r['it_0.001'])} | {fmt(r['s_0.001'], 's')} | {fmt(r['it_0.0001'])} | {fmt(r['s_0.0001'], 's')} | "
-                f"{fmt(r['final_rel'], 'e')} |")
+                f"{r['poses_sent']} ({r['bytes_per_iteration']}) | {r['method'].upper()} | "
+                f"{fmt(r['ms_per_iteration'], 'ms')} | {fmt(r['it_0.001'])} | {fmt(r['s_0.001'], 's')} | "
+                f"{fmt(r['it_0.0001'])} | {fmt(r['s_0.0001'], 's')} | {fmt(r['final_rel'], 'e')} |")
         lines.append("")
     lines += summary(rows)
     path.write_text("\n".join(lines) + "\n", encoding="utf-8")
@@ -150,8 +150,9 @@ def summary(rows) -> list[str]:
     """Per (method, robots, tolerance): on how many graphs each split is the fastest to the tolerance
     in iterations, and the median ratio of its iterations to the blocks' iterations."""
     out = ["## Summary (measured above)", "",
-           "| method | robots | tol | fewest iterations: blocks / metis / random (graphs) | median it(metis)/it(blocks) "
-           "| median it(random)/it(blocks) | median inter-edges metis/blocks | random/blocks |",
+           "| method | robots | tol | fewest iterations: blocks / metis / random (graphs) "
+           "| median it(metis)/it(blocks) | median it(random)/it(blocks) | median inter-edges metis/blocks "
+           "| random/blocks |",
            "|---|---:|---:|---|---:|---:|---:|---:|"]
     methods = list(dict.fromkeys(r["method"] for r in rows))
     robots = sorted({r["robots"] for r in rows})
@@ -163,7 +164,8 @@ def summary(rows) -> list[str]:
                 ratio = {s: [] for s in SPLITS}
                 edges = {s: [] for s in SPLITS}
                 for g in graphs_:
-                    sel = {r["split"]: r for r in rows if r["graph"] == g and r["method"] == method and r["robots"] == A}
+                    sel = {r["split"]: r for r in rows
+                           if r["graph"] == g and r["method"] == method and r["robots"] == A}
                     if len(sel) < 3:
                         continue
                     its = {s: sel[s][f"it_{tol:g}"] for s in SPLITS}
@@ -180,9 +182,10 @@ def summary(rows) -> list[str]:
                         edges[s].append(sel[s]["inter_edges"] / max(sel["blocks"]["inter_edges"], 1))
                 med = {s: (f"{np.median(v):.2f}" if v else "–") for s, v in ratio.items()}
                 emed = {s: (f"{np.median(v):.2f}" if v else "–") for s, v in edges.items()}
-                out.append(f"| {method.upper()} | {A} | {tol:g} | {wins['blocks']} / {wins['metis']} / {wins['random']} "
-                           f"| {med['metis']} | {med['random']} | {emed['metis']} | {emed['random']} |")
-    return out + [""]
+                out.append(f"| {method.upper()} | {A} | {tol:g} | {wins['blocks']} / {wins['metis']} / "
+                           f"{wins['random']} | {med['metis']} | {med['random']} | {emed['metis']} | "
+                           f"{emed['random']} |")
+    return [*out, ""]
 
 
 def main(argv=None) -> int:

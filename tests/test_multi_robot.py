@@ -59,7 +59,7 @@ def _write_three_ways(tmp_path, three_robots):
     folder = tmp_path / "robots"
     write_robot_folder(folder, ds.graph, ds.ground_truth, robot_of_pose=rop, robot_names=NAMES, vertex_ids=keys)
     labels = tmp_path / "labels.csv"
-    labels.write_text("vertex_id,robot\n# a comment\n" + "".join(f"{k},{r}\n" for k, r in zip(keys, NAMES[rop])))
+    labels.write_text("vertex_id,robot\n# a comment\n" + "".join(f"{k},{r}\n" for k, r in zip(keys, NAMES[rop], strict=True)))
     return sym, folder, labels
 
 
@@ -202,7 +202,7 @@ def test_partition_stats_sent_and_received_brute_force():
     rop = random_robots(80, 5, seed=1)
     st = partition_stats(g, rop)
     need = set()  # (receiver, pose of another robot) over the edges
-    for i, j in zip(np.asarray(g.i).tolist(), np.asarray(g.j).tolist()):
+    for i, j in zip(np.asarray(g.i).tolist(), np.asarray(g.j).tolist(), strict=True):
         if rop[i] != rop[j]:
             need |= {(rop[i], j), (rop[j], i)}
     recv = [sum(1 for r, _ in need if r == a) for a in range(5)]
@@ -302,7 +302,7 @@ def test_per_robot_tum_files_read_back_with_the_whole_trajectory(tmp_path, three
     mm.write_tum(tmp_path / "whole.tum", ds.ground_truth, vertex_ids=keys)
     np.testing.assert_array_equal(whole, _read_tum(tmp_path / "whole.tum")[1])
     parts = [_read_tum(tmp_path / "tum" / f"{x}.tum") for x in NAMES]
-    for x, (ids, _) in zip(NAMES, parts):
+    for x, (ids, _) in zip(NAMES, parts, strict=True):
         assert set((ids >> 56).tolist()) == {ord(x)}
     ids = np.concatenate([p[0] for p in parts])
     rows = np.concatenate([p[1] for p in parts])
@@ -316,7 +316,7 @@ def test_out_dir_refuses_a_stale_robot_file_and_writes_nothing(tmp_path, three_r
     folder = tmp_path / "out"
     folder.mkdir()
     (folder / "z.g2o").write_text("old\n")
-    with pytest.raises(ValueError, match="holds z.g2o, which is not one of this graph's robots"):
+    with pytest.raises(ValueError, match=r"holds z\.g2o, which is not one of this graph's robots"):
         write_robot_folder(folder, ds.graph, ds.ground_truth, robot_of_pose=rop, robot_names=NAMES, vertex_ids=keys)
     assert sorted(p.name for p in folder.iterdir()) == ["z.g2o"]
 

@@ -94,10 +94,7 @@ def symbol_keys(chars, indices) -> np.ndarray:
 
 def _name_order(names: list[str]) -> np.ndarray:
     """Rank of each (distinct) name: numerical when all are integers, else by character code."""
-    if all(re.fullmatch(r"[0-9]+", n) for n in names):
-        keys = [int(n) for n in names]
-    else:
-        keys = names
+    keys = [int(n) for n in names] if all(re.fullmatch(r"[0-9]+", n) for n in names) else names
     order = sorted(range(len(names)), key=lambda k: keys[k])
     rank = np.empty(len(names), dtype=np.int64)
     rank[order] = np.arange(len(names))
@@ -197,7 +194,8 @@ def read_robot_labels(path, g2o: G2OFile) -> G2OFile:
         second = order[dup + 1]
         k = int(second[np.argmin(lines[second])])
         first = int(order[np.searchsorted(vid[order], vid[k])])
-        raise G2OFormatError(spath, int(lines[k]), f"vertex id {vid[k]} is labelled again (first on line {lines[first]})")
+        raise G2OFormatError(spath, int(lines[k]),
+                             f"vertex id {vid[k]} is labelled again (first on line {lines[first]})")
     ids = np.asarray(g2o.vertex_ids, dtype=np.int64)
     pos = np.searchsorted(ids, vid)
     known = (pos < len(ids)) & (ids[np.minimum(pos, len(ids) - 1)] == vid)
@@ -265,7 +263,8 @@ def read_robot_folder(folder, *, dtype=None, strict_information: bool = False) -
     if twice.size:
         a, b = order[twice[0]], order[twice[0] + 1]
         raise G2OFormatError(f"{parts[v_file[a]].path}:{v_line[a]} and {parts[v_file[b]].path}", int(v_line[b]),
-                             f"vertex id {v_ids[a]} has a VERTEX line in two robots' files (a pose belongs to one robot)")
+                             f"vertex id {v_ids[a]} has a VERTEX line in two robots' files "
+                             "(a pose belongs to one robot)")
     vertex_ids = np.unique(np.concatenate([g.vertex_ids for g in parts]))
     owner = np.full(len(vertex_ids), -1, dtype=np.int64)
     vk = np.searchsorted(vertex_ids, v_ids)

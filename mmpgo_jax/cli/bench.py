@@ -288,12 +288,12 @@ def _table_value(info, column: str, k: int) -> float | None:
 
 
 def _bench_one(job: _Job, args, iterations: int, no_progress: bool) -> _Result:
+    from .._core.partition import split_robots
     from .._core.pose_graph import connected_components, cost
     from .._core.precision import float64_enabled
     from .._experiments.certificate import certify
     from .._init.chordal import initialize
     from .._io.g2o import read_g2o
-    from .._core.partition import split_robots
     from .._mm.solve import centralized_optimum, solve
 
     if job.synthetic is not None:

@@ -105,8 +105,8 @@ def _cli_solve_sharded(args) -> int:
 
     quiet = (not writer) or args.no_progress
     with progress_bar(f"{args.method.upper()}-PGO", args.iterations, disable=quiet) as progress:
-        result = solve_sharded(data.graph, data.robot_of_pose, devices=devices, callback=progress, exchange=args.exchange,
-                               **options)
+        result = solve_sharded(data.graph, data.robot_of_pose, devices=devices, callback=progress,
+                               exchange=args.exchange, **options)
     if not writer:
         return 0
     info = benchmark_info(data.path.name)
