@@ -17,8 +17,8 @@ Every graph runs in one :func:`~mmpgo_jax.sweep` with the three splits as three 
 the graph (``group_by="robots"``: one compilation per (method, robot count), shared by the
 splits), one configuration per batch (the CPU's fastest, and AMM keeps its real ``lax.cond``).
 
-Writes ``<out>.md`` (tables, command, date, machine, load) and ``<out>.csv`` (one row per
-configuration).
+Writes ``<out>.md`` (tables, command, date, machine, load; a hand-written "## Conclusions"
+section already in the file is kept at its end) and ``<out>.csv`` (one row per configuration).
 """
 
 from __future__ import annotations
@@ -48,6 +48,7 @@ from fig1 import machine  # noqa: E402
 SPLITS = ("blocks", "metis", "random")
 TOLS = (1e-3, 1e-4)
 FILES = ("MITb", "intel", "M3500", "sphere", "garage")
+CONCLUSIONS = "## Conclusions"
 
 
 def first_below(rel: np.ndarray, tol: float) -> int | None:
@@ -143,7 +144,10 @@ def write_md(path: Path, rows, meta) -> None:
                 f"{fmt(r['it_0.0001'])} | {fmt(r['s_0.0001'], 's')} | {fmt(r['final_rel'], 'e')} |")
         lines.append("")
     lines += summary(rows)
-    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    # the hand-written conclusions (from the tables above) survive a rerun; check them against new numbers
+    old = path.read_text(encoding="utf-8") if path.exists() else ""
+    kept = old[old.index(CONCLUSIONS):] if CONCLUSIONS in old else ""
+    path.write_text("\n".join(lines) + "\n" + kept, encoding="utf-8")
 
 
 def summary(rows) -> list[str]:

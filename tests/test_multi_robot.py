@@ -342,6 +342,13 @@ def test_cli_multi_robot_example(tmp_path, capsys):
     ref = robots_from_symbols(mm.read_g2o(example))
     np.testing.assert_allclose(_edge_table(back), _edge_table(ref), rtol=1e-12, atol=1e-15)  # via quaternions
     np.testing.assert_array_equal(back.robot_of_pose, ref.robot_of_pose)
+    assert main(["info", str(example), "--robots-from", "metis", "-A", "3"]) == 0
+    out = capsys.readouterr().out
+    assert "3 robots (METIS parts)" in out
+    labels = tmp_path / "labels.csv"
+    labels.write_text("".join(f"{k},r{k % 2}\n" for k in ref.vertex_ids.tolist()))
+    assert main(["info", str(example), "--labels", str(labels)]) == 0
+    assert "2 robots (from labels)" in capsys.readouterr().out
     # the folder as FILE: robots from its files
     assert main(["info", str(robots)]) == 0
     assert "3 robots (from files)" in capsys.readouterr().out
