@@ -1,6 +1,7 @@
 """Generate the symbol-keyed 3-robot example ``datasets/cube3_symbols.g2o`` (and its ground truth).
 
     python datasets/make_multi_robot_example.py        # rewrites the two files (deterministic)
+    python datasets/make_multi_robot_example.py DIR    # writes them to DIR instead
 
 A Cube graph (:func:`mmpgo_jax.cube_dataset`, seed 0: 300 poses on a 4 x 4 x 4 lattice of 1 m
 cells, loop closures between nearby poses with probability 0.1, the paper's noise) is cut into
@@ -47,7 +48,9 @@ def odometry_estimate(graph: PoseGraph, rop: np.ndarray, truth: Poses) -> Poses:
     return mm.odometry_initialization(chain, fixed=fixed)
 
 
-def main() -> int:
+def main(argv=None) -> int:
+    args = sys.argv[1:] if argv is None else list(argv)
+    out = Path(args[0]) if args else HERE
     ds = mm.cube_dataset(seed=0, grid=4, num_poses=POSES)
     g = ds.graph
     rop = mm.contiguous_robots(g.num_poses, len(ROBOTS))
@@ -62,13 +65,13 @@ def main() -> int:
     keys = symbol_keys(np.array(list(ROBOTS))[rop], np.arange(g.num_poses) - first[rop])
     estimate = odometry_estimate(graph, rop, ds.ground_truth)
     with atomic_group():
-        mm.write_g2o(HERE / "cube3_symbols.g2o", graph, estimate, vertex_ids=keys)
-        mm.write_g2o(HERE / "cube3_ground_truth.g2o", PoseGraph.from_arrays([], [], np.zeros((0, 3, 3)),
+        mm.write_g2o(out / "cube3_symbols.g2o", graph, estimate, vertex_ids=keys)
+        mm.write_g2o(out / "cube3_ground_truth.g2o", PoseGraph.from_arrays([], [], np.zeros((0, 3, 3)),
                                                                             np.zeros((0, 3)), [], [], g.num_poses),
                      ds.ground_truth, vertex_ids=keys)
     inter = int(np.sum(rop[np.asarray(graph.i)] != rop[np.asarray(graph.j)]))
-    print(f"wrote {HERE / 'cube3_symbols.g2o'}: {graph.num_poses} poses, {graph.num_edges} edges "
-          f"({inter} inter-robot), robots {', '.join(ROBOTS)}; and {HERE / 'cube3_ground_truth.g2o'}")
+    print(f"wrote {out / 'cube3_symbols.g2o'}: {graph.num_poses} poses, {graph.num_edges} edges "
+          f"({inter} inter-robot), robots {', '.join(ROBOTS)}; and {out / 'cube3_ground_truth.g2o'}")
     return 0
 
 

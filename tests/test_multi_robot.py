@@ -358,3 +358,17 @@ def test_cli_multi_robot_example(tmp_path, capsys):
     assert main(["info", str(example), "--robots-from", "files"]) == 2
     assert "is a file; give a folder" in capsys.readouterr().err
 
+
+
+def test_example_is_what_its_generator_writes(tmp_path):
+    """datasets/cube3_symbols.g2o is reproducible from its committed generator."""
+    import runpy
+
+    from conftest import REPO
+
+    script = runpy.run_path(str(REPO / "datasets" / "make_multi_robot_example.py"))
+    assert script["main"]([str(tmp_path)]) == 0
+    for name in ("cube3_symbols.g2o", "cube3_ground_truth.g2o"):
+        assert (tmp_path / name).read_bytes() == (REPO / "datasets" / name).read_bytes(), name
+    g2o = robots_from_symbols(mm.read_g2o(tmp_path / "cube3_symbols.g2o"))
+    assert g2o.robot_names == ("a", "b", "c") and np.bincount(g2o.robot_of_pose).tolist() == [100, 100, 100]

@@ -70,6 +70,7 @@ SYMBOL_INDEX_BITS = 56
 _INDEX_MASK = (1 << SYMBOL_INDEX_BITS) - 1
 #: Robot names that are safe as file names (per-robot outputs are named by robot).
 _NAME_RE = re.compile(r"[A-Za-z0-9_-][A-Za-z0-9_.-]*")
+_NAME_CHARS = set("ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789_.-")
 #: Agreement required of the two copies of an inter-robot edge (relative).
 COPY_RTOL = 1e-9
 #: distributed-mapper's merged graph, written beside the robots' files.
@@ -106,10 +107,8 @@ def _with_robots(g2o: G2OFile, robot_of_file_name: np.ndarray, names: list[str])
     from dataclasses import replace
 
     rank = _name_order(names)
-    ordered = [""] * len(names)
-    for k, r in enumerate(rank.tolist()):  # A names, not poses
-        ordered[r] = names[k]
-    return replace(g2o, robot_of_pose=rank[robot_of_file_name], robot_names=tuple(ordered))
+    ordered = np.asarray(names, dtype=object)[np.argsort(rank)]
+    return replace(g2o, robot_of_pose=rank[robot_of_file_name], robot_names=tuple(ordered.tolist()))
 
 
 def _first_by_line(mask: np.ndarray, lines: np.ndarray) -> int:
@@ -145,13 +144,6 @@ def robots_from_symbols(g2o: G2OFile) -> G2OFile:
     return _with_robots(g2o, robot.reshape(-1), [chr(c) for c in chars.tolist()])
 
 
-def symbol_names(g2o: G2OFile) -> list[str]:
-    """``a12``-style names of the poses of a symbol-keyed graph (for messages and tables)."""
-    ids = np.asarray(g2o.vertex_ids, dtype=np.int64)
-    return [f"{chr(c)}{i}" for c, i in zip((ids >> SYMBOL_INDEX_BITS).tolist(), (ids & _INDEX_MASK).tolist(),
-                                           strict=True)]
-
-
 # ------------------------------------------------------------------------------------------------
 # Label files
 # ------------------------------------------------------------------------------------------------
@@ -177,16 +169,28 @@ def read_robot_labels(path, g2o: G2OFile) -> G2OFile:
     if not rows:
         raise G2OFormatError(spath, None, "no labels: expected lines 'vertex_id,robot'")
     lines = np.array([k for k, _ in rows], dtype=np.int64)
-    for k, fields in rows:  # the checks that locate a malformed line
-        if len(fields) != 2:
-            raise G2OFormatError(spath, k, f"expected 2 comma-separated fields 'vertex_id,robot', got {len(fields)}")
-        if not re.fullmatch(r"[+-]?[0-9]+", fields[0]) or not -(2**63) <= int(fields[0]) < 2**63:
-            raise G2OFormatError(spath, k, f"vertex id {fields[0][:40]!r} is not a 64-bit integer")
-        if not _NAME_RE.fullmatch(fields[1]):
-            raise G2OFormatError(spath, k, f"robot name {fields[1][:40]!r} must be letters, digits, '_', '-' or '.' "
-                                 "(not starting with '.'): per-robot output files are named by robot")
-    vid = np.array([int(f[0]) for _, f in rows], dtype=np.int64)
-    names, robot = np.unique(np.array([f[1] for _, f in rows]), return_inverse=True)
+    count = np.array([len(f) for _, f in rows])
+    if np.any(count != 2):
+        k = int(np.flatnonzero(count != 2)[0])
+        raise G2OFormatError(spath, int(lines[k]),
+                             f"expected 2 comma-separated fields 'vertex_id,robot', got {count[k]}")
+    ids_text = [f[0] for _, f in rows]
+    names_text = np.array([f[1] for _, f in rows])
+    try:  # ASCII integers only (int() alone would take '1_000' and other digits)
+        if set(" ".join(ids_text)) - set("0123456789+- "):
+            raise ValueError
+        vid = np.fromiter(map(int, ids_text), np.int64, len(ids_text))
+    except (ValueError, OverflowError):
+        bad = [not re.fullmatch(r"[+-]?[0-9]+", x) or not -(2**63) <= int(x) < 2**63 for x in ids_text]
+        k = int(np.flatnonzero(bad)[0])
+        raise G2OFormatError(spath, int(lines[k]), f"vertex id {ids_text[k][:40]!r} is not a 64-bit integer") from None
+    bad_name = (np.char.str_len(names_text) == 0) | np.char.startswith(names_text, ".")
+    if set("".join(names_text.tolist())) - _NAME_CHARS or bad_name.any():
+        bad_name |= np.array([not _NAME_RE.fullmatch(x) for x in names_text.tolist()])
+        k = int(np.flatnonzero(bad_name)[0])
+        raise G2OFormatError(spath, int(lines[k]), f"robot name {names_text[k][:40]!r} must be letters, digits, '_', "
+                             "'-' or '.' (not starting with '.'): per-robot output files are named by robot")
+    names, robot = np.unique(names_text, return_inverse=True)
     # duplicates: the second label of a vertex id
     order = np.argsort(vid, kind="stable")
     dup = np.flatnonzero(vid[order][1:] == vid[order][:-1])
