@@ -315,11 +315,21 @@ def read_robot_folder(folder, *, dtype=None, strict_information: bool = False) -
     merged = G2OFile(
         path=sfolder, dim=d, graph=graph, vertex_ids=vertex_ids, information=info[keep],
         initial=Poses(vertex_R.astype(fdt), vertex_t.astype(fdt)), has_vertex=np.ones(len(vertex_ids), bool),
-        fixed=fixed, num_indefinite_information=int(sum(g.num_indefinite_information for g in parts)),
+        fixed=fixed, num_indefinite_information=_count_indefinite(info[keep]),
         vertex_R=vertex_R, vertex_t=vertex_t,
     )
     _warn_indefinite(merged)
     return _with_robots(merged, owner, [p.stem for p in paths])
+
+
+def _count_indefinite(info: np.ndarray) -> int:
+    """Information matrices that are not positive definite, by the reader's rule (smallest eigenvalue
+    <= k eps |largest| for a k x k matrix)."""
+    if not len(info):
+        return 0
+    eig = np.linalg.eigvalsh(info)
+    k = info.shape[-1]
+    return int(np.count_nonzero(~(eig[:, 0] > k * np.finfo(np.float64).eps * np.abs(eig).max(axis=1))))
 
 
 def _drop_second_copies(gi, gj, ri, rj, e_file, e_line, R, t, info, parts, vertex_ids) -> np.ndarray:
