@@ -372,3 +372,24 @@ def test_example_is_what_its_generator_writes(tmp_path):
         assert (tmp_path / name).read_bytes() == (REPO / "datasets" / name).read_bytes(), name
     g2o = robots_from_symbols(mm.read_g2o(tmp_path / "cube3_symbols.g2o"))
     assert g2o.robot_names == ("a", "b", "c") and np.bincount(g2o.robot_of_pose).tolist() == [100, 100, 100]
+
+
+@pytest.mark.slow  # four compilations (about 20 s)
+def test_sweep_split_matches_solve_on_that_partition(three_robots):
+    """sweep(split=...) runs each split's partition: a METIS copy and an array split of one graph in
+    one sweep give the histories of solve() on those partitions."""
+    ds, rop, _ = three_robots
+    res = mm.sweep({"metis": ds.graph, "data": ds.graph}, robots=[3], methods=("mm",), iterations=4, chunk_size=4,
+                   split={"metis": "metis", "data": rop}, group_by="robots", max_batch_configs=1)
+    assert res.configs[0]["robots"] == 3 and res.configs[1]["robots"] == 3
+    for name, robots in (("metis", mm.partition(ds.graph, "metis", parts=3)), ("data", rop)):
+        ref = mm.solve(ds.graph, robots, method="mm", iterations=4, chunk_size=4, frame="raw")
+        np.testing.assert_allclose(res.history(name, 3, "mm"), ref.history.f, rtol=1e-9)
+
+
+def test_sweep_split_is_checked_before_any_work(three_robots):
+    ds, rop, _ = three_robots
+    with pytest.raises(ValueError, match="unknown split 'spectral'"):
+        mm.sweep({"x": ds.graph}, robots=[3], split="spectral")
+    with pytest.raises(ValueError, match=r"robots .* own no pose"):
+        mm.sweep({"x": ds.graph}, robots=[3], split={"x": rop + 1})
