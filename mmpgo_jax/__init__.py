@@ -6,7 +6,11 @@ Public API (the private modules are implementation details):
   :func:`write_tum`, :func:`find_benchmark`, :data:`BENCHMARKS`, :func:`cube_dataset`, :func:`grid_2d_dataset`
 * objective: :func:`cost` (f = 2F), :func:`objective` (F), gradients, :func:`data_matrix`
 * gauge: :class:`FixedPoses` (g2o FIX), :func:`express_in_frame`, :func:`output_frame`
-* robots: :func:`partition`, :func:`contiguous_robots`, :func:`partition_stats`
+* robots: :func:`partition`, :func:`split_robots` (blocks, METIS, random), :func:`contiguous_robots`,
+  :func:`metis_robots`, :func:`random_robots`, :func:`partition_stats`
+* multi-robot files: :func:`robots_from_symbols` (GTSAM symbol keys), :func:`read_robot_labels`,
+  :func:`read_robot_folder` / :func:`write_robot_folder` (one g2o per robot), :func:`write_robot_tum`,
+  :func:`symbol_keys`; TORO: :func:`read_toro`, :func:`write_toro`
 * starts: :func:`initialize`, :func:`chordal_initialization`, :func:`distributed_chordal_initialization`
 * solvers: :func:`solve`, :func:`centralized_optimum`, :func:`certify` (global optimality check), and the
   jittable core :class:`MMConfig`, :class:`MMProblem`, :func:`init_state`, :func:`run`, :func:`step`,
@@ -22,7 +26,15 @@ Public API (the private modules are implementation details):
 from ._core.compilation_cache import enable_compilation_cache
 from ._core.gauge import FixedPoses, express_in_frame
 from ._core.geometry import project_to_so, quaternion_to_rotation, rotation_2d
-from ._core.partition import Partition, contiguous_robots, partition, partition_stats
+from ._core.partition import (
+    Partition,
+    contiguous_robots,
+    metis_robots,
+    partition,
+    partition_stats,
+    random_robots,
+    split_robots,
+)
 from ._core.pose_graph import (
     PoseGraph,
     Poses,
@@ -73,8 +85,18 @@ from ._io.g2o import (
     G2OWarning,
     read_g2o,
     read_g2o_poses,
+    read_toro,
     write_g2o,
+    write_toro,
     write_tum,
+)
+from ._io.multi_robot import (
+    read_robot_folder,
+    read_robot_labels,
+    robots_from_symbols,
+    symbol_keys,
+    write_robot_folder,
+    write_robot_tum,
 )
 from ._mm.driver import RESULTS, Monitor, Termination
 from ._mm.outer import MMConfig, MMProblem, MMState, init_state, run, step
@@ -145,6 +167,7 @@ __all__ = [
     "initialize",
     "load_poses",
     "matrix_to_poses",
+    "metis_robots",
     "objective",
     "odometry_initialization",
     "output_frame",
@@ -153,19 +176,29 @@ __all__ = [
     "poses_to_matrix",
     "project_to_so",
     "quaternion_to_rotation",
+    "random_robots",
     "read_g2o",
     "read_g2o_poses",
+    "read_robot_folder",
+    "read_robot_labels",
+    "read_toro",
     "reference_optimum",
     "relative_pose_error",
     "riemannian_gradient",
     "riemannian_gradient_norm",
     "rigid_alignment",
+    "robots_from_symbols",
     "rotation_2d",
     "run",
     "solve",
+    "split_robots",
     "step",
     "sweep",
+    "symbol_keys",
     "trajectory_accuracy",
     "write_g2o",
+    "write_robot_folder",
+    "write_robot_tum",
+    "write_toro",
     "write_tum",
 ]

@@ -94,54 +94,175 @@ class Partition(eqx.Module):
 
 @dataclass(frozen=True)
 class PartitionStats:
-    """Host-side description of a partition (for reports and the CLI)."""
+    """Host-side description of a partition (for reports and the CLI).
+
+    Per iteration, robot a receives from each neighbour b the poses of b at the ends of their
+    shared edges (``received_poses[a]``: distinct poses, summed over neighbours) and sends its own
+    such poses to each neighbour (``sent_poses[a]``: a pose needed by two neighbours is sent twice).
+    """
 
     poses: np.ndarray  # (A,) poses per robot
     own_edges: np.ndarray  # (A,) edges with both ends in the robot
     inter_edges: np.ndarray  # (A,) inter-robot edges incident to the robot
     neighbours: list[np.ndarray]  # robots sharing an edge with each robot
     received_poses: np.ndarray  # (A,) distinct remote poses each robot must receive per iteration
+    sent_poses: np.ndarray  # (A,) poses each robot sends per iteration (once per neighbour that needs it)
+    dim: int = 0  # d of the graph (bytes per pose: d + d^2 numbers)
 
     @property
     def total_inter_edges(self) -> int:
         return int(self.inter_edges.sum() // 2)
 
+    def bytes_per_pose(self, dtype=np.float64) -> int:
+        """Bytes of one pose (R and t: d^2 + d numbers) at the precision ``dtype``."""
+        return (self.dim * self.dim + self.dim) * np.dtype(dtype).itemsize
+
+    def received_bytes(self, dtype=np.float64) -> np.ndarray:
+        return self.received_poses * self.bytes_per_pose(dtype)
+
+    def sent_bytes(self, dtype=np.float64) -> np.ndarray:
+        return self.sent_poses * self.bytes_per_pose(dtype)
+
+
+SPLITS = ("blocks", "metis", "random")
+
+
+def metis_robots(graph: PoseGraph, parts: int, *, seed: int = 0, ufactor: int = 30) -> np.ndarray:
+    """Robot of each pose from METIS's k-way partitioning (through ``pymetis``): balanced parts
+    with a small edge cut, as MESA splits single-robot datasets.
+
+    The METIS graph has one vertex per pose and one edge per pair of poses joined by a
+    measurement, weighted by the number of measurements between them (so the weighted cut is the
+    number of inter-robot edges). ``ufactor``: METIS's load-imbalance tolerance in thousandths
+    (its k-way default 30: no part holds more than 1.03 n / parts poses, up to METIS's rounding
+    on small graphs). ``seed``: METIS's random seed (the result is deterministic for a seed).
+    Parts are numbered in the order of their smallest pose index. Raises ValueError when METIS
+    leaves a part empty (possible when ``parts`` is close to the number of poses).
+    """
+    import pymetis
+
+    n = graph.num_poses
+    _check_parts(n, parts)
+    if parts == 1:
+        return np.zeros(n, dtype=np.int64)
+    gi, gj = np.asarray(graph.i, np.int64), np.asarray(graph.j, np.int64)
+    lo, hi = np.minimum(gi, gj), np.maximum(gi, gj)
+    pairs, mult = np.unique(np.stack([lo, hi], 1), axis=0, return_counts=True)
+    # symmetric CSR adjacency: both directions of every pair, sorted by source
+    src = np.concatenate([pairs[:, 0], pairs[:, 1]])
+    dst = np.concatenate([pairs[:, 1], pairs[:, 0]])
+    w = np.concatenate([mult, mult])
+    order = np.argsort(src, kind="stable")
+    xadj = np.concatenate([[0], np.cumsum(np.bincount(src, minlength=n))])
+    options = pymetis.Options()
+    options.seed = int(seed)
+    options.ufactor = int(ufactor)
+    adjacency = pymetis.CSRAdjacency(xadj.astype(np.int64), dst[order].astype(np.int64))
+    _, membership = pymetis.part_graph(int(parts), adjacency, eweights=w[order].astype(np.int64), options=options,
+                                       recursive=False)
+    part = np.asarray(membership, dtype=np.int64)
+    counts = np.bincount(part, minlength=parts)
+    if np.any(counts == 0):
+        raise ValueError(f"METIS left {int(np.sum(counts == 0))} of {parts} parts empty on a graph of {n} poses; "
+                         "use fewer robots")
+    return _number_by_first_pose(part, parts)
+
+
+def random_robots(num_poses: int, parts: int, *, seed: int = 0) -> np.ndarray:
+    """Robot of each pose for random balanced parts: the sizes of :func:`contiguous_robots`, the
+    poses shuffled (``numpy.random.default_rng(seed)``), parts numbered by their smallest pose."""
+    rop = contiguous_robots(num_poses, parts)
+    rop = rop[np.random.default_rng(seed).permutation(num_poses)]
+    return _number_by_first_pose(rop, parts)
+
+
+def _check_parts(num_poses: int, parts) -> None:
+    if isinstance(parts, (bool, np.bool_)) or not isinstance(parts, (int, np.integer)):
+        raise ValueError(f"number of robots must be an integer, got {parts!r}")
+    if not 1 <= parts <= num_poses:
+        raise ValueError(f"number of robots must be between 1 and the number of poses ({num_poses}), got {parts}")
+
+
+def _number_by_first_pose(rop: np.ndarray, parts: int) -> np.ndarray:
+    """Renumber parts in the order of their smallest pose index (vectorised)."""
+    first = np.full(parts, rop.shape[0], dtype=np.int64)
+    np.minimum.at(first, rop, np.arange(rop.shape[0]))
+    rank = np.empty(parts, dtype=np.int64)
+    rank[np.argsort(first, kind="stable")] = np.arange(parts)
+    return rank[rop]
+
+
+def split_robots(graph: PoseGraph, robots, parts: int | None = None, *, seed: int = 0) -> np.ndarray:
+    """Robot of each pose, (n,) int64.
+
+    ``robots``: a count (contiguous blocks, docs/conventions.md §4); ``"blocks"``, ``"metis"``
+    (:func:`metis_robots`) or ``"random"`` (:func:`random_robots`, ``seed``) with ``parts``
+    robots; or an (n,) robot-of-pose array (robots 0..A-1, each owning a pose), returned checked.
+    Robots read from the data (GTSAM symbol keys, a label file, one file per robot) arrive as such
+    an array: :attr:`~mmpgo_jax.G2OFile.robot_of_pose`.
+    """
+    n = graph.num_poses
+    if isinstance(robots, str):
+        if robots not in SPLITS:
+            raise ValueError(f"unknown split {robots!r}: use one of {', '.join(SPLITS)} (or a robot-of-pose array)")
+        if parts is None:
+            raise ValueError(f"split {robots!r} needs parts= (the number of robots)")
+        _check_parts(n, parts)
+        if robots == "blocks":
+            return contiguous_robots(n, int(parts))
+        if robots == "metis":
+            return metis_robots(graph, int(parts), seed=seed)
+        return random_robots(n, int(parts), seed=seed)
+    if parts is not None:
+        raise ValueError("parts= applies to the splits 'blocks', 'metis' and 'random' only")
+    if np.ndim(robots) == 0:
+        _check_parts(n, robots)
+        return contiguous_robots(n, int(robots))
+    rop = np.asarray(robots)
+    if not np.issubdtype(rop.dtype, np.integer):
+        raise ValueError(f"robot-of-pose array must hold integers, got dtype {rop.dtype}")
+    rop = rop.astype(np.int64)
+    if rop.shape != (n,):
+        raise ValueError(f"robot-of-pose array must have shape ({n},), got {rop.shape}")
+    if rop.min() < 0:
+        raise ValueError("robot indices must be non-negative")
+    counts = np.bincount(rop)
+    if np.any(counts == 0):
+        empty = np.flatnonzero(counts == 0)
+        raise ValueError(f"robots {empty.tolist()} own no pose; robot indices must be 0..A-1 without gaps")
+    return rop
+
 
 def partition(
     graph: PoseGraph,
-    robots: int | np.ndarray,
+    robots: int | str | np.ndarray,
+    parts: int | None = None,
     *,
+    seed: int = 0,
     min_max_poses: int = 0,
     min_max_edges: int = 0,
     num_robots: int | None = None,
 ) -> Partition:
     """Split ``graph`` among robots.
 
-    ``robots`` is either a robot count (contiguous blocks, docs/conventions.md §4) or an (n,) array giving the
-    robot of each pose. ``min_max_poses`` / ``min_max_edges`` / ``num_robots`` pad to larger common
+    ``robots``: a robot count (contiguous blocks, docs/conventions.md §4), ``"blocks"`` /
+    ``"metis"`` / ``"random"`` with ``parts`` robots (``seed`` for METIS and random parts), or an
+    (n,) array giving the robot of each pose (see :func:`split_robots`; e.g. the robots of a
+    multi-robot file, :attr:`~mmpgo_jax.G2OFile.robot_of_pose`). ``min_max_poses`` /
+    ``min_max_edges`` / ``num_robots`` pad to larger common
     shapes (e.g. to batch several partitions); padding changes a result only through rounding:
     the padded arrays hold the same numbers, but reductions over longer axes may round
     differently, and an inexact inner solve can then stop one CG iteration earlier or later
     (measured: up to 2e-5 relative in f after 8 MM iterations on a Cube graph).
     """
     n = graph.num_poses
-    if np.ndim(robots) == 0:
-        robot_of_pose = contiguous_robots(n, int(robots))
-    else:
-        robot_of_pose = np.asarray(robots, dtype=np.int64)
-        if robot_of_pose.shape != (n,):
-            raise ValueError(f"robot-of-pose array must have shape ({n},), got {robot_of_pose.shape}")
-        if robot_of_pose.min() < 0:
-            raise ValueError("robot indices must be non-negative")
+    robot_of_pose = split_robots(graph, robots, parts, seed=seed)
     A = int(robot_of_pose.max()) + 1
     if num_robots is not None:
         if num_robots < A:
             raise ValueError(f"num_robots={num_robots} is smaller than the {A} robots used")
         A = num_robots
     counts = np.bincount(robot_of_pose, minlength=A)
-    if np.any(counts[: int(robot_of_pose.max()) + 1] == 0):
-        empty = np.flatnonzero(counts == 0)
-        raise ValueError(f"robots {empty.tolist()} own no pose; robot indices must be 0..A-1 without gaps")
     n_max = max(int(counts.max()), min_max_poses, 1)
     # Local slot = rank of the pose among its robot's poses (in global index order).
     order = np.argsort(robot_of_pose, kind="stable")
@@ -203,7 +324,8 @@ def partition(
 
 
 def partition_stats(graph: PoseGraph, robot_of_pose: np.ndarray) -> PartitionStats:
-    """Poses, own/inter edges, neighbours and poses to receive per robot (host-side)."""
+    """Poses, own/inter edges, neighbours and poses received and sent per iteration, per robot
+    (host-side, vectorised)."""
     robot_of_pose = np.asarray(robot_of_pose)
     A = int(robot_of_pose.max()) + 1
     gi, gj = np.asarray(graph.i), np.asarray(graph.j)
@@ -211,18 +333,19 @@ def partition_stats(graph: PoseGraph, robot_of_pose: np.ndarray) -> PartitionSta
     inter = ri != rj
     own = np.bincount(ri[~inter], minlength=A)
     inter_count = np.bincount(ri[inter], minlength=A) + np.bincount(rj[inter], minlength=A)
-    neighbours = []
-    received = np.zeros(A, dtype=np.int64)
-    for a in range(A):
-        out_e = inter & (ri == a)
-        in_e = inter & (rj == a)
-        nb = np.union1d(rj[out_e], ri[in_e])
-        neighbours.append(nb.astype(np.int64))
-        received[a] = len(np.union1d(gj[out_e], gi[in_e]))
+    # (receiving robot, sending robot, pose) of the exchange, each once
+    recv = np.concatenate([ri[inter], rj[inter]])
+    send = np.concatenate([rj[inter], ri[inter]])
+    pose = np.concatenate([gj[inter], gi[inter]])
+    triples = np.unique(np.stack([recv, send, pose], 1), axis=0) if recv.size else np.zeros((0, 3), np.int64)
+    pairs = np.unique(triples[:, :2], axis=0)  # (robot, neighbour), sorted by robot
+    neighbours = np.split(pairs[:, 1].astype(np.int64), np.cumsum(np.bincount(pairs[:, 0], minlength=A))[:-1])
     return PartitionStats(
         poses=np.bincount(robot_of_pose, minlength=A),
         own_edges=own,
         inter_edges=inter_count,
         neighbours=neighbours,
-        received_poses=received,
+        received_poses=np.bincount(triples[:, 0], minlength=A).astype(np.int64),
+        sent_poses=np.bincount(triples[:, 1], minlength=A).astype(np.int64),
+        dim=graph.dim,
     )

@@ -55,7 +55,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._core.gauge import FixedPoses
-from .._core.partition import Partition, RobotEdges, partition
+from .._core.partition import SPLITS, Partition, RobotEdges, partition, split_robots
 from .._core.pose_graph import PoseGraph, Poses
 from .._init.chordal import initialize
 from .._mm.driver import NonFiniteError, Termination, compile_once, drive
@@ -334,6 +334,8 @@ def sweep(
     group_by: Literal["method", "robots"] = "method",
     progress=None,
     fixed: Mapping[str, FixedPoses] | Sequence[FixedPoses] | FixedPoses | None = None,
+    split="blocks",
+    seed: int = 0,
 ) -> SweepResult:
     """Run every (graph, robot count) configuration of each method as one batched computation.
 
@@ -358,6 +360,14 @@ def sweep(
     method, xi) and ``rows`` / ``configs`` get an ``xi`` column (see :class:`SweepResult`). A
     single value (a number, or a one-element sequence) keeps the (graph, robots, method) keys.
 
+    ``split``: how each graph is split among its robot counts: ``"blocks"`` (default, the paper's
+    contiguous blocks), ``"metis"`` or ``"random"`` (see :func:`~mmpgo_jax.split_robots`,
+    ``seed``), or an (n,) robot-of-pose array (robots read from the data); one value for every
+    graph, or a mapping graph name -> value / a sequence aligned with the graphs. A graph with an
+    array runs with its own robot count only. To compare splits of one graph in one sweep, pass
+    it under several names (``{"M3500 blocks": g, "M3500 metis": g}``) with a split per name: the
+    configurations then share the compilations.
+
     Equivalent, configuration by configuration, to ``solve(graph, robots, method=..., iterations,
     init, xi, restart, subproblem, fixed)``.
     """
@@ -378,10 +388,27 @@ def sweep(
     for m in methods:
         if m not in ("mm", "amm"):
             raise ValueError(f"unknown method {m!r}: use 'mm' or 'amm'")
-    for name, g in zip(names, glist, strict=False):
-        for a in robots:
-            if not 1 <= a <= g.num_poses:
-                raise ValueError(f"graph {name!r} has {g.num_poses} poses: cannot split among {a} robots")
+    one_array = isinstance(split, np.ndarray) and np.issubdtype(split.dtype, np.integer) and len(names) == 1
+    split_of = {n: split for n in names} if isinstance(split, str) or one_array else _per_graph(split, names, "split")
+    robots_of: dict[int, list[int]] = {}  # robot counts run per graph
+    given: dict[int, np.ndarray] = {}  # robot-of-pose arrays given per graph
+    for gi, (name, g) in enumerate(zip(names, glist, strict=False)):
+        how = split_of[name]
+        if isinstance(how, str):
+            if how not in SPLITS:
+                raise ValueError(f"graph {name!r}: unknown split {how!r} (use {', '.join(SPLITS)} or an array)")
+            for a in robots:
+                if not 1 <= a <= g.num_poses:
+                    raise ValueError(f"graph {name!r} has {g.num_poses} poses: cannot split among {a} robots")
+            robots_of[gi] = robots
+        else:
+            given[gi] = split_robots(g, how)
+            robots_of[gi] = [int(given[gi].max()) + 1]
+    all_robots = list(dict.fromkeys(a for gi in range(len(glist)) for a in robots_of[gi]))
+
+    def robot_of_pose(gi: int, a: int) -> np.ndarray:
+        how = split_of[names[gi]]
+        return given[gi] if gi in given else split_robots(glist[gi], how, a, seed=seed)
     if ground_truth is not None:
         gts = {k: v for k, v in _per_graph(ground_truth, names, "ground_truth").items() if v is not None}
     if isinstance(fstar, str):
@@ -405,9 +432,11 @@ def sweep(
     # common shape (exactly the arrays of a padded partition(...) call) when it is built.
     unpadded: dict[tuple[int, int], Partition] = {}
     needs: dict[tuple[int, int], tuple[int, int, int]] = {}
+    rops: dict[tuple[int, int], np.ndarray] = {}
     for gi, g in enumerate(glist):
-        for a in robots:
-            p = partition(g, a)
+        for a in robots_of[gi]:
+            rops[(gi, a)] = robot_of_pose(gi, a)
+            p = partition(g, rops[(gi, a)])
             needs[(gi, a)] = (p.max_poses, p.max_edges, gamma_couplings(p.edges))
             unpadded[(gi, a)] = jax.device_get(p)
 
@@ -417,7 +446,7 @@ def sweep(
         fix = fixed_of[names[gi]]
         key = (gi, a) if isinstance(init, str) and init == "distributed-chordal" else gi
         if key not in starts:
-            robots_kw = {"robots": a} if key != gi else {}
+            robots_kw = {"robots": rops[(gi, a)]} if key != gi else {}
             starts[key] = initialize(glist[gi], init, fixed=fix, **robots_kw)
         return starts[key]
 
@@ -429,8 +458,8 @@ def sweep(
     for method in methods:
         # xi=None: each problem carries its own xi (an array leaf), so one config serves them all
         config = MMConfig(method=method, restart=restart, xi=None, subproblem=sub)
-        keys = [(gi, a, x) for a in robots for gi in range(len(glist)) for x in xis]
-        groups = [keys] if group_by == "method" else [[k for k in keys if k[1] == a] for a in robots]
+        keys = [(gi, a, x) for a in all_robots for gi in range(len(glist)) if a in robots_of[gi] for x in xis]
+        groups = [keys] if group_by == "method" else [[k for k in keys if k[1] == a] for a in all_robots]
         for gkeys in groups:
             n_max = max(needs[k[:2]][0] for k in gkeys)
             e_max = max(needs[k[:2]][1] for k in gkeys)
@@ -551,7 +580,7 @@ def sweep(
             group_rows.append(group)
 
     # order histories as graph-major, then robots, then method (then xi)
-    order = {k: (names.index(k[0]), robots.index(k[1]), methods.index(k[2]), *(xis.index(v) for v in k[3:]))
+    order = {k: (names.index(k[0]), all_robots.index(k[1]), methods.index(k[2]), *(xis.index(v) for v in k[3:]))
              for k in histories}
     histories = dict(sorted(histories.items(), key=lambda kv: order[kv[0]]))
     config_rows.sort(key=lambda r: order[key_of(r["graph"], r["robots"], r["method"], r.get("xi"))])

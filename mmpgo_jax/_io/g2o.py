@@ -108,7 +108,9 @@ __all__ = [
     "information_from_weights",
     "read_g2o",
     "read_g2o_poses",
+    "read_toro",
     "write_g2o",
+    "write_toro",
     "write_tum",
 ]
 
@@ -159,7 +161,10 @@ class G2OFile:
     positive definite (accepted under SE-Sync's convention, see the module docstring).
     ``vertex_R`` (n, d, d) and ``vertex_t`` (n, d), float64, hold the VERTEX value of every pose
     that has a VERTEX line, and the identity / zero for the others (always filled by
-    :func:`read_g2o`).
+    :func:`read_g2o`). ``vertex_line`` (n,) is the first line naming each pose and ``edge_line``
+    (m,) the line of each edge (1-based; None for graphs not read from one file). Multi-robot inputs
+    (:mod:`mmpgo_jax._io.multi_robot`) set ``robot_of_pose`` (n,) (robots 0..A-1) and
+    ``robot_names`` (A names, e.g. GTSAM symbol characters or file names).
     """
 
     path: str | None
@@ -173,10 +178,19 @@ class G2OFile:
     num_indefinite_information: int = 0
     vertex_R: np.ndarray | None = None
     vertex_t: np.ndarray | None = None
+    vertex_line: np.ndarray | None = None
+    edge_line: np.ndarray | None = None
+    robot_of_pose: np.ndarray | None = None
+    robot_names: tuple[str, ...] | None = None
 
     @property
     def num_poses(self) -> int:
         return self.graph.num_poses
+
+    @property
+    def num_robots(self) -> int | None:
+        """Robots named by the data (None when the file carries none)."""
+        return None if self.robot_names is None else len(self.robot_names)
 
     @property
     def num_edges(self) -> int:
@@ -240,10 +254,28 @@ class _Format:
     dim: int
     is_edge: bool
     fields: tuple[str, ...]  # names of the fields after the tag
+    # TORO lines: ``source[v]`` = the value index in the file of value v of the g2o layout (None:
+    # the same layout); ``euler``: roll, pitch, yaw instead of a quaternion (3D)
+    source: tuple[int, ...] | None = None
+    euler: bool = False
 
     @property
     def num_ids(self) -> int:
         return 2 if self.is_edge else 1
+
+    def field_of(self, v: int) -> int:
+        """Index among the fields after the tag of value ``v`` of the g2o layout (ids excluded)."""
+        return self.num_ids + (v if self.source is None else self.source[v])
+
+    def to_g2o(self, vals: np.ndarray) -> np.ndarray:
+        """(k, values) as in the file -> the g2o layout of this line type (TORO: see :func:`read_toro`)."""
+        if self.euler:
+            d = 3
+            t, rpy, rest = vals[:, :d], vals[:, d:d + 3], vals[:, d + 3:]
+            if self.is_edge:  # rotation block from roll/pitch/yaw angles to g2o's (qx, qy, qz)
+                rest = rest * _TORO_INFO_SCALE
+            return np.concatenate([t, _rpy_to_quaternion(rpy), rest], 1)
+        return vals if self.source is None else vals[:, list(self.source)]
 
     @property
     def information_start(self) -> int:
@@ -262,10 +294,73 @@ _FORMATS = {
         _Format("VERTEX_SE3:QUAT", 3, False, ("id", "x", "y", "z", "qx", "qy", "qz", "qw")),
     )
 }
-_FORMATS_BYTES = {tag.encode("ascii"): f for tag, f in _FORMATS.items()}
 _EDGE_TAG = {2: "EDGE_SE2", 3: "EDGE_SE3:QUAT"}
 _VERTEX_TAG = {2: "VERTEX_SE2", 3: "VERTEX_SE3:QUAT"}
-_KNOWN = ", ".join(_FORMATS) + " or FIX"
+
+# TORO (.graph): EDGE2's information is inf_ff inf_fs inf_ss inf_rr inf_fr inf_sr, i.e. I11 I12 I22
+# I33 I13 I23 (g2o: I11 I12 I13 I22 I23 I33); EDGE3's is the 6x6 upper triangle, row by row, in
+# (x, y, z, roll, pitch, yaw) coordinates.
+_TORO_FORMATS = {
+    f.tag: f
+    for f in (
+        _Format("EDGE2", 2, True, ("i", "j", "dx", "dy", "dtheta", "I11", "I12", "I22", "I33", "I13", "I23"),
+                source=(0, 1, 2, 3, 4, 7, 5, 8, 6)),
+        _Format("VERTEX2", 2, False, ("id", "x", "y", "theta")),
+        _Format("EDGE3", 3, True, ("i", "j", "x", "y", "z", "roll", "pitch", "yaw", *_upper_names(6)),
+                source=(0, 1, 2, 3, 3, 3, 3, *range(6, 27)), euler=True),
+        _Format("VERTEX3", 3, False, ("id", "x", "y", "z", "roll", "pitch", "yaw"), source=(0, 1, 2, 3, 3, 3, 3),
+                euler=True),
+    )
+}
+
+
+@dataclass(frozen=True)
+class _Family:
+    """The line types of one file format."""
+
+    name: str
+    formats: dict
+    edge_tag: dict  # dim -> tag
+    vertex_tag: dict
+    fix: bool  # FIX lines allowed
+
+    @property
+    def known(self) -> str:
+        return ", ".join(self.formats) + (" or FIX" if self.fix else "")
+
+
+_G2O = _Family("g2o", _FORMATS, _EDGE_TAG, _VERTEX_TAG, True)
+_TORO = _Family("TORO", _TORO_FORMATS, {2: "EDGE2", 3: "EDGE3"}, {2: "VERTEX2", 3: "VERTEX3"}, False)
+
+# A small rotation of angle theta about u has quaternion vector part sin(theta/2) u ~ theta u / 2, so
+# information in angle coordinates I_a becomes D I_a D, D = diag(1, 1, 1, 2, 2, 2), in g2o's (qx, qy, qz).
+_TORO_SCALE = np.array([1.0, 1.0, 1.0, 2.0, 2.0, 2.0])
+_TORO_INFO_SCALE = np.outer(_TORO_SCALE, _TORO_SCALE)[np.triu_indices(6)]
+
+
+def _rpy_to_quaternion(rpy: np.ndarray) -> np.ndarray:
+    """(k, 3) roll, pitch, yaw -> (k, 4) unit quaternions (x, y, z, w) of Rz(yaw) Ry(pitch) Rx(roll)."""
+    h = 0.5 * rpy
+    cr, cp, cy = np.cos(h).T
+    sr, sp, sy = np.sin(h).T
+    return np.stack([sr * cp * cy - cr * sp * sy, cr * sp * cy + sr * cp * sy, cr * cp * sy - sr * sp * cy,
+                     cr * cp * cy + sr * sp * sy], 1)
+
+
+def _rotation_to_rpy(R: np.ndarray) -> np.ndarray:
+    """(k, 3, 3) rotations -> (k, 3) roll, pitch, yaw with R = Rz(yaw) Ry(pitch) Rx(roll).
+
+    Yaw is taken from R Rx(roll)^T Ry(pitch)^T, so that the three angles rebuild R to rounding even
+    near pitch = +-90 degrees, where roll and yaw are not determined separately.
+    """
+    roll = np.arctan2(R[:, 2, 1], R[:, 2, 2])
+    pitch = np.arctan2(-R[:, 2, 0], np.hypot(R[:, 2, 1], R[:, 2, 2]))
+    cr, sr, cp, sp = np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch)
+    # first column and second row-first entry of R Rx(roll)^T Ry(pitch)^T = Rz(yaw)
+    m00 = cp * R[:, 0, 0] + sp * (sr * R[:, 0, 1] + cr * R[:, 0, 2])
+    m10 = cp * R[:, 1, 0] + sp * (sr * R[:, 1, 1] + cr * R[:, 1, 2])
+    yaw = np.arctan2(m10, m00)
+    return np.stack([roll, pitch, yaw], 1)
 
 
 def _info_size(dim: int) -> int:
@@ -465,6 +560,13 @@ class _Limits:
         )
 
 
+def _scaled(fmt: _Format, v: int) -> str:
+    """A note for messages on TORO 3D information entries, which are checked after scaling."""
+    if not fmt.euler or not fmt.is_edge or _TORO_INFO_SCALE[v - fmt.information_start] == 1:
+        return ""
+    return f" (after scaling by {_TORO_INFO_SCALE[v - fmt.information_start]:g} to g2o's quaternion coordinates)"
+
+
 def _check_values(group: _Group, problems: list, strict: bool, limits: _Limits) -> None:
     """Value checks of one group (vectorised); fills the group's quaternions, weights, ...
 
@@ -492,25 +594,26 @@ def _check_values(group: _Group, problems: list, strict: bool, limits: _Limits) 
             problems.append((lines[r], f"{fmt.tag}: {message(r)}"))
             ok = ok & ~bad  # later checks are meaningless on such rows
 
-    def name(v: int) -> str:  # value index -> field name
-        return fmt.fields[v + nid]
+    def name(v: int) -> str:  # value index (g2o layout) -> field name
+        return fmt.fields[fmt.field_of(v)]
 
     def token(r: int, v: int) -> bytes:
-        return group.rows[r][v + nid]
+        return group.rows[r][fmt.field_of(v)]
 
     with np.errstate(all="ignore"):
         finite = np.isfinite(vals)
 
         def nonfinite_message(r: int) -> str:
-            v = int(np.flatnonzero(~finite[r])[0])
-            tok = token(r, v)
+            v = int(np.flatnonzero(~finite[r])[0])  # in the file's layout
+            tok = group.rows[r][v + nid]
             if _NUMBER_RE.fullmatch(tok):
-                return (f"field {v + nid + 1} ({name(v)}) is out of range (its magnitude overflows float64): "
-                        f"{_show(tok)}")
-            return f"field {v + nid + 1} ({name(v)}) is not finite: {float(vals[r, v])!r}"
+                return (f"field {v + nid + 1} ({fmt.fields[v + nid]}) is out of range (its magnitude overflows "
+                        f"float64): {_show(tok)}")
+            return f"field {v + nid + 1} ({fmt.fields[v + nid]}) is not finite: {float(vals[r, v])!r}"
 
         report(~finite.all(axis=1), nonfinite_message)
-        vals = np.where(ok[:, None], vals, 0.0)
+        vals = fmt.to_g2o(np.where(ok[:, None], vals, 0.0))
+        group.vals = vals
         if fmt.is_edge:
             report(group.ids[:, 0] == group.ids[:, 1], lambda r: f"self-loop edge (i == j == {group.ids[r, 0]})")
 
@@ -562,7 +665,7 @@ def _check_values(group: _Group, problems: list, strict: bool, limits: _Limits) 
             under = " (it underflows to 0)" if diag[r, c] == 0 and re.search(rb"[1-9]", mantissa) else ""
             return (
                 f"information matrix is not positive definite: diagonal entry {name(v)} = "
-                f"{float(diag[r, c])!r} is not positive{under}"
+                f"{float(diag[r, c])!r} is not positive{under}{_scaled(fmt, v)}"
             )
 
         report(~(diag > 0).all(axis=1), diag_message)
@@ -578,7 +681,7 @@ def _check_values(group: _Group, problems: list, strict: bool, limits: _Limits) 
             else:
                 why = (f"is above {INFORMATION_MAX:g} in magnitude (the weights or the weighted squared residuals "
                        "overflow)")
-            return f"information entry {name(start + c)} = {x!r} {why}"
+            return f"information entry {name(start + c)} = {x!r} {why}{_scaled(fmt, start + c)}"
 
         report((small | large).any(axis=1), range_message)
         info = _upper_to_full(np.where(ok[:, None], upper, 0.0), ksz)
@@ -655,14 +758,14 @@ def _read_bytes(spath: str) -> bytes:
         raise G2OFormatError(spath, None, f"cannot read file: {exc.strerror or exc}") from None
 
 
-def _tokenise(spath: str, data: bytes):
+def _tokenise(spath: str, data: bytes, family: _Family = _G2O):
     """Split into lines and ASCII-whitespace fields; check tags, field counts and mixed dimensions.
 
     Returns ``(groups, fix_lines, dim)`` (``dim`` None when there are no VERTEX / EDGE lines).
     """
     if data.startswith(b"\xef\xbb\xbf"):
         data = data[3:]
-    groups = {tag: _Group(fmt) for tag, fmt in _FORMATS_BYTES.items()}
+    groups = {tag.encode("ascii"): _Group(fmt) for tag, fmt in family.formats.items()}
     fix_lines: list[tuple[int, list[bytes]]] = []
     dim = None
     dim_first: tuple[int, str] | None = None  # (line, tag) of the first pose line
@@ -675,12 +778,12 @@ def _tokenise(spath: str, data: bytes):
             continue
         group = groups.get(tag)
         if group is None:
-            if tag == b"FIX":
+            if tag == b"FIX" and family.fix:
                 if len(toks) < 2:
                     raise G2OFormatError(spath, lineno, "FIX line names no vertex id")
                 fix_lines.append((lineno, toks[1:]))
                 continue
-            raise G2OFormatError(spath, lineno, f"unknown tag {_show(tag)} (expected {_KNOWN})")
+            raise G2OFormatError(spath, lineno, f"unknown tag {_show(tag)} (expected {family.known})")
         fmt = group.fmt
         if len(toks) - 1 != len(fmt.fields):
             raise G2OFormatError(
@@ -711,15 +814,16 @@ class _Parsed:
     fixed: np.ndarray  # (n,) bool
 
 
-def _parse(spath: str, *, need: str, strict: bool, limits: _Limits) -> _Parsed:
-    """Read, tokenise, convert and check a g2o file; raise the earliest problem.
+def _parse(spath: str, *, need: str, strict: bool, limits: _Limits, family: _Family = _G2O) -> _Parsed:
+    """Read, tokenise, convert and check a g2o (or TORO) file; raise the earliest problem.
 
-    ``need`` is "edges" (:func:`read_g2o`) or "vertices" (:func:`read_g2o_poses`).
+    ``need`` is "edges" (:func:`read_g2o`), "vertices" (:func:`read_g2o_poses`) or "any" (a robot's
+    file of a multi-robot folder: VERTEX lines, EDGE lines or both).
     """
-    groups, fix_lines, dim = _tokenise(spath, _read_bytes(spath))
+    groups, fix_lines, dim = _tokenise(spath, _read_bytes(spath), family)
     if dim is None:
         raise G2OFormatError(spath, None, "empty file: no VERTEX or EDGE lines")
-    eg, vg = groups[_EDGE_TAG[dim].encode()], groups[_VERTEX_TAG[dim].encode()]
+    eg, vg = groups[family.edge_tag[dim].encode()], groups[family.vertex_tag[dim].encode()]
     if need == "edges" and not eg.rows:
         raise G2OFormatError(spath, None, f"no edges: the file has no {eg.fmt.tag} lines")
     if need == "vertices" and not vg.rows:
@@ -843,39 +947,76 @@ def read_g2o(path, *, dtype=None, strict_information: bool = False) -> G2OFile:
     ``num_indefinite_information`` and reported by one :class:`G2OWarning`; with
     ``strict_information=True`` they are refused.
     """
+    return _read(path, dtype=dtype, strict_information=strict_information, family=_G2O)
+
+
+def read_toro(path, *, dtype=None, strict_information: bool = False) -> G2OFile:
+    """Read a TORO ``.graph`` file (``VERTEX2`` / ``EDGE2`` or ``VERTEX3`` / ``EDGE3``), with the
+    input rules of :func:`read_g2o` (no FIX lines: TORO has none).
+
+    ``EDGE2 i j dx dy dtheta inf_ff inf_fs inf_ss inf_rr inf_fr inf_sr``: the information matrix
+    is [[ff, fs, fr], [fs, ss, sr], [fr, sr, rr]] (f forward = x, s sideward = y, r rotation), the
+    g2o matrix of ``EDGE_SE2`` in another order (g2o: I11 I12 I13 I22 I23 I33).
+    ``EDGE3 i j x y z roll pitch yaw`` + the 21 entries of the 6x6 upper triangle, row by row, in
+    (x, y, z, roll, pitch, yaw) coordinates; R = Rz(yaw) Ry(pitch) Rx(roll) (as GTSAM's
+    ``Rot3::Ypr``). g2o's ``EDGE_SE3:QUAT`` information is in (x, y, z, qx, qy, qz) coordinates,
+    and near the measurement a rotation by the small angles a has (qx, qy, qz) ~ a / 2, so the
+    file's matrix I becomes D I D with D = diag(1, 1, 1, 2, 2, 2) before SE-Sync's weights are
+    computed (an isotropic rotation information w in angles gives kappa = 2 w, as g2o's 4 w does).
+    ``VERTEX3 id x y z roll pitch yaw``. The result's ``information`` is in g2o's layout.
+    """
+    return _read(path, dtype=dtype, strict_information=strict_information, family=_TORO)
+
+
+def _read(path, *, dtype, strict_information: bool, family: _Family, need: str = "edges",
+          warn: bool = True) -> G2OFile:
+    """``need="any"``: a robot's file of a multi-robot folder, which may hold VERTEX lines only."""
     spath = os.fspath(path)
     fdt = dtype or jnp.asarray(0.0).dtype
-    p = _parse(spath, need="edges", strict=strict_information, limits=_Limits.of(fdt))
+    p = _parse(spath, need=need, strict=strict_information, limits=_Limits.of(fdt), family=family)
+    out = _build(spath, p, fdt)
+    if warn:
+        _warn_indefinite(out)
+    return out
+
+
+def _warn_indefinite(g2o: G2OFile) -> None:
+    if g2o.num_indefinite_information:
+        warnings.warn(
+            G2OWarning(f"{g2o.path}: {g2o.num_indefinite_information} of {g2o.num_edges} information matrices are "
+                       "not positive definite; SE-Sync weights used"),
+            stacklevel=4,  # the caller of read_g2o / read_toro
+        )
+
+
+def _build(spath: str, p: _Parsed, fdt) -> G2OFile:
+    """The :class:`G2OFile` of a parsed, checked file."""
     dim, eg, vg, vertex_ids = p.dim, p.edges, p.vertices, p.vertex_ids
     n = vertex_ids.shape[0]
 
     # ---- measurements and weights
-    ei = np.searchsorted(vertex_ids, eg.ids[:, 0])
-    ej = np.searchsorted(vertex_ids, eg.ids[:, 1])
-    m = ei.shape[0]
-    graph = PoseGraph.from_arrays(ei, ej, _rotations(eg), eg.vals[:, :dim], eg.kappa, eg.tau, num_poses=n, dtype=fdt)
+    ei = np.searchsorted(vertex_ids, eg.ids[:, 0]) if eg.rows else np.zeros(0, np.int64)
+    ej = np.searchsorted(vertex_ids, eg.ids[:, 1]) if eg.rows else np.zeros(0, np.int64)
+    Rm = _rotations(eg) if eg.rows else np.zeros((0, dim, dim))
+    graph = PoseGraph.from_arrays(ei, ej, Rm, eg.vals[:, :dim], eg.kappa, eg.tau, num_poses=n, dtype=fdt)
 
-    # ---- VERTEX values
+    # ---- VERTEX values; the first line naming each vertex
     has_vertex = np.zeros(n, dtype=bool)
     vertex_R = np.broadcast_to(np.eye(dim), (n, dim, dim)).copy()
     vertex_t = np.zeros((n, dim))
+    vertex_line = np.full(n, np.iinfo(np.int64).max, dtype=np.int64)
+    edge_line = np.asarray(eg.lines, dtype=np.int64)
+    np.minimum.at(vertex_line, ei, edge_line)
+    np.minimum.at(vertex_line, ej, edge_line)
     if vg.rows:
         k = np.searchsorted(vertex_ids, vg.ids[:, 0])
         has_vertex[k] = True
         vertex_R[k] = _rotations(vg)
         vertex_t[k] = vg.vals[:, :dim]
+        np.minimum.at(vertex_line, k, np.asarray(vg.lines, dtype=np.int64))
     initial = None
     if has_vertex.all():
         initial = Poses(jnp.asarray(vertex_R, fdt), jnp.asarray(vertex_t, fdt))
-
-    num_indefinite = int(np.count_nonzero(~eg.pd))
-    if num_indefinite:
-        warnings.warn(
-            G2OWarning(
-                f"{spath}: {num_indefinite} of {m} information matrices are not positive definite; SE-Sync weights used"
-            ),
-            stacklevel=2,
-        )
     return G2OFile(
         path=spath,
         dim=dim,
@@ -885,9 +1026,11 @@ def read_g2o(path, *, dtype=None, strict_information: bool = False) -> G2OFile:
         initial=initial,
         has_vertex=has_vertex,
         fixed=p.fixed,
-        num_indefinite_information=num_indefinite,
+        num_indefinite_information=int(np.count_nonzero(~eg.pd)),
         vertex_R=vertex_R,
         vertex_t=vertex_t,
+        vertex_line=vertex_line,
+        edge_line=edge_line,
     )
 
 
@@ -959,6 +1102,19 @@ def write_g2o(path, graph: PoseGraph, poses: Poses | None, *, vertex_ids=None, i
     round-trip precision. ``poses`` may be None (no VERTEX lines); ``fixed`` (n,) bool adds a FIX
     line.
     """
+    vertex_lines, edge_lines, fixed = g2o_lines(graph, poses, vertex_ids=vertex_ids, information=information,
+                                                fixed=fixed)
+    ids = _check_vertex_ids(vertex_ids, graph.num_poses)
+    fix_lines = ["FIX " + " ".join(map(str, ids[fixed].tolist()))] if fixed.any() else []
+    with atomic_write(path, "w") as f:
+        f.write("\n".join(vertex_lines + fix_lines + edge_lines))
+        f.write("\n")
+
+
+def g2o_lines(graph: PoseGraph, poses: Poses | None, *, vertex_ids=None, information=None,
+              fixed=None) -> tuple[list[str], list[str], np.ndarray]:
+    """The VERTEX lines (one per pose, [] without ``poses``) and EDGE lines (one per edge) of
+    :func:`write_g2o`, and the (n,) fixed mask (checked; all False when ``fixed`` is None)."""
     d = graph.dim
     if d not in (2, 3):
         raise ValueError(f"only 2D and 3D graphs can be written, got dimension {d}")
@@ -990,17 +1146,10 @@ def write_g2o(path, graph: PoseGraph, poses: Poses | None, *, vertex_ids=None, i
         else:
             vals = np.concatenate([t, rotation_to_quaternion(R).reshape(n, 4)], 1)
         vertex_lines = _fmt_rows(ids[:, None], vals, _VERTEX_TAG[d] + " ")
-    fix_lines: list[str] = []
-    if fixed is not None:
-        fixed = np.asarray(fixed, dtype=bool)
-        if fixed.shape != (n,):
-            raise ValueError(f"fixed must have shape ({n},), got {fixed.shape}")
-        if fixed.any():
-            fix_lines = ["FIX " + " ".join(map(str, ids[fixed].tolist()))]
-
-    with atomic_write(path, "w") as f:
-        f.write("\n".join(vertex_lines + fix_lines + edge_lines))
-        f.write("\n")
+    fixed = np.zeros(n, dtype=bool) if fixed is None else np.asarray(fixed, dtype=bool)
+    if fixed.shape != (n,):
+        raise ValueError(f"fixed must have shape ({n},), got {fixed.shape}")
+    return vertex_lines, edge_lines, fixed
 
 
 def write_tum(path, poses: Poses, *, vertex_ids=None, timestamps=None) -> None:
@@ -1032,4 +1181,45 @@ def write_tum(path, poses: Poses, *, vertex_ids=None, timestamps=None) -> None:
         lines = _fmt_rows(ids[:, None], vals, "")
     with atomic_write(path, "w") as f:
         f.write("\n".join(lines))
+        f.write("\n")
+
+
+def write_toro(path, graph: PoseGraph, poses: Poses | None, *, vertex_ids=None, information=None) -> None:
+    """Write ``graph`` (and VERTEX2 / VERTEX3 lines for ``poses``) as a TORO ``.graph`` file,
+    atomically: the layout :func:`read_toro` reads (information in TORO's order, and for 3D in
+    roll/pitch/yaw coordinates: D^-1 I D^-1 of the g2o-layout ``information``, D = diag(1, 1, 1, 2,
+    2, 2)); ``vertex_ids`` and ``information`` as for :func:`write_g2o`. TORO has no FIX lines.
+    """
+    d = graph.dim
+    if d not in (2, 3):
+        raise ValueError(f"only 2D and 3D graphs can be written, got dimension {d}")
+    n, m = graph.num_poses, graph.num_edges
+    ids = _check_vertex_ids(vertex_ids, n)
+    ksz = _info_size(d)
+    info = information_from_weights(np.asarray(graph.kappa), np.asarray(graph.tau), d) if information is None \
+        else np.asarray(information, dtype=np.float64)
+    if info.shape != (m, ksz, ksz):
+        raise ValueError(f"information must have shape ({m}, {ksz}, {ksz}), got {info.shape}")
+    Rm = np.asarray(graph.R, dtype=np.float64)
+    tm = np.asarray(graph.t, dtype=np.float64)
+    ei, ej = ids[np.asarray(graph.i)], ids[np.asarray(graph.j)]
+    fmt = _TORO_FORMATS[_TORO.edge_tag[d]]
+    if d == 2:
+        upper = _full_to_upper(info)
+        values = np.concatenate([tm, angle_2d(Rm)[:, None], upper], 1)
+        order = np.empty(len(fmt.source), dtype=np.int64)
+        order[list(fmt.source)] = np.arange(len(fmt.source))  # file position -> g2o layout position
+        values = values[:, order]
+    else:
+        values = np.concatenate([tm, _rotation_to_rpy(Rm), _full_to_upper(info) / _TORO_INFO_SCALE], 1)
+    edge_lines = _fmt_rows(np.stack([ei, ej], 1), values, fmt.tag + " ")
+    vertex_lines: list[str] = []
+    if poses is not None:
+        R, t = _pose_arrays(poses, d)
+        if R.shape[0] != n:
+            raise ValueError(f"poses has {R.shape[0]} poses, the graph {n}")
+        rot = angle_2d(R)[:, None] if d == 2 else _rotation_to_rpy(R)
+        vertex_lines = _fmt_rows(ids[:, None], np.concatenate([t, rot], 1), _TORO.vertex_tag[d] + " ")
+    with atomic_write(path, "w") as f:
+        f.write("\n".join(vertex_lines + edge_lines))
         f.write("\n")

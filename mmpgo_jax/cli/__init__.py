@@ -193,8 +193,12 @@ def _add_common(p: argparse.ArgumentParser) -> None:
 
 
 def _add_solver_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--robots", "-A", type=ROBOTS, default=10,
-                   help="number of robots, >= 1 and at most the number of poses (contiguous blocks; default 10)")
+    from .robots import add_robots_from
+
+    p.add_argument("--robots", "-A", type=ROBOTS, default=None,
+                   help="number of robots, >= 1 and at most the number of poses (for --robots-from blocks, metis, "
+                        "random; default 10)")
+    add_robots_from(p)
     p.add_argument("--method", choices=("amm", "mm"), default="amm", help="AMM-PGO (default) or MM-PGO")
     p.add_argument("--iterations", "-n", type=ITERATIONS, default=1000, help="outer iterations, >= 0 (default 1000)")
     p.add_argument(
@@ -222,23 +226,30 @@ def _add_strict(p: argparse.ArgumentParser) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     from .. import __version__
+    from .robots import FILE_HELP, add_robots_from
 
     parser = _Parser(prog="mmpgo", description="Distributed PGO by majorization minimization (JAX)")
     parser.add_argument("--version", action="version", version=f"mmpgo-jax {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("info", help="describe a pose graph and its partition among robots")
-    p.add_argument("file", help="g2o file, or a benchmark name (e.g. MITb, city10000)")
+    p.add_argument("file", help=FILE_HELP)
     p.add_argument("--robots", "-A", type=ROBOTS, default=None,
                    help="also describe the split among A robots (1 .. number of poses)")
+    add_robots_from(p)
     _add_strict(p)
     _add_common(p)
 
     p = sub.add_parser("solve", help="run MM-PGO / AMM-PGO on a g2o file")
-    p.add_argument("file", help="g2o file, or a benchmark name (e.g. MITb, city10000)")
+    p.add_argument("file", help=FILE_HELP)
     _add_solver_options(p)
     p.add_argument("--out", "-o", help="write the estimate as g2o (VERTEX lines + the original edges)")
     p.add_argument("--tum", help="write the estimate as a TUM trajectory (index tx ty tz qx qy qz qw)")
+    p.add_argument("--tum-dir", metavar="DIR",
+                   help="write one TUM trajectory per robot, DIR/<robot>.tum, and the whole one, DIR/all_robots.tum")
+    p.add_argument("--out-dir", metavar="DIR",
+                   help="write the estimate as one g2o file per robot, DIR/<robot>.g2o (the per-robot folder layout, "
+                        "which reads back with --robots-from files)")
     p.add_argument("--history", help="write the per-iteration history as CSV")
     p.add_argument("--plot", help="write convergence and trajectory plots to this PNG")
     p.add_argument(
@@ -288,6 +299,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--iterations", "-n", type=int_in(1, INT_MAX), default=1000,
                    help="outer iterations, >= 1 (default 1000)")
     p.add_argument("--robots", "-A", type=ROBOTS, default=10, help="robots, >= 1 (default 10)")
+    add_robots_from(p, ("blocks", "metis", "random"))
     p.add_argument("--out-dir", default="bench-results", help="folder for the Markdown, CSV and JSON tables")
     p.add_argument("--no-progress", action="store_true")
     _add_common(p)
@@ -378,7 +390,11 @@ def _resolve_file(name: str, data: str | None, *, announce: bool = True) -> Path
     is only a path; a bare name is looked up in the data folder). ``announce``: print ``using
     PATH (benchmark NAME)`` when the data folder supplied the file."""
     from .._io.datasets import benchmark_info, find_benchmark, names_a_path
+    from .._io.multi_robot import robot_files
 
+    folder = Path(name).expanduser()
+    if names_a_path(name) and folder.is_dir() and robot_files(folder):
+        return folder  # one g2o file per robot
     path = find_benchmark(name, data)
     if announce and not names_a_path(name):
         info = benchmark_info(name)
@@ -387,22 +403,21 @@ def _resolve_file(name: str, data: str | None, *, announce: bool = True) -> Path
 
 
 def read_input(path, args=None):
-    """``read_g2o(path)`` of the FILE argument, refusing indefinite information matrices with
-    ``--strict-information``."""
-    from .._io.g2o import read_g2o
+    """The graph of the FILE argument (:func:`mmpgo_jax.cli.robots.read_input`)."""
+    from .robots import read_input as read
 
-    return read_g2o(path, strict_information=bool(getattr(args, "strict_information", False)))
+    return read(path, args)
 
 
 _OUTPUTS = (("out", "--out"), ("tum", "--tum"), ("history", "--history"), ("plot", "--plot"))
-
-
 def check_outputs(args) -> None:
     """Refuse unusable output paths before any work: for each of --out, --tum, --history, --plot
     that is set, its folder must exist and be writable, the path must not be a directory (nor a
     device or other non-regular file), and no two may be the same file (symbolic links resolved)."""
     from .._io.atomic import resolve_target
+    from .robots import check_output_dirs
 
+    check_output_dirs(args)
     seen: dict = {}
     for attr, flag in _OUTPUTS:
         value = getattr(args, attr, None)
@@ -448,7 +463,7 @@ def _describe_components(graph, vertex_ids=None) -> tuple[list[np.ndarray], str]
 
 
 def _cmd_info(args) -> int:
-    from .._core.partition import contiguous_robots, partition_stats
+    from .robots import print_robot_table, print_symbol_hint, robot_split
 
     path = _resolve_file(args.file, args.data)
     g2o = read_input(path, args)
@@ -467,15 +482,11 @@ def _cmd_info(args) -> int:
     print(f"tau         {tau.min():.6g} .. {tau.max():.6g}")
     print(f"graph       {conn}")
     print(f"vertices    {int(g2o.has_vertex.sum())} VERTEX lines, {int(g2o.fixed.sum())} fixed")
-    if args.robots:
-        rop = contiguous_robots(g.num_poses, args.robots)
-        st = partition_stats(g, rop)
-        print(f"\npartition   {args.robots} robots (contiguous blocks), {st.total_inter_edges} inter-robot edges")
-        print(f"{'robot':>5} {'poses':>7} {'own edges':>10} {'inter edges':>12} {'receives':>9}  neighbours")
-        for a in range(args.robots):
-            nb = " ".join(map(str, st.neighbours[a].tolist()))
-            print(f"{a:>5} {st.poses[a]:>7} {st.own_edges[a]:>10} {st.inter_edges[a]:>12} {st.received_poses[a]:>9}"
-                  f"  {nb}")
+    if args.robots or args.robots_from or args.labels or g2o.robot_names is not None:
+        rop, names, label = robot_split(args, g2o)
+        print_robot_table(g, rop, names, label, np.float32 if args.precision == "float32" else np.float64)
+    else:
+        print_symbol_hint(g2o)
     return 0
 
 
@@ -495,6 +506,9 @@ class LoadedInput:
     fixed: object  # FixedPoses | None
     frame: object  # FixedPoses
     components: list
+    robot_of_pose: np.ndarray | None = None  # the split the options ask for (None: not resolved)
+    robot_names: list | None = None
+    robots_label: str = ""
 
     @property
     def fixed_mask(self) -> np.ndarray:
@@ -549,9 +563,13 @@ def _load_for_solve(args, *, announce: bool = True) -> LoadedInput:
     path = _resolve_file(args.file, args.data, announce=False)
     g2o = read_input(path, args)
     comps, conn = _describe_components(g2o.graph, g2o.vertex_ids)
+    from .robots import robot_split
+
+    splits = hasattr(args, "robots_from")  # solve: the robots; optimum: one robot
     if len(comps) == 1:
+        robots = robot_split(args, g2o) if splits else (None, None, "")
         return LoadedInput(path, g2o, None, g2o.graph, g2o.vertex_ids, g2o.information, g2o.initial,
-                           g2o.fixed_poses, g2o.frame, comps)
+                           g2o.fixed_poses, g2o.frame, comps, *robots)
     if not args.largest_component:
         raise CLIError(
             f"{path}: the pose graph is {conn}. Each component is only determined up to its own "
@@ -564,7 +582,9 @@ def _load_for_solve(args, *, announce: bool = True) -> LoadedInput:
     frame = fixed or FixedPoses([0], g2o.vertex_R[keep[:1]], g2o.vertex_t[keep[:1]])
     if announce:
         write_line(f"note: solving the largest component only ({graph.num_poses} of {g2o.graph.num_poses} poses)")
-    return LoadedInput(path, g2o, keep, graph, g2o.vertex_ids[keep], information, initial, fixed, frame, comps)
+    robots = robot_split(args, g2o, graph, keep) if splits else (None, None, "")
+    return LoadedInput(path, g2o, keep, graph, g2o.vertex_ids[keep], information, initial, fixed, frame, comps,
+                       *robots)
 
 
 _SOLVE_STARTS = ("chordal", "distributed-chordal", "vertices", "odometry")
@@ -584,9 +604,9 @@ def _cmd_solve(args) -> int:
         ground_truth = data.poses_file(args.ground_truth, "--ground-truth file") if args.ground_truth else None
         read = time.perf_counter() - t
         options = solve_options(args, data)
-        result = solve(data.graph, args.robots, monitor=progress, ground_truth=ground_truth, **options)
+        result = solve(data.graph, data.robot_of_pose, monitor=progress, ground_truth=ground_truth, **options)
     fstar = reference_fstar(data)
-    _print_summary(result, fstar)
+    _print_summary(result, fstar, data)
     t = time.perf_counter()
     finish_solve(args, data, result, fstar)
     print_timing(result, read=read, write=time.perf_counter() - t)
@@ -606,12 +626,8 @@ def reference_fstar(data: LoadedInput):
 
 
 def solve_options(args, data: LoadedInput) -> dict:
-    """The keyword arguments of ``solve`` / ``solve_sharded`` from ``mmpgo solve``'s options (robot
-    count checked against the graph, the start resolved, FIX poses and the input's frame)."""
-    if not 1 <= args.robots <= data.graph.num_poses:
-        raise CLIError(
-            f"--robots must be between 1 and the number of poses ({data.graph.num_poses}), got {args.robots}"
-        )
+    """The keyword arguments of ``solve`` / ``solve_sharded`` from ``mmpgo solve``'s options (the
+    start resolved, FIX poses and the input's frame; the robots are ``data.robot_of_pose``)."""
     return dict(method=args.method, iterations=args.iterations, init=data.start(args.init, _SOLVE_STARTS),
                 initial=data.initial, xi=args.xi, restart=args.restart, chunk_size=args.chunk,
                 grad_tol=args.grad_tol, fixed=data.fixed, frame=data.frame)
@@ -632,10 +648,18 @@ def _print_certificate(data: LoadedInput, poses, *, hint: bool) -> None:
 
 
 def _write_estimate(args, data: LoadedInput, poses) -> list[str]:
-    """--out (g2o, with the FIX lines) and --tum files of an estimate; returns the paths written."""
+    """--out (g2o, with the FIX lines), --tum, --tum-dir and --out-dir files of an estimate; returns
+    the paths written."""
     from .._io.g2o import write_g2o, write_tum
+    from .._io.multi_robot import write_robot_folder, write_robot_tum
 
     written = []
+    robots = dict(robot_of_pose=data.robot_of_pose, robot_names=data.robot_names, vertex_ids=data.vertex_ids)
+    if getattr(args, "tum_dir", None):
+        written += write_robot_tum(args.tum_dir, poses, **robots)
+    if getattr(args, "out_dir", None):
+        written += write_robot_folder(args.out_dir, data.graph, poses, information=data.information,
+                                      fixed=data.fixed_mask, **robots)
     if args.out:
         write_g2o(args.out, data.graph, poses, vertex_ids=data.vertex_ids, information=data.information,
                   fixed=data.fixed_mask)
@@ -702,10 +726,11 @@ def _cmd_optimum(args) -> int:
     return 0
 
 
-def _print_summary(result, fstar) -> None:
+def _print_summary(result, fstar, data: LoadedInput | None = None) -> None:
     """The result of a solve; ``fstar``: the :class:`~mmpgo_jax.FStarReference` of its gap, or None."""
     h = result.history
-    print(f"method      {result.config.method.upper()}-PGO, {result.partition.num_robots} robots, "
+    split = f" ({data.robots_label})" if data is not None and data.robots_label else ""
+    print(f"method      {result.config.method.upper()}-PGO, {result.partition.num_robots} robots{split}, "
           f"restart={result.config.restart}")
     print(f"iterations  {h.iterations} ({result.stop_description})")
     print(f"f = 2F      {h.f[0]:.6f} -> {h.f[-1]:.6f}")

@@ -105,12 +105,12 @@ def _cli_solve_sharded(args) -> int:
             local = local[: args.devices]
         # The mesh: this process's devices, or (multi-process) every process's, ordered by process.
         devices = local if jax.process_count() == 1 else sorted(jax.devices(), key=lambda d: (d.process_index, d.id))
-        result = solve_sharded(data.graph, args.robots, devices=devices, monitor=progress, exchange=args.exchange,
-                               **options)
+        result = solve_sharded(data.graph, data.robot_of_pose, devices=devices, monitor=progress,
+                               exchange=args.exchange, **options)
     if not writer:
         return 0
     fstar = cli.reference_fstar(data)
-    cli._print_summary(result, fstar)
+    cli._print_summary(result, fstar, data)
     halo = f", halo of {result.extra['halo_size']} poses per device pair" if result.extra["halo_size"] else ""
     print(f"sharding    {result.extra['devices']} devices, {result.extra['processes']} processes, "
           f"{result.extra['exchange']} exchange{halo}")
