@@ -18,14 +18,19 @@ from mmpgo_jax import PoseGraph, Poses, cost, riemannian_gradient_norm
 from mmpgo_jax._core.geometry import random_rotations, rotation_2d, sym
 from mmpgo_jax._core.partition import partition
 from mmpgo_jax._mm.majorization import (
+    from_soa,
     gamma_diagonal_blocks,
     gradient_and_share,
     majorizer_decrease,
+    soa_bmm,
+    soa_T,
     stack,
+    sym0,
+    to_soa,
     unstack,
 )
 from mmpgo_jax._mm.outer import MMConfig, MMProblem, _mm_update, init_state, run
-from mmpgo_jax._mm.subproblem import SubproblemConfig, majorizer_value, solve_subproblem
+from mmpgo_jax._mm.subproblem import SubproblemConfig, majorizer_value, solve_subproblem, tangent_projection
 
 N = 16  # poses of the main 2-D problem
 LOOPS = 8
@@ -342,17 +347,10 @@ def test_vmapped_update_matches_per_robot_loop(runs):
 # ----------------------------------------------------------------------------- MM / AMM
 
 
-@eqx.filter_jit
-def _dense_per_robot(op, shape):
-    """Dense matrix of a batched linear operator on stacked arrays of ``shape`` (per robot)."""
-    D = int(np.prod(shape))
-    basis = jnp.eye(D).reshape((D,) + shape)
-    return jax.vmap(lambda o: jax.vmap(lambda B: o(B).reshape(-1))(basis).T)(op)
-
-
 def test_mm_problem_gamma_and_preconditioners(runs):
-    """MMProblem.build: Γ^α's diagonal blocks match the edge-based ones; every preconditioner kind
-    is symmetric positive definite (as PCG requires); block-Jacobi inverts the diagonal blocks."""
+    """MMProblem.build: Γ^α's diagonal blocks match the edge-based ones; both preconditioner kinds are
+    symmetric positive definite on the tangent space at the iterate, as PCG requires
+    (tests/test_preconditioner.py checks them entry by entry against dense algebra)."""
     r = runs.get("mm")
     problem = r["problem"]
     part = problem.partition
@@ -361,18 +359,29 @@ def test_mm_problem_gamma_and_preconditioners(runs):
     np.testing.assert_allclose(np.asarray(problem.gamma.diag), blocks, rtol=1e-12, atol=1e-14)
     d = blocks.shape[-1] - 1
     shape = (part.max_poses, d, d + 1)
-    for kind in ("two-level", "chain", "block-jacobi"):
-        P = np.asarray(_dense_per_robot(_precond(problem, SubproblemConfig(preconditioner=kind)), shape))
-        for Pa in P:
-            np.testing.assert_allclose(Pa, Pa.T, atol=1e-10 * np.abs(Pa).max(), err_msg=kind)
-            assert np.linalg.eigvalsh(0.5 * (Pa + Pa.T)).min() > 0, kind
-        if kind == "block-jacobi":
-            # Y -> Y B_s^{-1} per slot: applying it to Y B_s gives Y back.
-            rng = np.random.default_rng(0)
-            Y = rng.standard_normal((part.num_robots,) + shape)
-            YB = np.einsum("asij,asjk->asik", Y, blocks)
-            out = jax.vmap(lambda o, v: o(v))(_precond(problem, SubproblemConfig(preconditioner=kind)), jnp.asarray(YB))
-            np.testing.assert_allclose(np.asarray(out), Y, atol=1e-9)
+    X, grad = r["state0"].X, r["state0"].grad
+    basis = jnp.eye(int(np.prod(shape))).reshape((-1,) + shape)
+
+    @eqx.filter_jit
+    def dense(pre, y, g):
+        """M^-1 at the pose y (its Weingarten term from the gradient g) on tangent inputs, and the
+        tangent projection, as dense matrices (stacked layout, one robot)."""
+        Y = to_soa(y)
+        W = sym0(soa_bmm(soa_T(Y[:, 1:]), to_soa(g)[:, 1:]))
+        op = pre.at(Y, W)
+        M = jax.vmap(lambda B: from_soa(op(to_soa(tangent_projection(y, B)))).reshape(-1))(basis).T
+        T = jax.vmap(lambda B: tangent_projection(y, B).reshape(-1))(basis).T
+        return M, T
+
+    for kind in ("two-level", "block-jacobi"):
+        pre = _precond(problem, SubproblemConfig(preconditioner=kind))
+        for a in range(part.num_robots):
+            M, T = (np.asarray(x) for x in dense(jax.tree.map(lambda x: x[a], pre), X[a], grad[a]))
+            w, U = np.linalg.eigh(T)
+            Q = U[:, w > 0.5]
+            Mt = Q.T @ M @ Q
+            np.testing.assert_allclose(Mt, Mt.T, atol=1e-10 * np.abs(Mt).max(), err_msg=kind)
+            assert np.linalg.eigvalsh(0.5 * (Mt + Mt.T)).min() > 0, kind
 
 
 def test_mm_monotone(runs, problem2d):
@@ -638,7 +647,7 @@ def test_traced_config_numbers_compile_once_and_match_static(problem2d):
     (MMConfig, dict(average_rates=(0.1,)), r"MMConfig\.average_rates must be a pair"),
     (MMConfig, dict(soft_restart_hits=0), r"MMConfig\.soft_restart_hits must be an integer >= 1"),
     (MMConfig, dict(soft_restart_hits=2.5), r"MMConfig\.soft_restart_hits must be an integer >= 1"),
-    (SubproblemConfig, dict(preconditioner="ilu"), r"SubproblemConfig\.preconditioner.*'block-jacobi' or 'chain'"),
+    (SubproblemConfig, dict(preconditioner="ilu"), r"SubproblemConfig\.preconditioner.*'two-level' or 'block-jacobi'"),
     (SubproblemConfig, dict(cg_tolerance=0.0), r"SubproblemConfig\.cg_tolerance must be a finite number in \(0, 1\]"),
     (SubproblemConfig, dict(cg_tolerance=1.5), r"SubproblemConfig\.cg_tolerance must be a finite number in \(0, 1\]"),
     (SubproblemConfig, dict(cg_iterations=0), r"SubproblemConfig\.cg_iterations must be an integer >= 1"),
@@ -703,36 +712,30 @@ def _leaves_run_reads(problem, config, state, length=3):
 
 def test_mm_problem_holds_only_what_run_reads(problem2d):
     """With a config, MMProblem.build keeps only what that config's run() reads: no stacked-layout
-    copies of Γ and block-Jacobi, and only the configured preconditioner. (The partition's pose maps
-    are for scatter/gather by callers, and xi is the 0-d record of Γ's ξ.)"""
+    copy of Γ, and the coarse level only for "two-level". (The partition's pose maps are for
+    scatter/gather by callers, and xi is the 0-d record of Γ's ξ.)"""
     part = partition(problem2d["graph"], problem2d["robots"])
     X0 = _scatter(part, problem2d["X0"])
     host_side = {".partition.pose_index", ".partition.pose_mask", ".partition.robot_of_pose",
                  ".partition.slot_of_pose", ".xi"}
     sizes = {}
-    for kind in ("two-level", "block-jacobi", "chain"):
+    for kind in ("two-level", "block-jacobi"):
         cfg = MMConfig(method="amm", subproblem=SubproblemConfig(preconditioner=kind))
         problem = MMProblem.build(part, config=cfg, poses=X0)
-        assert problem.preconditioners == (kind,)
-        assert (problem.chain is None) == (kind != "chain")
-        assert (problem.two_level is None) == (kind != "two-level")
-        assert (problem.block_jacobi_soa is None) == (kind != "block-jacobi")
+        assert problem.newton.has_coarse == (kind == "two-level")
         reads = _leaves_run_reads(problem, cfg, init_state(problem, X0, cfg))
         unread = {p for p, used in reads.items() if not used}
         assert unread == host_side, unread
         sizes[kind] = sum(x.nbytes for x in jax.tree.leaves(problem))
-    # without a config every preconditioner is built (any config can run it): larger; the
-    # two-level one only when the start poses are given
-    assert MMProblem.build(part).preconditioners == ("block-jacobi", "chain")
+    assert sizes["two-level"] > sizes["block-jacobi"]
+    # without a config: the two-level preconditioner when the start poses are given
+    assert MMProblem.build(part).preconditioners == ("block-jacobi",)
     both = MMProblem.build(part, poses=X0)
-    assert both.preconditioners == ("two-level", "block-jacobi", "chain")
-    assert sum(x.nbytes for x in jax.tree.leaves(both)) > max(sizes.values())
-    # the stacked-layout views are exact transpositions of what is stored
+    assert both.preconditioners == ("two-level", "block-jacobi")
+    # the stacked-layout view is an exact transposition of what is stored
     np.testing.assert_array_equal(np.asarray(both.gamma.diag), np.moveaxis(np.asarray(both.gamma_soa.diag), -1, -3))
     bj_config = MMConfig(subproblem=SubproblemConfig(preconditioner="block-jacobi"))
     bj = MMProblem.build(part, config=bj_config)
-    with pytest.raises(ValueError, match="holds block-jacobi preconditioner, the config asks for 'chain'"):
-        run(bj, MMConfig(subproblem=SubproblemConfig(preconditioner="chain")), init_state(bj, X0), 2)
     with pytest.raises(ValueError, match=r"asks for 'two-level'.*poses=partition\.scatter\(X0\)"):
         run(bj, MMConfig(), init_state(bj, X0), 2)
     with pytest.raises(ValueError, match="two-level preconditioner is made of the start poses"):

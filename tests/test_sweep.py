@@ -21,7 +21,7 @@ CHUNK = 10  # 25 = two full chunks and a partial one: the iteration limit inside
 # change rounding, so a 1e-9 comparison is only meaningful where the solver is reproducible at
 # that level, which it is with one CG iteration (same perturbation: <= 5e-12). The sweep
 # machinery (padding, stacking, vmap, chunking, batching) is the same for every inner budget.
-STABLE = mm.SubproblemConfig(cg_iterations=1)
+STABLE = mm.SubproblemConfig(cg_iterations=1, aggregate=8)  # one coarse aggregate size for all robot counts
 
 
 class _Messages(logging.Handler):
@@ -89,7 +89,7 @@ def test_one_compilation_matches_separate_solves(amm_sweep, cube):
 
 def test_default_inner_solver_matches_solve(cube):
     """Default inner solver: same compile-once property; the same f as solve() on the partition
-    padded as the sweep pads it. (Against the unpadded partition the agreement is only up to the
+    padded as the sweep pads it, with the batch's coarse aggregate size. (Against the unpadded partition the agreement is only up to the
     rounding of longer reductions, which can move an inexact CG stop by one iteration: measured
     2e-5 in f here.)"""
     its = 8
@@ -100,7 +100,9 @@ def test_default_inner_solver_matches_solve(cube):
     for a in ROBOTS:
         part = mm.partition(cube.graph, a, min_max_poses=group["n_max"], min_max_edges=group["e_max"],
                             num_robots=max(ROBOTS))
-        ref = mm.solve(cube.graph, part, method="mm", iterations=its, chunk_size=its)
+        # the sweep's batch shares one coarse aggregate size (its largest automatic one)
+        sub = mm.SubproblemConfig(aggregate=group["aggregate"])
+        ref = mm.solve(cube.graph, part, method="mm", iterations=its, chunk_size=its, subproblem=sub)
         np.testing.assert_allclose(res.history("graph0", a, "mm"), ref.history.f, rtol=1e-12)
     gap = res.relative_gap("graph0", 5, "mm")
     np.testing.assert_allclose(gap, (res.history("graph0", 5, "mm") - 15000.0) / 15000.0)

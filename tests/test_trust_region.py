@@ -95,7 +95,7 @@ def test_subproblem_stops_on_its_gradient_criterion():
     for tol in (0.3, 1e-3):
         config = SubproblemConfig(gradient_tolerance=tol, max_steps=40, cg_iterations=100)
         solve = jax.jit(jax.vmap(lambda G, P, x, g: subproblem_steps(G, P, x, x, g, config)))
-        out = solve(problem.gamma_soa, problem.block_jacobi_soa, state.X, state.grad)
+        out = solve(problem.gamma_soa, problem.newton, state.X, state.grad)
         gnorm0 = np.sqrt(np.sum(np.asarray(jax.vmap(_tangent_norm2)(state.X, state.grad)), axis=-1))
         steps = np.asarray(out.steps)
         ok = (np.asarray(out.gnorm) <= tol * gnorm0 * (1 + 1e-12)) | (steps == config.max_steps)

@@ -61,6 +61,7 @@ from .._init.chordal import initialize
 from .._mm.driver import NonFiniteError, Termination, compile_once, drive
 from .._mm.majorization import gamma_couplings, stack, unstack
 from .._mm.outer import MMConfig, MMProblem, evaluate, init_state, run
+from .._mm.preconditioner import aggregate_size
 from .._mm.solve import output_frame
 from .._mm.subproblem import SubproblemConfig
 from .metrics import absolute_trajectory_error, relative_pose_error
@@ -431,13 +432,14 @@ def sweep(
     # (n_max, e_max, loop-closure couplings) and is kept on the host, to be padded to its group's
     # common shape (exactly the arrays of a padded partition(...) call) when it is built.
     unpadded: dict[tuple[int, int], Partition] = {}
-    needs: dict[tuple[int, int], tuple[int, int, int]] = {}
+    needs: dict[tuple[int, int], tuple[int, int, int, int]] = {}
     rops: dict[tuple[int, int], np.ndarray] = {}
     for gi, g in enumerate(glist):
         for a in robots_of[gi]:
             rops[(gi, a)] = robot_of_pose(gi, a)
             p = partition(g, rops[(gi, a)])
-            needs[(gi, a)] = (p.max_poses, p.max_edges, gamma_couplings(p.edges))
+            real = int(np.asarray(p.pose_mask).sum(axis=1).max())
+            needs[(gi, a)] = (p.max_poses, p.max_edges, gamma_couplings(p.edges), aggregate_size(real, g.dim))
             unpadded[(gi, a)] = jax.device_get(p)
 
     starts: dict = {}
@@ -464,15 +466,17 @@ def sweep(
             n_max = max(needs[k[:2]][0] for k in gkeys)
             e_max = max(needs[k[:2]][1] for k in gkeys)
             kc = max(needs[k[:2]][2] for k in gkeys)
+            # one coarse aggregate size per batch (a static field): the config's, else the largest automatic one
+            agg = sub.aggregate or max(needs[k[:2]][3] for k in gkeys)
             A = max(k[1] for k in gkeys)
 
-            def build(gi: int, a: int, x: float, n_max=n_max, e_max=e_max, A=A, kc=kc, config=config):
+            def build(gi: int, a: int, x: float, n_max=n_max, e_max=e_max, A=A, kc=kc, agg=agg, config=config):
                 g = glist[gi]
                 part = _pad_partition(unpadded[(gi, a)], n_max, e_max, A)
                 fix = fixed_of[names[gi]]
                 if fix is None and any_fixed:  # one pytree structure per batch: an all-free mask
                     fix = np.zeros(g.num_poses, dtype=bool)
-                problem = MMProblem.build(part, x, config=config, min_couplings=kc, fixed=fix,
+                problem = MMProblem.build(part, x, config=config, min_couplings=kc, fixed=fix, aggregate=agg,
                                           poses=part.scatter(start_of(gi, a)))
                 return part, problem
 
@@ -489,9 +493,8 @@ def sweep(
                     slot_of_pose=jnp.pad(p.slot_of_pose, (0, pad)),
                     num_poses=n_common,
                 )
-                return MMProblem(partition=common, gamma_soa=problem.gamma_soa,
-                                 block_jacobi_soa=problem.block_jacobi_soa, chain=problem.chain, free=problem.free,
-                                 xi=problem.xi, two_level=problem.two_level)
+                return MMProblem(partition=common, gamma_soa=problem.gamma_soa, newton=problem.newton,
+                                 free=problem.free, xi=problem.xi)
 
             n_common = max(glist[k[0]].num_poses for k in gkeys)
             # bytes of one configuration (all have the same padded shape)
@@ -507,7 +510,7 @@ def sweep(
             num_batches = math.ceil(C / per_batch)
             per_batch = math.ceil(C / num_batches)
             group = dict(method=method, robots=sorted({k[1] for k in gkeys}), **({"xi": xis} if by_xi else {}),
-                         configs=C, A=A, n_max=n_max,
+                         configs=C, A=A, n_max=n_max, aggregate=agg,
                          e_max=e_max, couplings=kc, bytes_per_config=per_config, batches=num_batches,
                          configs_per_batch=per_batch, compile_seconds=0.0, run_seconds=0.0,
                          setup_seconds=0.0,

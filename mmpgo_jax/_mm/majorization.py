@@ -238,69 +238,6 @@ def unstack(Y) -> Poses:
     return Poses(Y[..., 1:], Y[..., 0])
 
 
-class ChainPreconditioner(eqx.Module):
-    """Exact inverse of Gamma's block-tridiagonal part (diagonal blocks + the odometry band).
-
-    Pose graphs are chains plus loop closures; solving the chain exactly removes the slow
-    low-frequency modes that a block-Jacobi preconditioner leaves to CG. The block LDL^T factors
-    are computed once on the host; each application is two affine recurrences evaluated with
-    ``lax.associative_scan`` (logarithmic depth, no sequential loop over poses).
-    """
-
-    forward: jax.Array  # (n_max, d+1, d+1): y_s = forward_s y_{s-1} + b_s
-    backward: jax.Array  # (n_max, d+1, d+1): x_s = backward_s x_{s+1} + pivot_inv_s y_s
-    pivot_inv: jax.Array  # (n_max, d+1, d+1)
-
-    def __call__(self, V):
-        """T^{-1} applied to V (n_max, d, d+1) in the stacked layout (T acts from the right)."""
-        b = mT(V)  # column form: T x = b with x_s = Y_s^T
-        y = _affine_scan(self.forward, b)
-        x = _affine_scan(self.backward[::-1], bmm(self.pivot_inv, y)[::-1])[::-1]
-        return mT(x)
-
-
-def _affine_scan(M, c):
-    """z_s = M_s z_{s-1} + c_s with z_{-1} = 0, for all s, in logarithmic depth."""
-
-    def compose(first, then):
-        M1, c1 = first
-        M2, c2 = then
-        return bmm(M2, M1), bmm(M2, c1) + c2
-
-    return jax.lax.associative_scan(compose, (M, c))[1]
-
-
-def build_chain_preconditioner(gamma: GammaOperator) -> ChainPreconditioner:
-    """Block LDL^T of diag + band for every robot (host, float64)."""
-    D = np.asarray(gamma.diag, np.float64)
-    B = np.asarray(gamma.band, np.float64)
-    A, n = D.shape[:2]
-    k = D.shape[-1]
-    pivot_inv = np.zeros_like(D)
-    forward = np.zeros_like(D)
-    backward = np.zeros_like(D)
-    S = D[:, 0]
-    for s in range(n):
-        if s > 0:
-            Bp = B[:, s - 1]  # T_{s-1,s}
-            forward[:, s] = -np.swapaxes(Bp, -1, -2) @ pivot_inv[:, s - 1]
-            S = D[:, s] + forward[:, s] @ Bp
-        pivot_inv[:, s] = np.linalg.inv(S)
-    backward[:, : n - 1] = -pivot_inv[:, : n - 1] @ B[:, : n - 1]
-    dt = gamma.diag.dtype
-    del A, k
-    return ChainPreconditioner(jnp.asarray(forward, dt), jnp.asarray(backward, dt), jnp.asarray(pivot_inv, dt))
-
-
-class BlockJacobi(eqx.Module):
-    """Inverse of Gamma's per-pose diagonal blocks."""
-
-    diag_inverse: jax.Array  # (n_max, d+1, d+1)
-
-    def __call__(self, V):
-        return bmm(V, self.diag_inverse)
-
-
 # ----------------------------------------------------------------------------------------------
 # Structure-of-arrays forms used inside the solver: poses as (d, d+1, n_max) and blocks as
 # (d+1, d+1, n_max), so that every small-matrix product is an elementwise expression along the
@@ -330,6 +267,19 @@ def soa_T(a):
     return jnp.swapaxes(a, 0, 1)
 
 
+def sym0(M):
+    """Symmetric part of square blocks stored entries first (d, d, ...)."""
+    return 0.5 * (M + soa_T(M))
+
+
+def tangent_soa(Y, V):
+    """Orthogonal projection onto T_Y (structure of arrays): [a | B] -> [a | B - R sym(R^T B)].
+    Written as one concatenation (not an in-place update of the rotation part) so that XLA fuses it
+    into one loop."""
+    R, B = Y[:, 1:], V[:, 1:]
+    return jnp.concatenate([V[:, :1], B - soa_bmm(R, sym0(soa_bmm(soa_T(R), B)))], axis=1)
+
+
 class GammaSoA(eqx.Module):
     """:class:`GammaOperator` in the structure-of-arrays layout (one robot, or batched in front)."""
 
@@ -342,9 +292,12 @@ class GammaSoA(eqx.Module):
 
     def __call__(self, Y):
         """Gamma Y for Y (d, d+1, n_max)."""
-        out = soa_bmm(Y, self.diag)
-        out = out.at[..., :-1].add(soa_bmm(Y[..., 1:], self.band_T[..., :-1]))
-        out = out.at[..., 1:].add(soa_bmm(Y[..., :-1], self.band[..., :-1]))
+        # the band's two shifted products as padded terms (not in-place updates of slices): XLA then
+        # computes the diagonal and the band in one fused loop
+        pad = [(0, 0)] * (Y.ndim - 1)
+        out = (soa_bmm(Y, self.diag)
+               + jnp.pad(soa_bmm(Y[..., 1:], self.band_T[..., :-1]), [*pad, (0, 1)])
+               + jnp.pad(soa_bmm(Y[..., :-1], self.band[..., :-1]), [*pad, (1, 0)]))
         contrib = soa_bmm(Y[..., self.src], self.blocks)
         return out.at[..., self.dst].add(contrib, indices_are_sorted=True)
 
@@ -361,17 +314,15 @@ def gamma_to_soa(gamma: GammaOperator) -> GammaSoA:
     )
 
 
-def host_soa(gamma: GammaOperator) -> tuple[GammaSoA, BlockJacobiSoA]:
-    """:func:`gamma_to_soa` and the block-Jacobi preconditioner of a batched operator, computed
-    with numpy on the host (set-up runs once: op-by-op JAX would compile every transposition)."""
+def host_soa(gamma: GammaOperator) -> GammaSoA:
+    """:func:`gamma_to_soa` of a batched operator, computed with numpy on the host (set-up runs once:
+    op-by-op JAX would compile every transposition)."""
     def soa(x):
         return jnp.asarray(np.moveaxis(np.asarray(x), -3, -1))
 
-    diag = np.asarray(gamma.diag)
     band = np.asarray(gamma.band)
-    out = GammaSoA(diag=soa(diag), band=soa(band), band_T=soa(np.swapaxes(band, -1, -2)), src=gamma.src,
-                   dst=gamma.dst, blocks=soa(gamma.blocks))
-    return out, BlockJacobiSoA(soa(np.linalg.inv(diag)))
+    return GammaSoA(diag=soa(gamma.diag), band=soa(band), band_T=soa(np.swapaxes(band, -1, -2)), src=gamma.src,
+                    dst=gamma.dst, blocks=soa(gamma.blocks))
 
 
 def soa_to_gamma(gamma: GammaSoA) -> GammaOperator:
@@ -383,31 +334,3 @@ def soa_to_gamma(gamma: GammaSoA) -> GammaOperator:
         dst=gamma.dst,
         blocks=from_soa(gamma.blocks),
     )
-
-
-class SoAPreconditioner(eqx.Module):
-    """Marker base: a preconditioner that already acts on structure-of-arrays poses (d, d+1, n)."""
-
-
-class BlockJacobiSoA(SoAPreconditioner):
-    diag_inverse: jax.Array  # (d+1, d+1, n_max)
-
-    def __call__(self, V):
-        return soa_bmm(V, self.diag_inverse)
-
-
-class AoSPreconditioner(SoAPreconditioner):
-    """Adapter: apply a stacked-layout preconditioner to structure-of-arrays poses."""
-
-    inner: eqx.Module
-
-    def __call__(self, V):
-        return to_soa(self.inner(from_soa(V)))
-
-
-def preconditioner_to_soa(pre):
-    if isinstance(pre, BlockJacobi):
-        return BlockJacobiSoA(to_soa(pre.diag_inverse))
-    if isinstance(pre, SoAPreconditioner):
-        return pre
-    return AoSPreconditioner(pre)

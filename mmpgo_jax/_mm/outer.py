@@ -18,21 +18,16 @@ import numpy as np
 from .._core.partition import Partition
 from .._core.pose_graph import Poses
 from .majorization import (
-    BlockJacobi,
-    BlockJacobiSoA,
-    ChainPreconditioner,
     GammaOperator,
     GammaSoA,
-    build_chain_preconditioner,
     build_gamma_operator,
-    from_soa,
     gradient_and_share,
     host_soa,
     soa_to_gamma,
     stack,
-    to_soa,
     unstack,
 )
+from .preconditioner import NewtonPreconditioner, build_newton_preconditioner
 from .subproblem import (
     PRECONDITIONERS,
     SubproblemConfig,
@@ -45,7 +40,6 @@ from .subproblem import (
     solve_subproblem,
     tangent_projection,
 )
-from .two_level import TwoLevelSoA, build_two_level
 
 METHODS = ("mm", "amm")
 RESTARTS = ("paper", "adaptive", "average")
@@ -118,6 +112,11 @@ def check_consistent(problem: MMProblem, config: MMConfig) -> None:
     """ValueError when ``config`` cannot run on ``problem``: its xi (when set and concrete) differs
     from the xi Gamma was built with, or its preconditioner was not built (see ``MMProblem.build``)."""
     check_xi(problem, config)
+    check_preconditioner(problem, config)
+
+
+def check_preconditioner(problem: MMProblem, config: MMConfig) -> None:
+    """ValueError when the config asks for a preconditioner the problem was not built for."""
     kind = config.subproblem.preconditioner
     if kind not in problem.preconditioners:
         held = " and ".join(problem.preconditioners) or "no"
@@ -141,13 +140,14 @@ def check_xi(problem: MMProblem, config: MMConfig) -> None:
 
 
 class MMProblem(eqx.Module):
-    """Constant data of a run: the partition and Gamma^alpha of every robot (built once).
+    """Constant data of a run: the partition, Gamma^alpha of every robot and the constant part of
+    the subproblem's preconditioner (built once).
 
-    Only what the solver reads is stored: Gamma^alpha and the preconditioners in the solver's
-    structure-of-arrays layout (``gamma_soa``; ``two_level``, ``block_jacobi_soa`` and ``chain``,
-    each None when it was not built). ``gamma`` / ``block_jacobi`` (stacked layout) are views
-    computed on access. ``xi`` (a 0-d array, traced like the other leaves) is the xi Gamma was
-    built with.
+    Only what the solver reads is stored: Gamma^alpha in the solver's structure-of-arrays layout
+    (``gamma_soa``; ``gamma`` is the stacked-layout view, computed on access) and the
+    :class:`~mmpgo_jax._mm.preconditioner.NewtonPreconditioner` data (``newton``: its block-Jacobi
+    level always, its coarse level when the problem was built for "two-level"). ``xi`` (a 0-d array,
+    traced like the other leaves) is the xi Gamma was built with.
 
     ``free`` (A, n_max) bool marks the slots the solver may move: all but the fixed poses (g2o FIX;
     see :class:`~mmpgo_jax.FixedPoses`), which keep their value in X^0; None when no pose is fixed
@@ -157,11 +157,9 @@ class MMProblem(eqx.Module):
 
     partition: Partition
     gamma_soa: GammaSoA  # batched over robots, structure-of-arrays (the solver's layout)
-    block_jacobi_soa: BlockJacobiSoA | None  # inverses of Gamma's diagonal blocks (block-jacobi)
-    chain: ChainPreconditioner | None  # exact inverse of Gamma's chain part (preconditioner="chain")
+    newton: NewtonPreconditioner  # batched over robots: the subproblem's preconditioner data
     free: jax.Array | None  # (A, n_max) bool, or None when no pose is fixed
     xi: jax.Array  # () the xi of Gamma
-    two_level: TwoLevelSoA | None = None  # block-Jacobi + coarse correction (preconditioner="two-level")
 
     @property
     def gamma(self) -> GammaOperator:
@@ -169,66 +167,30 @@ class MMProblem(eqx.Module):
         return soa_to_gamma(self.gamma_soa)
 
     @property
-    def block_jacobi(self) -> BlockJacobi:
-        """Inverses of Gamma's diagonal blocks, stacked layout (computed on access)."""
-        if self.block_jacobi_soa is not None:
-            return BlockJacobi(from_soa(self.block_jacobi_soa.diag_inverse))
-        if self.two_level is not None:
-            return BlockJacobi(from_soa(self.two_level.diag_inverse))
-        return BlockJacobi(jnp.linalg.inv(self.gamma.diag))
-
-    def _held(self) -> dict:
-        return {"two-level": self.two_level, "block-jacobi": self.block_jacobi_soa, "chain": self.chain}
-
-    @property
     def preconditioners(self) -> tuple[str, ...]:
-        """The preconditioner kinds this problem holds (a config asking for another one fails)."""
-        return tuple(k for k, v in self._held().items() if v is not None)
+        """The preconditioner kinds this problem can run (a config asking for another one fails)."""
+        return PRECONDITIONERS if self.newton.has_coarse else ("block-jacobi",)
 
-    def preconditioner(self, config: MMConfig):
-        """The configured preconditioner, acting on stacked poses (n_max, d, d+1) per robot.
-
-        "block-jacobi" and "chain" are computed when the problem does not hold them (on the host
-        for "chain": not under jit); "two-level" needs the start poses (``build(..., poses=X0)``)."""
-        kind = config.subproblem.preconditioner
-        if kind == "chain":
-            if self.chain is not None:
-                return self.chain
-            if any(concrete_value(x) is None for x in jax.tree.leaves(self.gamma_soa)):
-                raise ValueError("this MMProblem holds no chain preconditioner: build it with "
-                                 "MMProblem.build(..., config=config) (or preconditioner='chain')")
-            return build_chain_preconditioner(self.gamma)
-        if kind == "block-jacobi":
-            return self.block_jacobi
-        if kind == "two-level":
-            if self.two_level is None:
-                raise ValueError("this MMProblem holds no two-level preconditioner: build it with "
-                                 "MMProblem.build(..., poses=partition.scatter(X0))")
-            return StackedLayout(self.two_level)
-        raise ValueError(f"unknown preconditioner {kind!r}: use {' or '.join(map(repr, PRECONDITIONERS))}")
-
-    def _solver_preconditioner(self, config: MMConfig):
-        held = self._held().get(config.subproblem.preconditioner)
-        if held is not None:
-            return held
-        check_consistent(self, config)  # raises: the configured preconditioner was not built
-        raise AssertionError("unreachable")
+    def preconditioner(self, config: MMConfig) -> NewtonPreconditioner:
+        """The configured preconditioner's data (batched over robots), for ``solve_subproblem``."""
+        check_preconditioner(self, config)
+        return self.newton if config.subproblem.preconditioner == "two-level" else self.newton.without_coarse()
 
     @staticmethod
     def build(partition: Partition, xi: float | None = None, *, config: MMConfig | None = None,
               preconditioner: str | None = None, min_couplings: int = 0, fixed=None,
-              poses=None) -> MMProblem:
-        """Gamma^alpha of every robot, its preconditioner and the fixed-pose mask (host, once).
+              poses=None, aggregate: int | None = None) -> MMProblem:
+        """Gamma^alpha of every robot, its preconditioner data and the fixed-pose mask (host, once).
 
         ``xi``: the proximal term; default ``config.xi`` (1e-3 without a config). Given both and
-        different: ValueError. ``config``: the MMConfig the problem will run with: only the
-        preconditioner it reads is built. ``preconditioner``: "two-level", "block-jacobi", "chain"
-        or "all" (overrides the config's); without either, all are built (any config can run the
-        problem). ``poses``: the start X^0 (``partition.scatter(poses)``), which the two-level
-        preconditioner's coarse space is made of; needed for "two-level" (the default), left out
-        of "all" when not given. ``min_couplings`` pads Gamma's loop-closure list (to batch
-        problems of one shape); ``fixed``: a :class:`~mmpgo_jax.FixedPoses` (or (n,) bool mask) of
-        poses that never move."""
+        different: ValueError. ``preconditioner``: "two-level" or "block-jacobi" (default: the
+        config's, else "two-level" when ``poses`` are given and "block-jacobi" otherwise).
+        ``poses``: the start X^0 (``partition.scatter(poses)``), which the two-level coarse space is
+        made of; needed for "two-level" (the default). ``aggregate``: slots per coarse aggregate
+        (default the config's ``subproblem.aggregate``, else chosen from the robots' size; one value
+        for problems batched together).
+        ``min_couplings`` pads Gamma's loop-closure list (to batch problems of one shape);
+        ``fixed``: a :class:`~mmpgo_jax.FixedPoses` (or (n,) bool mask) of poses that never move."""
         if config is not None and config.xi is not None:
             if xi is None:
                 xi = config.xi
@@ -240,24 +202,24 @@ class MMProblem(eqx.Module):
         check_real("MMProblem.build", "xi", xi, 0.0)
         xi = float(xi)
         if preconditioner is None:
-            preconditioner = config.subproblem.preconditioner if config is not None else "all"
-        if preconditioner not in (*PRECONDITIONERS, "all"):
-            raise ValueError(f"MMProblem.build: unknown preconditioner {preconditioner!r}: "
-                             f"use {', '.join(map(repr, PRECONDITIONERS))} or 'all'")
+            if config is not None:
+                preconditioner = config.subproblem.preconditioner
+            else:
+                preconditioner = "two-level" if poses is not None else "block-jacobi"
+        check_choice("MMProblem.build", "preconditioner", preconditioner, PRECONDITIONERS)
         if preconditioner == "two-level" and poses is None:
             raise ValueError("MMProblem.build: the two-level preconditioner is made of the start poses: "
                              "give poses=partition.scatter(X0) (or preconditioner='block-jacobi')")
-        wanted = PRECONDITIONERS if preconditioner == "all" else (preconditioner,)
         gamma = build_gamma_operator(partition.edges, xi, partition.max_poses, min_couplings=min_couplings)
-        soa, block_jacobi = host_soa(gamma)
-        chain = build_chain_preconditioner(gamma) if "chain" in wanted else None
-        two_level = None
-        if "two-level" in wanted and poses is not None:
-            two_level = build_two_level(gamma.diag, gamma.band, gamma.src, gamma.dst, gamma.blocks,
-                                        block_jacobi.diag_inverse, stack(poses), partition.pose_mask,
-                                        soa.diag.dtype)
-        if "block-jacobi" not in wanted:
-            block_jacobi = None
+        soa = host_soa(gamma)
+        dtype = soa.diag.dtype
+        if aggregate is None and config is not None:
+            aggregate = config.subproblem.aggregate
+        if preconditioner == "two-level":
+            newton = build_newton_preconditioner(gamma.diag, gamma.band, gamma.src, gamma.dst, gamma.blocks,
+                                                 stack(poses), partition.pose_mask, dtype, aggregate=aggregate)
+        else:
+            newton = build_newton_preconditioner(gamma.diag, dtype=dtype)
         del gamma  # the stacked-layout copy is not kept: the solver reads gamma_soa
         free = None  # no fixed pose: the solver runs without a mask (same compiled code as ever)
         if fixed is not None:
@@ -268,17 +230,7 @@ class MMProblem(eqx.Module):
             free = np.ones(partition.pose_mask.shape, dtype=bool)
             free[np.asarray(partition.robot_of_pose)[mask], np.asarray(partition.slot_of_pose)[mask]] = False
             free = jnp.asarray(free)
-        return MMProblem(partition=partition, gamma_soa=soa, block_jacobi_soa=block_jacobi, chain=chain,
-                         free=free, xi=jnp.asarray(xi, soa.diag.dtype), two_level=two_level)
-
-
-class StackedLayout(eqx.Module):
-    """A structure-of-arrays preconditioner applied to stacked poses (n_max, d, d+1)."""
-
-    inner: eqx.Module
-
-    def __call__(self, V):
-        return from_soa(self.inner(to_soa(V)))
+        return MMProblem(partition=partition, gamma_soa=soa, newton=newton, free=free, xi=jnp.asarray(xi, dtype))
 
 
 class MMState(eqx.Module):
@@ -373,7 +325,7 @@ def _mm_update(problem: MMProblem, config: MMConfig, X, grad):
     def solve(G, P, x, g, free):
         return solve_subproblem(G, P, x, x, g, config.subproblem, free)[0]
     return jax.vmap(solve, in_axes=(0, 0, 0, 0, _free_axis(problem)))(
-        problem.gamma_soa, problem._solver_preconditioner(config), X, grad, problem.free)
+        problem.gamma_soa, problem.preconditioner(config), X, grad, problem.free)
 
 
 def _free_axis(problem: MMProblem):
@@ -392,7 +344,7 @@ def _amm_update(problem: MMProblem, config: MMConfig, st: MMState):
     def solve(G, P, x0, c, g, free):
         return solve_subproblem(G, P, x0, c, g, config.subproblem, free)[0]
     Z = jax.vmap(solve, in_axes=(0, 0, 0, 0, 0, _free_axis(problem)))(
-        problem.gamma_soa, problem._solver_preconditioner(config), start, Y, gY, problem.free)
+        problem.gamma_soa, problem.preconditioner(config), start, Y, gY, problem.free)
     # G^alpha(Z | X^k) - Gbar^alpha(k): no objective evaluation needed (paper Eq. (19); docs/conventions.md §3).
     decrease = jax.vmap(majorizer_value)(problem.gamma_soa, Z, st.X, st.grad)
     soft_hits = st.soft_hits

@@ -9,11 +9,11 @@ trust-region Newton method (Absil, Baker & Gallivan 2007), stopped on accuracy:
      (Gamma projected to the tangent space, plus the Weingarten term of SO(d));
   2. the trust-region model is minimised by truncated preconditioned CG (Steihaug-Toint, in the
      preconditioner's norm: it stops at the relative residual ``cg_tolerance``, at the boundary or
-     at negative curvature), preconditioned by block-Jacobi plus a coarse correction on
-     aggregates of consecutive poses (``preconditioner="two-level"``, the default; see
-     :mod:`~mmpgo_jax._mm.two_level`), by the inverses of Gamma's per-pose diagonal blocks alone
-     (``"block-jacobi"``) or by the exact inverse of its block-tridiagonal (chain) part
-     (``"chain"``); all are factored once, since Gamma is constant;
+     at negative curvature), preconditioned by the inverses of the Hessian's own per-pose
+     diagonal blocks (Weingarten term included, rebuilt at each step from constants of Gamma)
+     plus a coarse correction on the rigid motions of aggregates of consecutive poses
+     (``preconditioner="two-level"``, the default), or by the diagonal blocks alone
+     (``"block-jacobi"``); see :mod:`~mmpgo_jax._mm.preconditioner`;
   3. the step is retracted (rotations projected back to SO(d)) and accepted when G^alpha's actual
      decrease is at least a tenth of the model's; the radius (infinite at first: a plain truncated
      Newton step) shrinks to a quarter of a rejected step and doubles after a good boundary step;
@@ -25,8 +25,8 @@ iterations was accurate on the benchmark files it was tuned on and 1-2 % off on 
 chains, where a full step along the chain's weakly curved directions overshoots; halving that step
 does not change its direction, a trust region does. The gradient criterion makes the accuracy of
 the inner solve the same on every graph instead of the work; the two-level preconditioner keeps
-the work of reaching it small on long chains (CG iterations per subproblem on kitti_00, 10 robots:
-150 with block-Jacobi, 17 with it). The accept test guarantees G^alpha never increases beyond the
+the work of reaching it small on long chains and on graphs whose rotation curvature dominates
+(benchmarks/profile_step.md). The accept test guarantees G^alpha never increases beyond the
 rounding of its evaluation (Assumption 1's first half) for any settings, so the outer MM/AMM
 guarantees on F hold; letting steps through at that rounding level (a regularized ratio, as in
 Manopt's trust regions) is what lets a near-exact inner solve (one robot, A = 1) keep converging
@@ -48,9 +48,10 @@ from .majorization import (
     GammaSoA,
     from_soa,
     gamma_to_soa,
-    preconditioner_to_soa,
     soa_bmm,
     soa_T,
+    sym0,
+    tangent_soa,
     to_soa,
 )
 
@@ -98,7 +99,7 @@ def check_real(owner: str, name: str, value, low: float, high: float | None = No
         raise ValueError(f"{owner}.{name} must be a finite number {rng}, got {value!r}")
 
 
-PRECONDITIONERS = ("two-level", "block-jacobi", "chain")
+PRECONDITIONERS = ("two-level", "block-jacobi")
 
 
 class SubproblemConfig(eqx.Module):
@@ -112,9 +113,11 @@ class SubproblemConfig(eqx.Module):
     often they are reached; benchmarks/inner_solver.md compares the result with subproblems
     solved to convergence).
 
-    Static (part of the compiled structure): ``preconditioner`` ("two-level", "block-jacobi" or
-    "chain") and
-    the caps ``max_steps`` (>= 1) and ``cg_iterations`` (>= 1). Traced (a new value reuses the
+    Static (part of the compiled structure): ``preconditioner`` ("two-level" or "block-jacobi"),
+    the caps ``max_steps`` (>= 1) and ``cg_iterations`` (>= 1), and ``aggregate``, the slots per
+    coarse aggregate of the two-level preconditioner (None: chosen from the robots' size by
+    :func:`~mmpgo_jax._mm.preconditioner.aggregate_size`; a sweep that batches robot counts uses
+    the largest size of the batch unless one is given here). Traced (a new value reuses the
     compiled code, and a batch of values can be ``vmap``-ped): ``gradient_tolerance`` in [0, 1]
     (0: run to the caps) and ``cg_tolerance`` in (0, 1]. Every field is checked when the config is
     built (ValueError naming the field and its range); traced values (e.g. under ``vmap``) are not.
@@ -129,6 +132,7 @@ class SubproblemConfig(eqx.Module):
     cg_tolerance: float = 1e-2
     max_steps: int = eqx.field(static=True, default=3)
     cg_iterations: int = eqx.field(static=True, default=50)
+    aggregate: int | None = eqx.field(static=True, default=None)
 
     def __check_init__(self):
         owner = "SubproblemConfig"
@@ -137,6 +141,8 @@ class SubproblemConfig(eqx.Module):
         check_real(owner, "cg_tolerance", self.cg_tolerance, 0.0, 1.0, low_open=True)
         check_count(owner, "max_steps", self.max_steps, 1)
         check_count(owner, "cg_iterations", self.cg_iterations, 1)
+        if self.aggregate is not None:
+            check_count(owner, "aggregate", self.aggregate, 1)
 
 
 def project_rotations(M):
@@ -154,13 +160,8 @@ def tangent_projection(Y, V):
 # --- the solver works in the structure-of-arrays layout: Y (d, d+1, n_max) -------------------
 
 
-def _sym0(M):
-    return 0.5 * (M + soa_T(M))
-
-
-def _tangent_soa(Y, V):
-    R = Y[:, 1:]
-    return V.at[:, 1:].add(-soa_bmm(R, _sym0(soa_bmm(soa_T(R), V[:, 1:]))))
+_sym0 = sym0
+_tangent_soa = tangent_soa
 
 
 def _project_soa(M):
@@ -189,6 +190,11 @@ def majorizer_value(gamma, Y, center, g):
     return 0.5 * _inner(gamma(D), D) + _inner(g, D)
 
 
+# The scalar state of truncated CG, packed in one vector so that the loop carries (and copies) one
+# small array instead of eight: every carried array costs XLA a separate buffer copy per iteration.
+_K, _RZ, _VMV, _VMP, _PMP, _OUT, _ACTIVE = range(7)
+
+
 def _truncated_cg(hess, precond, grad, radius, config: SubproblemConfig):
     """Steihaug-Toint truncated PCG for the trust-region model m(v) = <grad, v> + 1/2 <v, H v>.
 
@@ -196,49 +202,56 @@ def _truncated_cg(hess, precond, grad, radius, config: SubproblemConfig):
     7.5.1), whose value is tracked by recurrences (no application of M). CG stops at the relative
     residual ``cg_tolerance``, at ``cg_iterations``, at the boundary or at negative curvature (there
     it moves to the boundary; with an infinite radius it keeps v, at the first iteration the
-    preconditioned gradient). Returns (v, ||v||_M, m(v), hit the boundary).
+    preconditioned gradient). Returns (v, ||v||_M, m(v), hit the boundary, CG iterations).
     """
     r = -grad  # residual of H v = -grad at v = 0
     z = precond(r)
     rz = _inner(r, z)
     stop_at = (config.cg_tolerance**2) * rz
-    zero = jnp.zeros_like(rz)
+    finite = jnp.isfinite(radius)
+    radius2 = jnp.where(finite, radius**2, 0.0)
 
     def cond(state):
-        k, *_, active = state
-        return (k < config.cg_iterations) & active
+        s = state[-1]
+        return (s[_K] < config.cg_iterations) & (s[_ACTIVE] > 0)
 
     def body(state):
-        k, v, r, p, rz_k, vMv, vMp, pMp, _, _ = state
+        v, r, p, s = state
+        k, rz_k, vMv, vMp, pMp = s[_K], s[_RZ], s[_VMV], s[_VMP], s[_PMP]
         Hp = hess(p)
         pHp = _inner(p, Hp)
         curved = pHp > 0
         alpha = rz_k / jnp.where(curved, pHp, 1.0)
-        vMv_new = vMv + 2.0 * alpha * vMp + alpha**2 * pMp
-        outside = (~curved) | (vMv_new >= radius**2)
+        vMv_cg = vMv + 2.0 * alpha * vMp + alpha**2 * pMp
+        outside = (~curved) | (finite & (vMv_cg >= radius2))
         # the step to the boundary along p: ||v + tau p||_M = radius, tau >= 0
-        finite = jnp.isfinite(radius)
-        gap = jnp.where(finite, radius**2 - vMv, 0.0)
-        tau = (-vMp + jnp.sqrt(jnp.maximum(vMp**2 + pMp * gap, 0.0))) / jnp.where(pMp > 0, pMp, 1.0)
+        tau = (-vMp + jnp.sqrt(jnp.maximum(vMp**2 + pMp * (radius2 - vMv), 0.0))) / jnp.where(pMp > 0, pMp, 1.0)
         # an infinite radius and negative curvature: keep v (at k = 0 take the preconditioned gradient)
         tau = jnp.where(finite, tau, jnp.where(k == 0, 1.0, 0.0))
         step = jnp.where(outside, tau, alpha)
         v_new = v + step * p
         r_new = r - step * Hp
-        vMv_new = jnp.where(outside, vMv + 2.0 * step * vMp + step**2 * pMp, vMv_new)
         z_new = precond(r_new)
         rz_new = _inner(r_new, z_new)
         beta = rz_new / jnp.where(rz_k > 0, rz_k, 1.0)
         p_new = z_new + beta * p
-        vMp_new = beta * (vMp + step * pMp)
-        pMp_new = rz_new + beta**2 * pMp
-        active = (~outside) & (rz_new > stop_at)
-        return k + 1, v_new, r_new, p_new, rz_new, vMv_new, vMp_new, pMp_new, outside, active
+        vp = vMp + step * pMp
+        s_new = jnp.stack([
+            k + 1.0,
+            rz_new,
+            vMv + 2.0 * step * vMp + step**2 * pMp,
+            beta * vp,
+            rz_new + beta**2 * pMp,
+            outside.astype(rz.dtype),
+            ((~outside) & (rz_new > stop_at)).astype(rz.dtype),
+        ])
+        return v_new, r_new, p_new, s_new
 
-    state = (jnp.asarray(0), jnp.zeros_like(grad), r, z, rz, zero, zero, rz, jnp.asarray(False), rz > 0)
-    k, v, r, *_, vMv, _, _, boundary, _ = jax.lax.while_loop(cond, body, state)
+    zero = jnp.zeros_like(rz)
+    s0 = jnp.stack([zero, rz, zero, zero, rz, zero, (rz > 0).astype(rz.dtype)])
+    v, r, _, s = jax.lax.while_loop(cond, body, (jnp.zeros_like(grad), r, z, s0))
     model = 0.5 * (_inner(grad, v) - _inner(v, r))  # = <grad, v> + 1/2 <v, H v>, as r = -grad - H v
-    return v, jnp.sqrt(vMv), model, boundary, k
+    return v, jnp.sqrt(s[_VMV]), model, s[_OUT] > 0, s[_K].astype(jnp.int32)
 
 
 class _TrustRegionState(eqx.Module):
@@ -253,10 +266,11 @@ class _TrustRegionState(eqx.Module):
 
 def _solve(gamma, preconditioner, start, center, g, config: SubproblemConfig, free=None):
     """The trust-region loop in the structure-of-arrays layout; returns its final state."""
-    precond_soa = preconditioner_to_soa(preconditioner)
+    def masked(V):  # fixed slots have the tangent space {0}
+        return V if free is None else jnp.where(free, V, 0.0)
 
     def tangent(Y, V):
-        return _tangent_soa(Y, V) if free is None else jnp.where(free, _tangent_soa(Y, V), 0.0)
+        return masked(_tangent_soa(Y, V))
 
     def evaluate(Y):
         D = Y - center
@@ -272,10 +286,11 @@ def _solve(gamma, preconditioner, start, center, g, config: SubproblemConfig, fr
         weingarten = _sym0(soa_bmm(soa_T(Y[:, 1:]), egrad[:, 1:]))
 
         def hess(V):
-            return tangent(Y, gamma(V).at[:, 1:].add(-soa_bmm(V[:, 1:], weingarten)))
+            GV = gamma(V)
+            return tangent(Y, jnp.concatenate([GV[:, :1], GV[:, 1:] - soa_bmm(V[:, 1:], weingarten)], axis=1))
 
-        V, vnorm, model, boundary, cg = _truncated_cg(hess, lambda V: tangent(Y, precond_soa(V)), rgrad,
-                                                      st.radius, config)
+        precond = preconditioner.at(Y, weingarten)
+        V, vnorm, model, boundary, cg = _truncated_cg(hess, lambda V: masked(precond(V)), rgrad, st.radius, config)
         Yc = _retract_soa(Y, V)
         if free is not None:  # re-projecting a fixed rotation would change its last bits
             Yc = jnp.where(free, Yc, Y)
@@ -315,9 +330,10 @@ def solve_subproblem(gamma, preconditioner, start, center, g, config: Subproblem
 
     Pose arrays are stacked (n, d, d+1); ``g`` is the (possibly extrapolated) Euclidean gradient
     of F at ``center``; ``gamma`` is Gamma^alpha (``GammaOperator`` or its ``GammaSoA`` form) and
-    ``preconditioner`` approximates its inverse (``TwoLevelSoA``, ``BlockJacobi``,
-    ``ChainPreconditioner`` or their structure-of-arrays forms). The returned value never exceeds
-    the value at ``start`` by more than the rounding of its evaluation.
+    ``preconditioner`` the data of the Newton system's preconditioner
+    (:class:`~mmpgo_jax._mm.preconditioner.NewtonPreconditioner`: anything with ``at(Y, W)``
+    giving a tangent-space operator). The returned value never exceeds the value at ``start`` by
+    more than the rounding of its evaluation.
     Internally everything runs in the structure-of-arrays layout (d, d+1, n).
     """
     st = subproblem_steps(gamma, preconditioner, start, center, g, config, free)
