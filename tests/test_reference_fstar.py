@@ -92,8 +92,9 @@ def test_sphere_optimum_gap_is_not_negative(benchmark_file):
 
 def test_cli_solve_says_which_reference(benchmark_file, capsys):
     path = benchmark_file("tinyGrid3D.g2o")
-    assert main(["solve", str(path), "-A", "2", "-n", "0", "--no-progress"]) == 0
+    assert main(["solve", str(path), "-A", "2", "--robots-from", "metis", "-n", "0", "--no-progress"]) == 0
     out = capsys.readouterr().out
+    assert "2 robots (METIS parts)" in out  # the split and the reference, side by side
     ref = BENCHMARKS["tinyGrid3D"].fstar_reference
     assert f"f*          {ref.value:.12g} (certified f*)" in out
     gap_line = next(line for line in out.splitlines() if line.startswith("gap "))

@@ -268,7 +268,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_cli_options(p)
 
     p = sub.add_parser("optimum", help="centralized optimum f* of a g2o file, with its global-optimality certificate")
-    p.add_argument("file", help="g2o file, or a benchmark name (e.g. MITb, city10000)")
+    p.add_argument("file", help=FILE_HELP)  # read as solve reads it (TORO, per-robot folders too)
     p.add_argument("--init", default="chordal",
                    help="start: chordal (default), vertices, odometry, or a .g2o/.npz file")
     p.add_argument("--grad-tol", type=finite_float(0.0, strict=True), default=1e-6,
