@@ -108,3 +108,30 @@ def _tangent_norm2(X, grad):
     from mmpgo_jax._mm.subproblem import tangent_projection
 
     return jnp.sum(tangent_projection(X, grad) ** 2, axis=(1, 2))
+
+
+def test_rejected_first_steps_do_not_stall_the_outer_loop():
+    """From rotations far from consistent, the first (infinite-radius) Newton step can overshoot so
+    far that it is rejected. Stopping after ``max_steps`` rejections returned the start itself, and
+    the next outer iteration, from the same point and radius, rejected the same steps forever (seen
+    as ``mmpgo optimum`` stuck at its start on some CPUs). The solver keeps shrinking the radius
+    until a step is accepted: G^alpha ends below its start value whenever it took extra steps, and
+    at least one of these starts needs them."""
+    from mmpgo_jax._core.geometry import random_rotations
+
+    extra = 0
+    for seed in (5, 7, 11):
+        data = mg.grid_2d_dataset(seed, grid=5, num_poses=30, loop_closure_prob=0.3)
+        part = mg.partition(data.graph, 1)
+        rng = np.random.default_rng(seed)
+        gt = data.ground_truth
+        X = part.scatter(mg.Poses(jnp.asarray(random_rotations(rng, (gt.R.shape[0],), 2)),
+                                  gt.t + 3 * rng.standard_normal(gt.t.shape)))
+        problem = mg.MMProblem.build(part, 1e-3, poses=X)
+        state, _ = start_state(problem, X, mg.MMConfig())
+        G, P, X1, grad = jax.tree.map(lambda a: a[0], (problem.gamma_soa, problem.newton, state.X, state.grad))
+        capped = SubproblemConfig(max_steps=1, gradient_tolerance=0.1)
+        out = jax.jit(subproblem_steps, static_argnums=5)(G, P, X1, X1, grad, capped)
+        assert float(out.value) < 0.0, seed  # it moved (G^alpha - const is 0 at the start)
+        extra += int(out.steps) > capped.max_steps
+    assert extra >= 1

@@ -341,36 +341,55 @@ def _amm_update(problem: MMProblem, config: MMConfig, st: MMState):
     start = Y.at[..., 1:].set(project_rotations(Y[..., 1:]))
     if problem.free is not None:  # fixed slots have Y = X exactly; unprojected, they stay bit-exact
         start = jnp.where(problem.free[..., None, None], start, Y)
+    pre = problem.preconditioner(config)
+
     def solve(G, P, x0, c, g, free):
         return solve_subproblem(G, P, x0, c, g, config.subproblem, free)[0]
-    Z = jax.vmap(solve, in_axes=(0, 0, 0, 0, 0, _free_axis(problem)))(
-        problem.gamma_soa, problem.preconditioner(config), start, Y, gY, problem.free)
-    # G^alpha(Z | X^k) - Gbar^alpha(k): no objective evaluation needed (paper Eq. (19); docs/conventions.md §3).
-    decrease = jax.vmap(majorizer_value)(problem.gamma_soa, Z, st.X, st.grad)
-    soft_hits = st.soft_hits
-    soft = jnp.zeros_like(decrease, dtype=bool)
-    if config.restart == "paper":
-        restart = decrease > 0
-    elif config.restart == "adaptive":
-        # Algorithm 2's test with a vanishing slack: G^alpha(Z|X^k) may exceed Gbar^alpha(k) by at
-        # most slack^alpha_k = slack^alpha_0 (1 - slack_decay)^k, which is summable over k.
-        restart = decrease > st.slack
-    elif config.restart == "average":
-        value = st.share + decrease  # G^alpha(Z | X^k)
-        restart = (value > st.share_slow) | (decrease > st.slack)
-        above = (value > st.share_fast) & ~restart
-        soft_hits = jnp.where(above, soft_hits + 1, 0)
-        soft = soft_hits >= config.soft_restart_hits
-        soft_hits = jnp.where(soft, 0, soft_hits)
-    else:
-        raise ValueError(f"unknown restart rule {config.restart!r}: use 'adaptive', 'average' or 'paper'")
-    # The MM fallback is computed only in iterations where some robot needs it.
-    r = restart[:, None, None, None]
-    X_new = jax.lax.cond(
-        jnp.any(restart),
-        lambda: jnp.where(r, _mm_update(problem, config, st.X, st.grad), Z),
-        lambda: Z,
-    )
+
+    def restart_test(Z):
+        # G^alpha(Z | X^k) - Gbar^alpha(k): no objective evaluation needed (paper Eq. (19); docs/conventions.md §3).
+        decrease = jax.vmap(majorizer_value)(problem.gamma_soa, Z, st.X, st.grad)
+        soft_hits = st.soft_hits
+        soft = jnp.zeros_like(decrease, dtype=bool)
+        if config.restart == "paper":
+            restart = decrease > 0
+        elif config.restart == "adaptive":
+            # Algorithm 2's test with a vanishing slack: G^alpha(Z|X^k) may exceed Gbar^alpha(k) by
+            # at most slack^alpha_k = slack^alpha_0 (1 - slack_decay)^k, which is summable over k.
+            restart = decrease > st.slack
+        elif config.restart == "average":
+            value = st.share + decrease  # G^alpha(Z | X^k)
+            restart = (value > st.share_slow) | (decrease > st.slack)
+            above = (value > st.share_fast) & ~restart
+            soft_hits = jnp.where(above, soft_hits + 1, 0)
+            soft = soft_hits >= config.soft_restart_hits
+            soft_hits = jnp.where(soft, 0, soft_hits)
+        else:
+            raise ValueError(f"unknown restart rule {config.restart!r}: use 'adaptive', 'average' or 'paper'")
+        return restart, soft, soft_hits
+
+    # Pass 1 solves every robot's subproblem from the momentum point Y; pass 2, only in iterations
+    # where some robot restarts, the MM subproblem at X^k for those robots (the others repeat pass 1
+    # bit for bit). A loop of at most two passes keeps one copy of the solver in the compiled program
+    # (half the compile time of a separate fallback branch).
+    def body(carry):
+        k, restart, soft, soft_hits, _ = carry
+        r = restart[:, None, None, None]
+        Z = jax.vmap(solve, in_axes=(0, 0, 0, 0, 0, _free_axis(problem)))(
+            problem.gamma_soa, pre, jnp.where(r, st.X, start), jnp.where(r, st.X, Y), jnp.where(r, st.grad, gY),
+            problem.free)
+        first = k == 0
+        tested = restart_test(Z)
+        restart, soft, soft_hits = (jnp.where(first, new, old) for new, old in zip(tested, (restart, soft, soft_hits),
+                                                                                      strict=True))
+        return k + 1, restart, soft, soft_hits, Z
+
+    def cond(carry):
+        k, restart = carry[:2]
+        return (k == 0) | ((k == 1) & jnp.any(restart))
+
+    no = jnp.zeros_like(st.s, dtype=bool)
+    _, restart, soft, soft_hits, X_new = jax.lax.while_loop(cond, body, (0, no, no, st.soft_hits, start))
     s_new = jnp.where(restart, jnp.maximum(0.5 * s_next, 1.0), s_next)
     s_new = jnp.where(soft, 1.0, s_new)
     return X_new, s_new, restart, soft_hits

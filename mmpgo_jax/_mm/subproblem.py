@@ -18,7 +18,9 @@ trust-region Newton method (Absil, Baker & Gallivan 2007), stopped on accuracy:
      decrease is at least a tenth of the model's; the radius (infinite at first: a plain truncated
      Newton step) shrinks to a quarter of a rejected step and doubles after a good boundary step;
   4. it stops when ||grad G^alpha|| has fallen to ``gradient_tolerance`` times its value at the
-     start, or after ``max_steps`` steps (a safety cap).
+     start, or after ``max_steps`` steps (a safety cap) -- but not before a step was accepted
+     (up to 30 more rejected steps, each shrinking the radius 4-fold: returning the start would
+     make the next outer iteration repeat the same rejected steps forever).
 
 Why this choice (measured, benchmarks/inner_solver.md): one Newton step with a budget of CG
 iterations was accurate on the benchmark files it was tuned on and 1-2 % off on long odometry
@@ -262,6 +264,14 @@ class _TrustRegionState(eqx.Module):
     value: jax.Array  # G^alpha(Y) - const
     gnorm: jax.Array  # ||grad G^alpha(Y)|| (Riemannian)
     radius: jax.Array
+    moved: jax.Array  # a step has been accepted
+
+
+# Trust-region steps allowed beyond ``max_steps`` while none has been accepted: each rejection
+# shrinks the radius at least 4-fold, so 30 cover any scale of a first (infinite-radius) step that
+# overshoots (4^-30 ~ 1e-18). Without them a subproblem that rejects ``max_steps`` steps returns its
+# start, and the next outer iteration, from the same point and radius, repeats them forever.
+EXTRA_REJECTED_STEPS = 30
 
 
 def _solve(gamma, preconditioner, start, center, g, config: SubproblemConfig, free=None):
@@ -278,7 +288,8 @@ def _solve(gamma, preconditioner, start, center, g, config: SubproblemConfig, fr
         return GD + g, 0.5 * _inner(GD, D) + _inner(g, D)
 
     def cond(st):
-        return (st.steps < config.max_steps) & (st.gnorm > stop_at)
+        cap = jnp.where(st.moved, config.max_steps, config.max_steps + EXTRA_REJECTED_STEPS)
+        return (st.steps < cap) & (st.gnorm > stop_at)
 
     def body(st):
         Y, egrad = st.Y, st.egrad
@@ -310,14 +321,14 @@ def _solve(gamma, preconditioner, start, center, g, config: SubproblemConfig, fr
             steps=st.steps + 1, cg=st.cg + cg, Y=Y_new, egrad=egrad_new,
             value=jnp.where(accept, value_c, st.value),
             gnorm=jnp.where(accept, _norm(tangent(Y_new, egrad_new)), st.gnorm),
-            radius=radius,
+            radius=radius, moved=st.moved | accept,
         )
 
     egrad, value = evaluate(start)
     gnorm = _norm(tangent(start, egrad))
     stop_at = config.gradient_tolerance * gnorm
     init = _TrustRegionState(steps=jnp.asarray(0), cg=jnp.asarray(0), Y=start, egrad=egrad, value=value,
-                             gnorm=gnorm, radius=jnp.asarray(jnp.inf, value.dtype))
+                             gnorm=gnorm, radius=jnp.asarray(jnp.inf, value.dtype), moved=jnp.asarray(False))
     return jax.lax.while_loop(cond, body, init)
 
 
