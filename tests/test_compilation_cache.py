@@ -67,3 +67,36 @@ def test_default_cache_dir_follows_xdg(monkeypatch, tmp_path):
     monkeypatch.delenv(ENV, raising=False)
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
     assert default_cache_dir() == tmp_path / "mmpgo-jax" / "jax"
+
+
+def test_traced_program_is_kept_and_reused(tmp_path, monkeypatch):
+    """With the cache on, a compiled chunk's traced program is serialized (jax.export) beside the
+    compiled code; a later process deserializes it instead of tracing, with the same results. A
+    changed static argument is another program."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    from mmpgo_jax._core import compilation_cache as cc
+
+    monkeypatch.setattr(cc, "compilation_cache_dir", lambda: tmp_path)  # (JAX's own cache stays as it is)
+    traces = []
+
+    def fn(x, scale, y):
+        traces.append(scale)
+        return {"sum": x * scale + y, "n": jnp.sum(y)}
+
+    x, y = jnp.arange(4.0), jnp.ones(4)
+    out = {"sum": 0, "n": 0}
+    first = cc.compile_exported(fn, (x, 2.0, y), (1,), out)
+    assert traces == [2.0] and list((tmp_path / "exported").glob("*.bin"))
+    again = cc.compile_exported(fn, (x, 2.0, y), (1,), out)  # as a new process would: deserialized
+    assert traces == [2.0]
+    for f in (first, again):
+        res = f(x, y)
+        np.testing.assert_array_equal(res["sum"], np.arange(4.0) * 2 + 1)
+        assert float(res["n"]) == 4.0
+    cc.compile_exported(fn, (x, 3.0, y), (1,), out)
+    assert traces == [2.0, 3.0] and len(list((tmp_path / "exported").glob("*.bin"))) == 2
+    monkeypatch.setattr(cc, "compilation_cache_dir", lambda: None)
+    assert cc.compile_exported(fn, (x, 2.0, y), (1,), out) is None  # cache off: the caller compiles

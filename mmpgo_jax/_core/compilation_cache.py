@@ -1,7 +1,10 @@
 """JAX's persistent compilation cache, for processes that solve the same shapes again.
 
-Every new process compiles the outer loop again (one to a few seconds); with the persistent cache
-a second run of the same shapes and configuration structure loads the compiled code from disk.
+Every new process traces and compiles the outer loop again (one to a few seconds); with the
+persistent cache a second run of the same shapes and configuration structure loads the compiled
+code from disk, and (:func:`compile_exported`) the traced program as well: a ``jax.export``
+serialization of it, keyed by this package's source, the JAX version, the device, the static
+arguments and the argument shapes, so that a warm run neither traces nor compiles.
 The library never turns it on by itself (it is a global JAX setting): call
 :func:`enable_compilation_cache`. The ``mmpgo`` CLI does, unless ``--no-compilation-cache`` or
 ``MMPGO_COMPILATION_CACHE=off``.
@@ -13,10 +16,12 @@ by JAX on the program, the JAX version and the device); deleting the folder is a
 
 from __future__ import annotations
 
+import hashlib
 import os
 from pathlib import Path
 
 import jax
+import numpy as np
 
 ENV = "MMPGO_COMPILATION_CACHE"
 _OFF = {"off", "0", "no", "false", "none"}
@@ -52,3 +57,76 @@ def compilation_cache_dir() -> Path | None:
     """The folder of the persistent cache this process uses, or None when it is off."""
     value = jax.config.jax_compilation_cache_dir
     return Path(value) if value else None
+
+
+# --- traced programs, serialized with jax.export (beside the compiled ones) ---------------------
+
+_SOURCE_DIGEST: str | None = None
+
+
+def _source_digest() -> str:
+    """A digest of this package's Python sources: a changed solver never reuses an old program."""
+    global _SOURCE_DIGEST
+    if _SOURCE_DIGEST is None:
+        h = hashlib.sha256()
+        root = Path(__file__).resolve().parents[1]
+        for f in sorted(root.rglob("*.py")):
+            h.update(f.relative_to(root).as_posix().encode())
+            h.update(f.read_bytes())
+        _SOURCE_DIGEST = h.hexdigest()
+    return _SOURCE_DIGEST
+
+
+def _program_key(name: str, args, static) -> str:
+    leaves, treedef = jax.tree.flatten(args)
+    h = hashlib.sha256()
+    for part in (_source_digest(), jax.__version__, jax.default_backend(), name, repr(static), str(treedef)):
+        h.update(part.encode())
+        h.update(b"\0")
+    for x in leaves:
+        h.update(f"{np.shape(x)}|{getattr(x, 'dtype', type(x))}|{getattr(x, 'weak_type', None)};".encode())
+    return h.hexdigest()
+
+
+def compile_exported(fn, args: tuple, static_argnums: tuple[int, ...], out_structure):
+    """``fn`` (a function of ``args``; the positions ``static_argnums`` are hashable static
+    values) compiled for ``args``, with its traced program kept in the persistent cache: the first
+    call traces and serializes it (``jax.export``), later processes deserialize it instead of
+    tracing. ``out_structure`` is a pytree with the structure of ``fn``'s result (rebuilt from the
+    flat outputs). Returns a callable of the non-static arguments, or None when the persistent cache
+    is off or ``args`` live on more than one device (the caller compiles as usual then)."""
+    folder = compilation_cache_dir()
+    dynamic = tuple(a for i, a in enumerate(args) if i not in static_argnums)
+    leaves, in_tree = jax.tree.flatten(dynamic)
+    if folder is None or any(len(getattr(getattr(x, "sharding", None), "device_set", ())) > 1 for x in leaves):
+        return None
+    static = tuple(args[i] for i in static_argnums)
+    path = folder / "exported" / f"{_program_key(getattr(fn, '__name__', 'fn'), dynamic, static)}.bin"
+    out_tree = jax.tree.structure(out_structure)
+    exported = None
+    if path.is_file():
+        try:
+            exported = jax.export.deserialize(bytearray(path.read_bytes()))
+        except Exception:
+            exported = None
+    if exported is None:
+        def flat(*values):
+            full = list(jax.tree.unflatten(in_tree, values))
+            for i, v in zip(static_argnums, static, strict=True):
+                full.insert(i, v)
+            return jax.tree.leaves(fn(*full))
+
+        exported = jax.export.export(jax.jit(flat))(*leaves)
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = path.with_suffix(f".{os.getpid()}.tmp")
+            tmp.write_bytes(exported.serialize())
+            os.replace(tmp, path)
+        except OSError:  # a read-only cache costs only the speed-up
+            pass
+    compiled = jax.jit(exported.call).lower(*leaves).compile()
+
+    def call(*values):
+        return jax.tree.unflatten(out_tree, compiled(*jax.tree.leaves(values)))
+
+    return call

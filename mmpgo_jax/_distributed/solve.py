@@ -17,6 +17,7 @@ from jax.sharding import PartitionSpec as P
 from .._core.gauge import FixedPoses
 from .._core.partition import Partition, partition
 from .._core.pose_graph import PoseGraph, Poses
+from .._experiments.metrics import trajectory_accuracy
 from .._mm.driver import RESULTS, Monitor, Termination, compile_once, drive
 from .._mm.majorization import unstack
 from .._mm.outer import (
@@ -156,6 +157,7 @@ def solve_sharded(
     fixed: FixedPoses | None = None,
     frame: FixedPoses | Literal["raw"] | None = None,
     monitor: Monitor | None = None,
+    ground_truth: Poses | None = None,
 ) -> SolveResult:
     """:func:`mmpgo_jax.solve` with the robots sharded over the devices of a 1-D mesh.
 
@@ -235,8 +237,10 @@ def solve_sharded(
     out = drive(compile_chunk, state, start_record, termination, fetch=fetch, callback=callback,
                 agree=_agree if multiprocess else None, monitor=monitor)
     X = _to_host(out.state.X)
+    poses = output_frame(part.gather(unstack(jnp.asarray(X))), fixed, frame)
     return SolveResult(
-        poses=output_frame(part.gather(unstack(jnp.asarray(X))), fixed, frame),
+        poses=poses,
+        accuracy=None if ground_truth is None else trajectory_accuracy(poses, ground_truth),
         history=out.history,
         partition=user_part,
         config=config,

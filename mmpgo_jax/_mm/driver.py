@@ -22,6 +22,8 @@ from dataclasses import dataclass
 import jax
 import numpy as np
 
+from .._core.compilation_cache import compile_exported
+
 __all__ = ["RESULTS", "History", "Monitor", "NonFiniteError", "Termination", "compile_once", "drive"]
 
 
@@ -172,15 +174,21 @@ def _signature(tree):
     )
 
 
-def compile_once(fn, *args, static=()):
+def compile_once(fn, *args, static=(), exported=None):
     """``fn.lower(*args).compile()`` (``fn`` jitted; ``static`` its hashable static values, also
-    part of the key), cached per argument structure, shapes, dtypes and shardings."""
+    part of the key), cached per argument structure, shapes, dtypes and shardings. ``exported``:
+    ``(python function, static argument positions, output structure)`` to keep the traced program
+    in the persistent cache when it is on (:func:`~mmpgo_jax._core.compilation_cache.compile_exported`:
+    a warm process does not trace again)."""
     key = (fn, static, _signature(args))
     compiled = _COMPILED.get(key)
     if compiled is None:
         if len(_COMPILED) > 64:  # bounded: long sessions with many shapes
             _COMPILED.pop(next(iter(_COMPILED)))
-        compiled = _COMPILED[key] = fn.lower(*args).compile()
+        compiled = compile_exported(*exported[:1], args, *exported[1:]) if exported is not None else None
+        if compiled is None:
+            compiled = fn.lower(*args).compile()
+        _COMPILED[key] = compiled
     return compiled
 
 

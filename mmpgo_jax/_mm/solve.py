@@ -24,7 +24,7 @@ from .._experiments.metrics import TrajectoryAccuracy, trajectory_accuracy
 from .._init.chordal import initialize
 from .driver import RESULTS, History, Monitor, NonFiniteError, Termination, compile_once, drive
 from .majorization import unstack
-from .outer import MMConfig, MMProblem, run, start_state
+from .outer import IterationRecord, MMConfig, MMProblem, check_consistent, run, start_state
 from .subproblem import SubproblemConfig
 
 __all__ = ["RESULTS", "History", "NonFiniteError", "SolveResult", "centralized_optimum", "output_frame", "solve"]
@@ -163,8 +163,12 @@ def solve(
     start = jax.device_get(start)
     clock.lap("build")
 
+    check_consistent(problem, config)  # (the exported program below skips run()'s own check)
+
     def compile_chunk(state, length, limit):
-        compiled = compile_once(run, problem, config, state, length, limit, static=(length,))
+        out = (state, IterationRecord(f=0.0, grad_norm=0.0, restarted=0.0))  # the structure of run's result
+        compiled = compile_once(run, problem, config, state, length, limit, static=(length,),
+                                exported=(run.__wrapped__, (3,), out))
         return lambda st, lim: compiled(problem, config, st, lim)
 
     out = drive(compile_chunk, state, (start.f, start.grad_norm, start.restarted), termination,

@@ -263,8 +263,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     _add_strict(p)
     _add_common(p)
-    from .sharded import add_cli_options
+    from .sharded import add_cli_options, add_threads_option
 
+    add_threads_option(p)
     add_cli_options(p)
 
     p = sub.add_parser("optimum", help="centralized optimum f* of a g2o file, with its global-optimality certificate")
@@ -320,6 +321,10 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _run(args, argv) -> int:
+    if args.command in ("solve", "bench"):
+        from .sharded import configure_cpu_devices
+
+        configure_cpu_devices(args)
     if args.precision == "float64":
         from .._core.precision import enable_float64
 
@@ -592,7 +597,9 @@ _OPTIMUM_STARTS = ("chordal", "vertices", "odometry")
 
 
 def _cmd_solve(args) -> int:
+    from .._distributed.solve import solve_sharded
     from .._mm.solve import solve
+    from .sharded import thread_devices
 
     args.file = str(_resolve_file(args.file, args.data))
     check_outputs(args)
@@ -604,9 +611,16 @@ def _cmd_solve(args) -> int:
         ground_truth = data.poses_file(args.ground_truth, "--ground-truth file") if args.ground_truth else None
         read = time.perf_counter() - t
         options = solve_options(args, data)
-        result = solve(data.graph, data.robot_of_pose, monitor=progress, ground_truth=ground_truth, **options)
+        devices = thread_devices(args, data.graph.num_poses, int(np.max(data.robot_of_pose)) + 1)
+        if devices is None:
+            result = solve(data.graph, data.robot_of_pose, monitor=progress, ground_truth=ground_truth, **options)
+        else:
+            result = solve_sharded(data.graph, data.robot_of_pose, devices=devices, monitor=progress,
+                                   ground_truth=ground_truth, **options)
     fstar = reference_fstar(data)
     _print_summary(result, fstar, data)
+    if devices is not None:
+        print(f"threads     {len(devices)} (the robots split over {len(devices)} CPU devices)")
     t = time.perf_counter()
     finish_solve(args, data, result, fstar)
     print_timing(result, read=read, write=time.perf_counter() - t)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+import os
 import sys
 import time
 from collections.abc import Sequence
@@ -39,6 +41,52 @@ def add_cli_options(p) -> None:
                    help="seconds before launched processes are killed, > 0 (default 600)")
     g.add_argument("--exchange", choices=("halo", "all_gather"), default="halo",
                    help="per-iteration pose exchange between devices: neighbour poses only (default) or all poses")
+
+
+# A solve splits its robots over the CPU cores (one JAX CPU device each) from this many poses on:
+# measured on this project's 2-core machine (benchmarks/profile_step.md), MIT (808 poses) ran at the
+# same speed on 1 and 2 devices, intel (1728 poses) 1.7x faster on 2.
+AUTO_THREAD_POSES = 1000
+
+
+def add_threads_option(p) -> None:
+    from . import int_in
+
+    p.add_argument("--threads", type=int_in(1), default=None,
+                   help="CPU threads: split the robots over this many CPU devices, >= 1 (default: one per core "
+                        f"for graphs of {AUTO_THREAD_POSES} poses or more, else 1; ignored on a GPU)")
+
+
+def cpu_cores() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
+def configure_cpu_devices(args) -> None:
+    """Give JAX's CPU backend one device per thread the command may use (``--threads``, default one
+    per core; at least ``--devices``). It must run before JAX starts its backends: the command line
+    does it when it starts; the library never changes this setting."""
+    if any(getattr(args, k, None) is not None for k in ("processes", "num_processes", "coordinator")):
+        return  # the launcher gives each process its CPU devices
+    n = max(getattr(args, "threads", None) or cpu_cores(), getattr(args, "devices", None) or 1)
+    if n > 1:
+        # RuntimeError: backends already started (e.g. main() called twice in one process)
+        with contextlib.suppress(RuntimeError):
+            jax.config.update("jax_num_cpu_devices", n)
+
+
+def thread_devices(args, num_poses: int, num_robots: int) -> list | None:
+    """The CPU devices an (unsharded) ``solve`` splits its robots over, or None for one device: on
+    a CPU backend, ``--threads`` (default: every core from ``AUTO_THREAD_POSES`` poses on), at most
+    one device per robot."""
+    if jax.default_backend() != "cpu":
+        return None
+    n = args.threads or (cpu_cores() if num_poses >= AUTO_THREAD_POSES else 1)
+    devices = jax.devices("cpu")
+    n = min(n, num_robots, len(devices))
+    return devices[:n] if n > 1 else None
 
 
 def wants_sharding(args) -> bool:
