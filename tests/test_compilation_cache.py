@@ -73,7 +73,6 @@ def test_traced_program_is_kept_and_reused(tmp_path, monkeypatch):
     """With the cache on, a compiled chunk's traced program is serialized (jax.export) beside the
     compiled code; a later process deserializes it instead of tracing, with the same results. A
     changed static argument is another program."""
-    import jax
     import jax.numpy as jnp
     import numpy as np
 
