@@ -275,6 +275,7 @@ def test_bench_quick(tmp_path):
     _no_temp_files(out)
 
 
+@pytest.mark.slow  # the no-data path of the CLI is in the default run through the demo test
 def test_bench_quick_falls_back_to_cube(tmp_path):
     """With no benchmark data at all, --quick still exercises everything on a generated Cube dataset."""
     from mmpgo_jax._io.datasets import available_benchmarks
