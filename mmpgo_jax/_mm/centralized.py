@@ -112,6 +112,7 @@ class _Problem:
         self.free_poses = np.ones(n, dtype=bool) if fixed is None else ~fixed.mask(n)
         self.sqrt_kappa = np.sqrt(g.kappa)
         self.sqrt_tau = np.sqrt(g.tau)
+        self._pattern()
 
     def cost(self, R, t) -> float:
         return float(cost(self.graph, Poses(R, t)))
@@ -143,42 +144,62 @@ class _Problem:
         Jj[:, d * d :, p:] = -st[:, :, None] * eye
         return r, Ji, Jj
 
-    def linearize(self, R, t):
-        """Gradient g (N,) and Hessian H (N x N, CSC, in nested-dissection order) of the pulled-back
-        F at (R, t), N = b n; the anchors' rows and columns are those of the identity, g = 0 there."""
+    def _pattern(self):
+        """The Hessian's sparsity (constant): CSC indices and indptr, and for every entry of the
+        block list :meth:`linearize` assembles (pose-pair blocks, curvature blocks, then the anchors'
+        unit diagonal) its slot in the CSC data (duplicates summed by one bincount per iteration)."""
         g, n, b, p = self.graph, self.n, self.b, self.p
-        r, Ji, Jj = self.jacobians(R, t)
-        grad = np.zeros((n, b))
-        np.add.at(grad, g.i, np.einsum("mqa,mq->ma", Ji, r))
-        np.add.at(grad, g.j, np.einsum("mqa,mq->ma", Jj, r))
-        Hii = np.einsum("mqa,mqc->mac", Ji, Ji)
-        Hjj = np.einsum("mqa,mqc->mac", Jj, Jj)
-        Hij = np.einsum("mqa,mqc->mac", Ji, Jj)
-        # the exponential's curvature: C_kl = sym <R^T G, E_k E_l>, G = dF/dR (Euclidean)
-        A = np.swapaxes(R, 1, 2) @ euclidean_gradient(g, Poses(R, t)).R
-        EE = np.einsum("kab,lbc->klac", self.E, self.E)
-        C = np.einsum("nac,klac->nkl", A, EE)
-        C = 0.5 * (C + np.swapaxes(C, 1, 2))
+        N = b * n
         idx = self.index
         ri, rj = idx[g.i], idx[g.j]
         rows = [ri, rj, ri, rj, idx[:, :p]]
         cols = [ri, rj, rj, ri, idx[:, :p]]
-        blocks = [Hii, Hjj, Hij, np.swapaxes(Hij, 1, 2), C]
-        pairs = list(zip(rows, cols, blocks, strict=True))
-        r_all = np.concatenate([np.broadcast_to(rr[:, :, None], bl.shape).reshape(-1) for rr, _, bl in pairs])
-        c_all = np.concatenate([np.broadcast_to(cc[:, None, :], bl.shape).reshape(-1) for _, cc, bl in pairs])
-        v_all = np.concatenate([bl.reshape(-1) for bl in blocks])
-        held_rows = np.zeros(b * n, dtype=bool)
-        held_rows[idx[self.held].reshape(-1)] = True
-        keep = ~(held_rows[r_all] | held_rows[c_all])
-        diag = np.flatnonzero(held_rows)
-        H = sp.csc_matrix((np.concatenate([v_all[keep], np.ones(diag.size)]),
-                           (np.concatenate([r_all[keep], diag]), np.concatenate([c_all[keep], diag]))),
-                          shape=(b * n, b * n))
-        grad[self.held] = 0.0
-        vec = np.zeros(b * n)
-        vec[idx.reshape(-1)] = grad.reshape(-1)
-        return vec, H, held_rows
+        widths = [b, b, b, b, p]
+        r_all = np.concatenate([np.broadcast_to(rr[:, :, None], (rr.shape[0], rr.shape[1], w)).reshape(-1)
+                                for rr, w in zip(rows, widths, strict=True)])
+        c_all = np.concatenate([np.broadcast_to(cc[:, None, :], (cc.shape[0], w, cc.shape[1])).reshape(-1)
+                                for cc, w in zip(cols, widths, strict=True)])
+        self.held_rows = np.zeros(N, dtype=bool)
+        self.held_rows[idx[self.held].reshape(-1)] = True
+        self._keep = ~(self.held_rows[r_all] | self.held_rows[c_all])
+        diag = np.flatnonzero(self.held_rows)
+        key = np.concatenate([c_all[self._keep], diag]) * N + np.concatenate([r_all[self._keep], diag])
+        unique, self._slot = np.unique(key, return_inverse=True)  # sorted by (column, row): CSC order
+        self._indices = (unique % N).astype(np.int64)
+        self._indptr = np.searchsorted(unique // N, np.arange(N + 1)).astype(np.int64)
+        self._anchor_ones = np.ones(diag.size)
+        free_diag = np.flatnonzero(~self.held_rows)
+        self.free_diagonal = np.searchsorted(unique, free_diag * N + free_diag)  # slots of the free rows' diagonal
+        self._edge_rows = (ri, rj)
+
+    def matrix(self, data: np.ndarray) -> sp.csc_matrix:
+        """The N x N matrix with the Hessian's pattern and CSC values ``data``."""
+        N = self.b * self.n
+        return sp.csc_matrix((data, self._indices, self._indptr), shape=(N, N))
+
+    def linearize(self, R, t):
+        """Gradient g (N,) and the Hessian's CSC values (pattern :meth:`matrix`, nested-dissection
+        order) of the pulled-back F at (R, t), N = b n; the anchors' rows and columns are those of
+        the identity, g = 0 there."""
+        g, n, b, p = self.graph, self.n, self.b, self.p
+        r, Ji, Jj = self.jacobians(R, t)
+        JiT, JjT = np.swapaxes(Ji, 1, 2), np.swapaxes(Jj, 1, 2)
+        ri, rj = self._edge_rows
+        N = b * n
+        grad = (np.bincount(ri.reshape(-1), (JiT @ r[:, :, None]).reshape(-1), minlength=N)
+                + np.bincount(rj.reshape(-1), (JjT @ r[:, :, None]).reshape(-1), minlength=N))
+        Hij = JiT @ Jj
+        # the exponential's curvature: C_kl = sym <R^T G, E_k E_l>, G = dF/dR (Euclidean)
+        A = np.swapaxes(R, 1, 2) @ euclidean_gradient(g, Poses(R, t)).R
+        EE = np.einsum("kab,lbc->klac", self.E, self.E)
+        C = (A.reshape(n, -1) @ EE.reshape(p * p, -1).T).reshape(n, p, p)
+        C = 0.5 * (C + np.swapaxes(C, 1, 2))
+        values = np.concatenate([(JiT @ Ji).reshape(-1), (JjT @ Jj).reshape(-1), Hij.reshape(-1),
+                                 np.swapaxes(Hij, 1, 2).reshape(-1), C.reshape(-1)])
+        data = np.bincount(self._slot, np.concatenate([values[self._keep], self._anchor_ones]),
+                           minlength=self._indices.size)
+        grad[self.held_rows] = 0.0
+        return grad, data
 
     def retract(self, R, t, step: np.ndarray):
         """(R_i Exp(omega_i), t_i + delta_i) for the step (in nested-dissection order)."""
@@ -200,11 +221,13 @@ class _LM:
 
     def step(self) -> None:
         pb, cfg = self.pb, self.config
-        g, H, held = pb.linearize(self.R, self.t)
-        scale = float(np.max(np.abs(H.diagonal()[~held]), initial=1.0))
-        I_free = sp.diags((~held).astype(np.float64), format="csc")
+        g, data = pb.linearize(self.R, self.t)
+        H = pb.matrix(data)
+        scale = float(np.max(np.abs(data[pb.free_diagonal]), initial=1.0))
         for _ in range(cfg.max_retries):
-            factor = factor_symmetric(H + self.lam * I_free, "ordered")
+            damped = data.copy()
+            damped[pb.free_diagonal] += self.lam
+            factor = factor_symmetric(pb.matrix(damped), "ordered")
             self.factorizations += 1
             if factor is None or factor.negative_pivots() != 0:  # not positive definite: more damping
                 self.lam = max(4.0 * self.lam, 1e-10 * scale)
@@ -218,7 +241,7 @@ class _LM:
             rho = 1.0 if predicted <= tiny and actual >= -tiny else actual / predicted if predicted > 0 else -1.0
             if rho > 1e-4:
                 self.R, self.t, self.f = R, t, f
-                self.lam *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
+                self.lam *= max(0.1, 1.0 - (2.0 * rho - 1.0) ** 3)
                 self.nu = 2.0
                 return
             self.lam = max(self.lam * self.nu, 1e-10 * scale)
