@@ -94,12 +94,13 @@ def _xp(*arrays):
 
 
 def _segment_sum(xp, values, index, n: int):
-    """Sum of ``values`` rows into ``n`` segments (jax.ops.segment_sum, or np.add.at on the host)."""
+    """Sum of ``values`` rows into ``n`` segments (jax.ops.segment_sum, or a bincount on the host)."""
     if xp is jnp:
         return jax.ops.segment_sum(values, index, n)
-    out = np.zeros((n, *values.shape[1:]), dtype=values.dtype)
-    np.add.at(out, index, values)
-    return out
+    # one bincount over (segment, component) pairs: the same sums, in input order, as np.add.at
+    k = int(np.prod(values.shape[1:], dtype=np.int64))
+    flat = (np.asarray(index, np.int64)[:, None] * k + np.arange(k)).reshape(-1)
+    return np.bincount(flat, values.reshape(-1), minlength=n * k).reshape(n, *values.shape[1:]).astype(values.dtype)
 
 
 def edge_residuals(graph: PoseGraph, poses: Poses):
