@@ -5,18 +5,16 @@ For each benchmark file: read it, compute the chordal start once (:func:`mmpgo_j
 then time
 
 * ours: ``centralized_optimum(graph, init=X0)`` (to ||grad F|| <= 1e-6, the default), and
-* GTSAM: ``LevenbergMarquardtOptimizer(...).optimize()`` on BetweenFactorPose2/3 factors whose
-  diagonal precisions match this package's isotropic weights to second order (rotation 2 kappa per
-  tangent coordinate — the chordal ||R_a - R_b||_F^2 is 2 theta^2 + O(theta^4) —, translation tau),
-  pose 0 held by a prior of precision 1e12; relative and absolute decrease thresholds 1e-10 (GTSAM's
-  default 1e-5 stops well above f*), at most 200 iterations. Only ``optimize()`` is timed (building
-  GTSAM's graph and Values is a Python loop of this script).
+* GTSAM: :func:`mmpgo_jax._experiments.gtsam_lm.gtsam_levenberg_marquardt` (Between factors whose
+  diagonal precisions match this package's weights to second order, pose 0 held by a prior,
+  relative and absolute decrease thresholds 1e-10, at most 200 iterations); only GTSAM's
+  ``optimize()`` is timed.
 
 GTSAM minimises the geodesic objective, not F; its result is evaluated with F here (``f GTSAM``),
 so its gap to the certified f* is the two objectives' difference plus its own stopping point.
 
-Needs the benchmark extra: ``pip install gtsam`` (wheels for Linux/macOS; not a dependency of the
-package). Run::
+Needs the benchmark extra: ``pip install "mmpgo-jax[benchmark]"`` (gtsam: wheels for Linux and macOS;
+not a dependency of the package). Run::
 
     nice -n 5 python benchmarks/centralized.py [--data DIR] [--only MIT.g2o ...] [--json out.json]
 """
@@ -39,75 +37,11 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np  # noqa: E402
 
 import mmpgo_jax as mm  # noqa: E402
+from mmpgo_jax._experiments.gtsam_lm import gtsam_available, gtsam_levenberg_marquardt  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 FILES = ["MIT.g2o", "CSAIL.g2o", "intel.g2o", "M3500.g2o", "city10000.g2o", "manhattan.g2o", "kitti_00.g2o",
          "sphere2500.g2o", "torus3D.g2o", "parking-garage.g2o", "smallGrid3D.g2o", "tinyGrid3D.g2o"]
-
-
-def gtsam_problem(graph, X0):
-    """GTSAM factor graph and initial Values of ``graph`` (host arrays) from the start ``X0``."""
-    import gtsam
-
-    d = graph.dim
-    i, j = np.asarray(graph.i), np.asarray(graph.j)
-    Rm, tm = np.asarray(graph.R, np.float64), np.asarray(graph.t, np.float64)
-    kappa, tau = np.asarray(graph.kappa, np.float64), np.asarray(graph.tau, np.float64)
-    R0, t0 = np.asarray(X0.R, np.float64), np.asarray(X0.t, np.float64)
-    fg = gtsam.NonlinearFactorGraph()
-    values = gtsam.Values()
-    if d == 2:
-        def pose(R, t):
-            return gtsam.Pose2(t[0], t[1], np.arctan2(R[1, 0], R[0, 0]))
-
-        def precisions(k, w):
-            return np.array([w, w, 2 * k])  # Pose2 tangent: (x, y, theta)
-
-        between, prior = gtsam.BetweenFactorPose2, gtsam.PriorFactorPose2
-    else:
-        def pose(R, t):
-            return gtsam.Pose3(gtsam.Rot3(R), t)
-
-        def precisions(k, w):
-            return np.array([2 * k] * 3 + [w] * 3)  # Pose3 tangent: (rotation, translation)
-
-        between, prior = gtsam.BetweenFactorPose3, gtsam.PriorFactorPose3
-    for e in range(i.size):
-        noise = gtsam.noiseModel.Diagonal.Precisions(precisions(kappa[e], tau[e]))
-        fg.add(between(int(i[e]), int(j[e]), pose(Rm[e], tm[e]), noise))
-    for k in range(graph.num_poses):
-        values.insert(k, pose(R0[k], t0[k]))
-    fg.add(prior(0, pose(R0[0], t0[0]), gtsam.noiseModel.Isotropic.Precision(3 if d == 2 else 6, 1e12)))
-    return fg, values
-
-
-def gtsam_poses(result, n: int, d: int) -> mm.Poses:
-    if d == 2:
-        ps = [result.atPose2(k) for k in range(n)]
-        th = np.array([p.theta() for p in ps])
-        c, s = np.cos(th), np.sin(th)
-        R = np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
-        t = np.array([[p.x(), p.y()] for p in ps])
-    else:
-        ps = [result.atPose3(k) for k in range(n)]
-        R = np.array([p.rotation().matrix() for p in ps])
-        t = np.array([p.translation() for p in ps])
-    return mm.Poses(R, t)
-
-
-def run_gtsam(graph, X0):
-    import gtsam
-
-    fg, values = gtsam_problem(graph, X0)
-    params = gtsam.LevenbergMarquardtParams()
-    params.setRelativeErrorTol(1e-10)
-    params.setAbsoluteErrorTol(1e-10)
-    params.setMaxIterations(200)
-    opt = gtsam.LevenbergMarquardtOptimizer(fg, values, params)
-    t = time.perf_counter()
-    result = opt.optimize()
-    seconds = time.perf_counter() - t
-    return gtsam_poses(result, graph.num_poses, graph.dim), seconds, opt.iterations()
 
 
 def grad_norm(graph, poses) -> float:
@@ -132,10 +66,11 @@ def one_file(path: Path) -> dict:
            "ours_s": ours_s, "ours_f": ours.f, "ours_iterations": ours.iterations,
            "ours_grad_norm": float(ours.history.grad_norm[-1]), "ours_stop": ours.stop_reason,
            "ours_factorizations": ours.stats.get("factorizations"), "certified": bool(cert.certified)}
-    try:
-        P, gt_s, gt_it = run_gtsam(g, X0h)
-        row.update(gtsam_s=gt_s, gtsam_iterations=gt_it, gtsam_f=float(mm.cost(g, P)), gtsam_grad_norm=grad_norm(g, P))
-    except ImportError:
+    if gtsam_available():
+        lm = gtsam_levenberg_marquardt(g, X0h)
+        row.update(gtsam_s=lm.seconds, gtsam_iterations=lm.iterations, gtsam_f=float(mm.cost(g, lm.poses)),
+                   gtsam_grad_norm=grad_norm(g, lm.poses))
+    else:
         row.update(gtsam_s=None)
     row["certified_fstar"] = None if info is None else info.certified_fstar  # the registry's (MM-computed)
     return row

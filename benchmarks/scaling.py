@@ -121,6 +121,17 @@ def stages(args) -> dict:
     t = time.perf_counter()
     graph = cube_dataset(args.seed, num_poses=args.poses, grid=args.grid).graph
     out.update(edges=graph.num_edges, generate_s=round(time.perf_counter() - t, 2), rss_generate_mb=rss_mb())
+    if args.read:  # the same graph through a g2o file: what a user's set-up starts with
+        import tempfile
+
+        from mmpgo_jax import read_g2o, write_g2o
+
+        with tempfile.TemporaryDirectory() as tmp:
+            path = os.path.join(tmp, "cube.g2o")
+            write_g2o(path, graph, None)
+            t = time.perf_counter()
+            graph = read_g2o(path).graph
+            out.update(read_s=round(time.perf_counter() - t, 2), file_mb=round(os.path.getsize(path) / 2**20, 1))
     waste = {}
     part = None
     for split in ("blocks", "metis", "random"):
@@ -161,9 +172,10 @@ def stages(args) -> dict:
 
 
 def stages_table(rows) -> str:
-    head = ("| poses | edges | robots | generate s | partition s (blocks / METIS / random) | chordal s | build s "
-            "| compile s | s / iteration | iterations | end to end s | padding waste blocks / METIS / random "
-            "| peak RSS MB | load |\n|---:|---:|---:|---:|---|---:|---:|---:|---:|---:|---:|---|---:|---|")
+    head = ("| poses | edges | robots | generate s | read g2o s | partition s (blocks / METIS / random) "
+            "| chordal s | build s | compile s | s / iteration | iterations | end to end s "
+            "| padding waste blocks / METIS / random | peak RSS MB | load |\n"
+            "|---:|---:|---:|---:|---:|---|---:|---:|---:|---:|---:|---:|---|---:|---|")
     out = [head]
     for r in rows:
         if "error" in r:
@@ -172,8 +184,10 @@ def stages_table(rows) -> str:
         sp_ = r["splits"]
         parts = " / ".join(f"{sp_[k]['partition_s']}" for k in ("blocks", "metis", "random"))
         waste = " / ".join(f"{100 * sp_[k]['padding_ratio']:.1f} %" for k in ("blocks", "metis", "random"))
-        out.append(f"| {r['poses']} | {r['edges']} | {r['robots']} | {r['generate_s']} | {parts} | {r['chordal_s']} | "
-                   f"{r['build_s']} | {r['compile_s']} | {r['ms_per_iteration'] / 1e3:.2f} | {r['iterations']} | "
+        read = f"{r['read_s']} ({r['file_mb']} MB)" if "read_s" in r else "not run"
+        out.append(f"| {r['poses']} | {r['edges']} | {r['robots']} | {r['generate_s']} | {read} | {parts} | "
+                   f"{r['chordal_s']} | {r['build_s']} | {r['compile_s']} | {r['ms_per_iteration'] / 1e3:.2f} | "
+                   f"{r['iterations']} | "
                    f"{r['end_to_end_s']} | {waste} | {r['maxrss_mb']} | {r['loadavg'][0]:.1f}-{r['loadavg'][1]:.1f} |")
     return "\n".join(out)
 
@@ -190,7 +204,7 @@ def run_config(poses, robots, devices, args) -> dict:
         "--poses", str(poses), "--grid", str(grid), "--robots", str(robots), "--devices", str(devices),
         "--iterations", str(args.iterations), "--method", args.method, "--init", args.init, "--seed", str(args.seed),
         "--exchange", args.exchange,
-    ] + (["--stages"] if args.stages else [])
+    ] + (["--stages"] if args.stages else []) + (["--read"] if args.read else [])
     env = dict(os.environ)
     env["JAX_PLATFORMS"] = env.get("JAX_PLATFORMS", "cpu")
     if env["JAX_PLATFORMS"] == "cpu":
@@ -245,6 +259,7 @@ def main(argv=None) -> int:
                     help="solve_sharded's pose exchange between devices (default halo)")
     ap.add_argument("--timeout", type=float, default=540.0, help="seconds per configuration (default 540)")
     ap.add_argument("--json", help="also write the rows as JSON")
+    ap.add_argument("--read", action="store_true", help="--stages: also write the graph to g2o and time reading it")
     ap.add_argument("--stages", action="store_true",
                     help="seconds per stage from the chordal start, peak memory, padding waste per split")
     args = ap.parse_args(argv)
