@@ -1,7 +1,7 @@
 """Regenerate the project's own certified optima f* in the registry (``mmpgo_jax/benchmarks.json``).
 
 For every registry entry whose file is in the data folder (or those named with ``--only``): read
-it, run :func:`mmpgo_jax.centralized_optimum` (one robot, MM to ||grad F|| <= 1e-6 from the chordal
+it, run :func:`mmpgo_jax.centralized_optimum` (Riemannian Newton to ||grad F|| <= 1e-6 from the chordal
 start, the defaults) and check the result with SE-Sync's dual certificate
 (:func:`mmpgo_jax.certify`). Each entry gets
 
@@ -87,8 +87,8 @@ def main(argv=None) -> int:
         "command": "python benchmarks/certified_optimum.py" + command_line().partition("certified_optimum.py")[2],
         "date": dt.datetime.now().astimezone().isoformat(timespec="seconds"),
         "machine": f"{m['cpu']}, {m['cpu_count']} cores; JAX {m['jax']} ({m['backend']}), float64",
-        "method": "centralized_optimum (1 robot, MM to ||grad F|| <= 1e-6 from the chordal start), then certify "
-                  "(SE-Sync's dual certificate S = M - Lambda, eta = 1e-8 max diag M)",
+        "method": "centralized_optimum (Riemannian Newton, sparse LDL^T, to ||grad F|| <= 1e-6 from the chordal "
+                  "start), then certify (SE-Sync's dual certificate S = M - Lambda, eta = 1e-8 max diag M)",
     }
     for row in doc["benchmarks"]:
         info = mm.benchmark_info(row["name"])

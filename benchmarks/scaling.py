@@ -16,6 +16,14 @@ Examples::
     python benchmarks/scaling.py --memory 25000 50000 100000 200000   # memory vs poses
     python benchmarks/scaling.py --one --poses 100000 --robots 100 --devices 2   # one run
 
+Stages (``--stages``, issue "a million poses"): one subprocess per (poses, robots) runs the whole
+pipeline from the chordal start with the plain ``solve`` and reports seconds per stage (generate,
+partition for each way of splitting, chordal, build, compile, per iteration), peak RSS, and the
+padding waste (bytes of padding / bytes used, :meth:`Partition.padding`) of blocks, METIS and
+random splits::
+
+    nice -n 5 python benchmarks/scaling.py --stages --poses 100000 --robots 100 1000 --iterations 100
+
 On CPU the D "devices" are virtual: they share the machine's physical cores, so D > cores only
 shows the overhead of sharding, not a speed-up.
 """
@@ -95,6 +103,95 @@ def one(args) -> dict:
     }
 
 
+def stages(args) -> dict:
+    """The pipeline of one (poses, robots) configuration, stage by stage, in this process."""
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    import numpy as np
+
+    from mmpgo_jax import chordal_initialization, cube_dataset, solve
+    from mmpgo_jax._core.partition import partition
+
+    def rss_mb():
+        return round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
+
+    out = {"poses": args.poses, "grid": args.grid, "robots": args.robots, "method": args.method}
+    load0 = os.getloadavg()[0]
+    t = time.perf_counter()
+    graph = cube_dataset(args.seed, num_poses=args.poses, grid=args.grid).graph
+    out.update(edges=graph.num_edges, generate_s=round(time.perf_counter() - t, 2), rss_generate_mb=rss_mb())
+    if args.read:  # the same graph through a g2o file: what a user's set-up starts with
+        import tempfile
+
+        from mmpgo_jax import read_g2o, write_g2o
+
+        with tempfile.TemporaryDirectory() as tmp:
+            path = os.path.join(tmp, "cube.g2o")
+            write_g2o(path, graph, None)
+            t = time.perf_counter()
+            graph = read_g2o(path).graph
+            out.update(read_s=round(time.perf_counter() - t, 2), file_mb=round(os.path.getsize(path) / 2**20, 1))
+    waste = {}
+    part = None
+    for split in ("blocks", "metis", "random"):
+        t = time.perf_counter()
+        p = partition(graph, split, args.robots, seed=args.seed)
+        pad = p.padding()
+        waste[split] = {"partition_s": round(time.perf_counter() - t, 2), "n_max": p.max_poses,
+                        "e_max": p.max_edges, "padding_ratio": round(pad.ratio, 4)}
+        if split == "blocks":
+            part = p
+        del p
+    out.update(splits=waste, rss_partition_mb=rss_mb())
+    t = time.perf_counter()
+    X0 = jax.block_until_ready(chordal_initialization(graph))
+    out.update(chordal_s=round(time.perf_counter() - t, 2), rss_chordal_mb=rss_mb())
+    marks = []
+
+    def mark(done, f_chunk):
+        marks.append((done, time.perf_counter(), time.process_time()))
+
+    chunk = max(args.iterations // 2, 1)
+    t = time.perf_counter()
+    res = solve(graph, part, method=args.method, iterations=2 * chunk, chunk_size=chunk, init=X0, callback=mark)
+    total = time.perf_counter() - t
+    (k1, w1, c1), (k2, w2, c2) = marks[0], marks[-1]
+    per_it = (w2 - w1) / (k2 - k1)
+    out.update(
+        build_s=round(res.build_seconds, 2), compile_s=round(res.compile_seconds, 2),
+        ms_per_iteration=round(1e3 * per_it, 1), cpu_ms_per_iteration=round(1e3 * (c2 - c1) / (k2 - k1), 1),
+        iterations=res.iterations, solve_s=round(res.solve_seconds, 2), solve_call_s=round(total, 2),
+        f0=float(res.history.f[0]), f=float(res.history.f[-1]), maxrss_mb=rss_mb(),
+        loadavg=[round(load0, 2), round(os.getloadavg()[0], 2)], cpu_count=os.cpu_count(), jax=jax.__version__,
+        finite=bool(np.isfinite(res.history.f).all()),
+    )
+    # end to end (chordal start + the iterations run): what a user waits for after generating the graph
+    out["end_to_end_s"] = round(waste["blocks"]["partition_s"] + out["chordal_s"] + total, 1)
+    return out
+
+
+def stages_table(rows) -> str:
+    head = ("| poses | edges | robots | generate s | read g2o s | partition s (blocks / METIS / random) "
+            "| chordal s | build s | compile s | s / iteration | iterations | end to end s "
+            "| padding waste blocks / METIS / random | peak RSS MB | load |\n"
+            "|---:|---:|---:|---:|---:|---|---:|---:|---:|---:|---:|---:|---|---:|---|")
+    out = [head]
+    for r in rows:
+        if "error" in r:
+            out.append(f"| {r['poses']} | | {r['robots']} | error: {r['error'][-80:]} |" + " |" * 10)
+            continue
+        sp_ = r["splits"]
+        parts = " / ".join(f"{sp_[k]['partition_s']}" for k in ("blocks", "metis", "random"))
+        waste = " / ".join(f"{100 * sp_[k]['padding_ratio']:.1f} %" for k in ("blocks", "metis", "random"))
+        read = f"{r['read_s']} ({r['file_mb']} MB)" if "read_s" in r else "not run"
+        out.append(f"| {r['poses']} | {r['edges']} | {r['robots']} | {r['generate_s']} | {read} | {parts} | "
+                   f"{r['chordal_s']} | {r['build_s']} | {r['compile_s']} | {r['ms_per_iteration'] / 1e3:.2f} | "
+                   f"{r['iterations']} | "
+                   f"{r['end_to_end_s']} | {waste} | {r['maxrss_mb']} | {r['loadavg'][0]:.1f}-{r['loadavg'][1]:.1f} |")
+    return "\n".join(out)
+
+
 def default_grid(poses: int) -> int:
     """Cells per axis keeping the paper's Cube density (3600 poses on 13^3 lattice vertices)."""
     return max(2, round((poses * 13**3 / 3600) ** (1 / 3)) - 1)
@@ -107,7 +204,7 @@ def run_config(poses, robots, devices, args) -> dict:
         "--poses", str(poses), "--grid", str(grid), "--robots", str(robots), "--devices", str(devices),
         "--iterations", str(args.iterations), "--method", args.method, "--init", args.init, "--seed", str(args.seed),
         "--exchange", args.exchange,
-    ]
+    ] + (["--stages"] if args.stages else []) + (["--read"] if args.read else [])
     env = dict(os.environ)
     env["JAX_PLATFORMS"] = env.get("JAX_PLATFORMS", "cpu")
     if env["JAX_PLATFORMS"] == "cpu":
@@ -162,18 +259,23 @@ def main(argv=None) -> int:
                     help="solve_sharded's pose exchange between devices (default halo)")
     ap.add_argument("--timeout", type=float, default=540.0, help="seconds per configuration (default 540)")
     ap.add_argument("--json", help="also write the rows as JSON")
+    ap.add_argument("--read", action="store_true", help="--stages: also write the graph to g2o and time reading it")
+    ap.add_argument("--stages", action="store_true",
+                    help="seconds per stage from the chordal start, peak memory, padding waste per split")
     args = ap.parse_args(argv)
 
     if args.one:
         args.poses, args.robots, args.devices = args.poses[0], args.robots[0], args.devices[0]
         args.grid = args.grid or default_grid(args.poses)
-        print(json.dumps(one(args)), flush=True)
+        print(json.dumps(stages(args) if args.stages else one(args)), flush=True)
         return 0
 
     print(f"machine: {platform.platform()}, {os.cpu_count()} logical CPUs, python {platform.python_version()}",
           file=sys.stderr)
     rows = []
-    if args.memory:
+    if args.stages:
+        configs = [(n, a, 0) for n in args.poses for a in args.robots]
+    elif args.memory:
         configs = [(n, args.robots[0], 1) for n in args.memory]
     else:
         configs = [(n, a, d) for n in args.poses for a in args.robots for d in args.devices]
@@ -181,7 +283,7 @@ def main(argv=None) -> int:
         r = run_config(n, a, d, args)
         print(json.dumps(r), file=sys.stderr, flush=True)
         rows.append(r)
-    print(table(rows))
+    print(stages_table(rows) if args.stages else table(rows))
     if args.json:
         with open(args.json, "w") as fh:
             json.dump(rows, fh, indent=1)

@@ -327,3 +327,55 @@ def _timed(fn, *args):
     out = fn(*args)
     np.asarray(out.R)
     return time.perf_counter() - t
+
+
+# ---------------------------------------------------------------------------------------------
+# the nested-dissection sparse path against the former one (SuperLU's minimum-degree order, JAX's
+# SVD projection), on the benchmark files: the same chordal start to 1e-10
+# ---------------------------------------------------------------------------------------------
+
+
+def _former_chordal(g):
+    """Chordal start as computed before the sparse rewrite (pose 0 held at identity)."""
+    import scipy.sparse.linalg as spla
+
+    from mmpgo_jax._core.geometry import project_to_so
+    from mmpgo_jax._init.chordal import rotation_connection_laplacian, translation_laplacian, translation_rhs
+
+    def solve(A, B):
+        lu = spla.splu(A.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+        return lu.solve(np.ascontiguousarray(B))
+
+    n, d = g.num_poses, g.dim
+    L = rotation_connection_laplacian(g).tocsr()
+    V = np.zeros((d * n, d))
+    V[:d] = np.eye(d)
+    V[d:] = solve(L[d:, d:], -(L[d:, :d] @ np.eye(d)))
+    R = np.array(project_to_so(jnp.asarray(np.swapaxes(V.reshape(n, d, d), 1, 2))))
+    Lt = translation_laplacian(g).tocsr()
+    b = translation_rhs(g, R)
+    t = np.zeros((n, d))
+    t[1:] = solve(Lt[1:, 1:], b[1:])
+    return R, t
+
+
+def _check_same_chordal_start(path):
+    from mmpgo_jax._io.g2o import read_g2o
+
+    g = read_g2o(path).graph
+    R_ref, t_ref = _former_chordal(g)
+    X = chordal_initialization(g)
+    np.testing.assert_allclose(np.asarray(X.R), R_ref, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(np.asarray(X.t), t_ref, rtol=0, atol=1e-10 * max(1.0, np.abs(t_ref).max()))
+
+
+@pytest.mark.parametrize("name", ["MIT.g2o", "intel.g2o", "smallGrid3D.g2o"])
+def test_same_chordal_start_as_minimum_degree_small(benchmark_file, name):
+    _check_same_chordal_start(benchmark_file(name))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["CSAIL.g2o", "M3500.g2o", "city10000.g2o", "sphere2500.g2o", "torus3D.g2o",
+                                  "parking-garage.g2o", "manhattan.g2o", "kitti_00.g2o"])
+def test_same_chordal_start_as_minimum_degree_all(benchmark_file, name):
+    _check_same_chordal_start(benchmark_file(name))

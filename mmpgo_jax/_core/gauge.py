@@ -16,7 +16,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import jax.numpy as jnp
+import jax
 import numpy as np
 
 from .pose_graph import PoseGraph, Poses, connected_components
@@ -98,12 +98,12 @@ class FixedPoses:
         return FixedPoses(mapped[sel], self.R[sel], self.t[sel])
 
     def apply(self, poses: Poses) -> Poses:
-        """``poses`` with the fixed poses set to their values (same dtype)."""
-        R = jnp.asarray(poses.R)
-        t = jnp.asarray(poses.t)
-        return Poses(
-            R.at[self.index].set(jnp.asarray(self.R, R.dtype)), t.at[self.index].set(jnp.asarray(self.t, t.dtype))
-        )
+        """``poses`` with the fixed poses set to their values (same dtype; set on the host)."""
+        R = np.array(poses.R)
+        t = np.array(poses.t)
+        R[self.index] = self.R
+        t[self.index] = self.t
+        return Poses(jax.device_put(R), jax.device_put(t))
 
 
 def express_in_frame(poses: Poses, frame: FixedPoses) -> Poses:
@@ -119,8 +119,8 @@ def express_in_frame(poses: Poses, frame: FixedPoses) -> Poses:
     ta = frame.t[0] - Ra @ t[k]
     R_new = np.einsum("ab,nbc->nac", Ra, R)
     t_new = t @ Ra.T + ta
-    dt = jnp.asarray(poses.R).dtype
-    return Poses(jnp.asarray(R_new, dt), jnp.asarray(t_new, dt))
+    dt = np.dtype(poses.R.dtype)
+    return Poses(jax.device_put(R_new.astype(dt)), jax.device_put(t_new.astype(dt)))
 
 
 def anchor_set(graph: PoseGraph, fixed: FixedPoses | None = None) -> FixedPoses:

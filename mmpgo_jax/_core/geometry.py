@@ -47,30 +47,26 @@ def quaternion_to_rotation(q):
 def rotation_to_quaternion(R) -> np.ndarray:
     """Rotation matrices (..., 3, 3) -> unit quaternions (..., 4) in (x, y, z, w) order, w >= 0.
 
-    Host-side (numpy): used by writers, never on the hot path.
+    Host-side (numpy, vectorised): used by writers, never on the hot path.
     """
     R = np.asarray(R, dtype=np.float64)
     batch = R.shape[:-2]
     R = R.reshape(-1, 3, 3)
     # Shepperd's method: pick the largest of the four squared components for stability.
+    m = {(a, b): R[:, a, b] for a in range(3) for b in range(3)}
     tr = np.trace(R, axis1=1, axis2=2)
-    diag = np.stack([R[:, 0, 0], R[:, 1, 1], R[:, 2, 2], tr], 1)
-    k = np.argmax(diag, axis=1)
-    q = np.empty((R.shape[0], 4))
-    for idx in range(R.shape[0]):
-        m = R[idx]
-        if k[idx] == 3:
-            s = 2.0 * np.sqrt(max(1.0 + tr[idx], 0.0))
-            q[idx] = [(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, 0.25 * s]
-        elif k[idx] == 0:
-            s = 2.0 * np.sqrt(max(1.0 + m[0, 0] - m[1, 1] - m[2, 2], 0.0))
-            q[idx] = [0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s, (m[2, 1] - m[1, 2]) / s]
-        elif k[idx] == 1:
-            s = 2.0 * np.sqrt(max(1.0 + m[1, 1] - m[0, 0] - m[2, 2], 0.0))
-            q[idx] = [(m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s, (m[0, 2] - m[2, 0]) / s]
-        else:
-            s = 2.0 * np.sqrt(max(1.0 + m[2, 2] - m[0, 0] - m[1, 1], 0.0))
-            q[idx] = [(m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s, (m[1, 0] - m[0, 1]) / s]
+    k = np.argmax(np.stack([m[0, 0], m[1, 1], m[2, 2], tr], 1), axis=1)
+    # each case's 2 sqrt(1 + ...) and its quaternion, then the one of the largest component
+    s = 2.0 * np.sqrt(np.maximum(np.stack([1.0 + m[0, 0] - m[1, 1] - m[2, 2], 1.0 + m[1, 1] - m[0, 0] - m[2, 2],
+                                         1.0 + m[2, 2] - m[0, 0] - m[1, 1], 1.0 + tr]), 0.0))
+    s = np.where(s > 0, s, 1.0)
+    cases = np.stack([
+        [0.25 * s[0], (m[0, 1] + m[1, 0]) / s[0], (m[0, 2] + m[2, 0]) / s[0], (m[2, 1] - m[1, 2]) / s[0]],
+        [(m[0, 1] + m[1, 0]) / s[1], 0.25 * s[1], (m[1, 2] + m[2, 1]) / s[1], (m[0, 2] - m[2, 0]) / s[1]],
+        [(m[0, 2] + m[2, 0]) / s[2], (m[1, 2] + m[2, 1]) / s[2], 0.25 * s[2], (m[1, 0] - m[0, 1]) / s[2]],
+        [(m[2, 1] - m[1, 2]) / s[3], (m[0, 2] - m[2, 0]) / s[3], (m[1, 0] - m[0, 1]) / s[3], 0.25 * s[3]],
+    ])  # (case, component, rotation)
+    q = cases[k, :, np.arange(R.shape[0])]
     q /= np.linalg.norm(q, axis=1, keepdims=True)
     q[q[:, 3] < 0] *= -1
     return q.reshape(*batch, 4)
@@ -81,17 +77,20 @@ def project_to_so(M):
 
     SVD projection with the determinant fixed to +1 (Umeyama): U diag(1, .., det(U V^T)) V^T.
     Exact for any input and any d; :func:`nearest_rotations` with ``method="fast"`` is the
-    solver's hot-path form of the same projection.
+    solver's hot-path form of the same projection. A NumPy array stays NumPy (computed on the
+    host, no JAX dispatch: the initializations' form); anything else goes through ``jax.numpy``.
     """
+    if isinstance(M, np.ndarray):
+        return _svd_projection(M, np)
     return nearest_rotations(M)
 
 
-def _svd_projection(M):
-    """Umeyama's SVD projection of (..., d, d) blocks."""
-    U, _, Vt = jnp.linalg.svd(M)
-    det = jnp.linalg.det(U @ Vt)
+def _svd_projection(M, xp=jnp):
+    """Umeyama's SVD projection of (..., d, d) blocks (``xp``: numpy or jax.numpy)."""
+    U, _, Vt = xp.linalg.svd(M)
+    det = xp.linalg.det(U @ Vt)
     d = M.shape[-1]
-    fix = jnp.concatenate([jnp.ones((*M.shape[:-2], d - 1), M.dtype), det[..., None]], -1)
+    fix = xp.concatenate([xp.ones((*M.shape[:-2], d - 1), M.dtype), det[..., None]], -1)
     return (U * fix[..., None, :]) @ Vt
 
 
@@ -190,8 +189,8 @@ def nearest_rotations(M, *, method: str = "svd", layout: str = "blocks-last"):
 
 
 def sym(M):
-    """Symmetric part of square blocks (..., d, d)."""
-    return 0.5 * (M + jnp.swapaxes(M, -1, -2))
+    """Symmetric part of square blocks (..., d, d) (NumPy or JAX arrays)."""
+    return 0.5 * (M + M.swapaxes(-1, -2))
 
 
 def skew(M):

@@ -76,20 +76,80 @@ class Partition(eqx.Module):
         return self.edges.kappa.shape[1]
 
     def scatter(self, poses: Poses) -> Poses:
-        """Global poses (n, ...) -> padded per-robot poses (A, n_max, ...); padding gets R = I, t = 0."""
-        d = poses.R.shape[-1]
-        eye = jnp.eye(d, dtype=poses.R.dtype)
-        m = self.pose_mask
-        R = jnp.where(m[..., None, None], poses.R[self.pose_index], eye)
-        t = jnp.where(m[..., None], poses.t[self.pose_index], 0.0)
-        return Poses(R, t)
+        """Global poses (n, ...) -> padded per-robot poses (A, n_max, ...); padding gets R = I, t = 0.
+
+        Outside a trace this is numpy on the host and one transfer (no JAX dispatch)."""
+        xp, (index, mask, R, t) = _namespace(self.pose_index, self.pose_mask, poses.R, poses.t)
+        eye = xp.eye(R.shape[-1], dtype=R.dtype)
+        R = xp.where(mask[..., None, None], R[index], eye)
+        t = xp.where(mask[..., None], t[index], xp.zeros((), t.dtype))
+        return _device(xp, Poses(R, t))
 
     def gather(self, padded: Poses) -> Poses:
-        """Padded per-robot poses (A, n_max, ...) -> global poses (n, ...)."""
-        return Poses(
-            padded.R[self.robot_of_pose, self.slot_of_pose],
-            padded.t[self.robot_of_pose, self.slot_of_pose],
-        )
+        """Padded per-robot poses (A, n_max, ...) -> global poses (n, ...) (numpy on the host
+        outside a trace)."""
+        xp, (robot, slot, R, t) = _namespace(self.robot_of_pose, self.slot_of_pose, padded.R, padded.t)
+        return _device(xp, Poses(R[robot, slot], t[robot, slot]))
+
+    def padding(self) -> PaddingWaste:
+        """How much of the padded layout is padding (:class:`PaddingWaste`), at this partition's
+        float precision."""
+        mask = np.asarray(self.pose_mask)
+        real_edges = np.asarray(self.edges.local_i) | np.asarray(self.edges.local_j)
+        return PaddingWaste.of(mask.sum(1), real_edges.sum(1), mask.shape[1], real_edges.shape[1],
+                               self.edges.R.shape[-1], self.edges.kappa.dtype)
+
+
+def _namespace(*arrays):
+    """(numpy, host arrays) when no array is traced, else (jax.numpy, the arrays)."""
+    if any(isinstance(a, jax.core.Tracer) for a in arrays):
+        return jnp, arrays
+    return np, tuple(np.asarray(a) for a in arrays)
+
+
+def _device(xp, poses: Poses) -> Poses:
+    """Host results moved to the default device (a transfer, no compilation)."""
+    return poses if xp is jnp else Poses(jax.device_put(poses.R), jax.device_put(poses.t))
+
+
+@dataclass(frozen=True)
+class PaddingWaste:
+    """The padded layout's waste: every robot holds ``n_max`` pose slots and ``e_max`` incident-edge
+    slots; the slots beyond its own poses and edges are padding.
+
+    Bytes count the partition's arrays per slot (pose: its index and mask; edge: two (robot, slot)
+    ends, two locality flags, R~, t~, kappa, tau) at the float precision ``dtype``; the solver's
+    per-slot arrays (poses, Gamma's blocks, preconditioner) follow the same slot counts, so
+    ``ratio`` (bytes of padding / bytes used) describes them too.
+    """
+
+    pose_slots: int  # A n_max
+    poses: int  # n
+    edge_slots: int  # A e_max
+    edges: int  # incident edges summed over robots (inter-robot edges count twice)
+    bytes_padding: int
+    bytes_used: int
+
+    @property
+    def ratio(self) -> float:
+        """Bytes of padding / bytes used (0: no padding)."""
+        return self.bytes_padding / max(self.bytes_used, 1)
+
+    @staticmethod
+    def of(poses_per_robot, edges_per_robot, n_max: int, e_max: int, dim: int, dtype=np.float64) -> PaddingWaste:
+        """From the per-robot counts of poses and incident edges and the padded sizes."""
+        fsize = np.dtype(dtype).itemsize
+        pose_bytes = 4 + 1  # pose_index (int32), pose_mask
+        edge_bytes = 4 * 4 + 2 + (dim * dim + dim + 2) * fsize
+        A = len(poses_per_robot)
+        n, e = int(np.sum(poses_per_robot)), int(np.sum(edges_per_robot))
+        slots_n, slots_e = A * int(n_max), A * int(e_max)
+        return PaddingWaste(slots_n, n, slots_e, e, (slots_n - n) * pose_bytes + (slots_e - e) * edge_bytes,
+                            n * pose_bytes + e * edge_bytes)
+
+    def summary(self) -> str:
+        return (f"{self.ratio:.1%} of the bytes used ({self.pose_slots - self.poses} of {self.pose_slots} pose "
+                f"slots, {self.edge_slots - self.edges} of {self.edge_slots} edge slots are padding)")
 
 
 @dataclass(frozen=True)
@@ -122,6 +182,12 @@ class PartitionStats:
 
     def sent_bytes(self, dtype=np.float64) -> np.ndarray:
         return self.sent_poses * self.bytes_per_pose(dtype)
+
+    def padding(self, dtype=np.float64) -> PaddingWaste:
+        """The padding of :func:`partition`'s layout of these robots (no extra padding)."""
+        edges = self.own_edges + self.inter_edges
+        return PaddingWaste.of(self.poses, edges, max(int(self.poses.max()), 1), max(int(edges.max(initial=0)), 1),
+                               self.dim, dtype)
 
 
 SPLITS = ("blocks", "metis", "random")
@@ -301,24 +367,25 @@ def partition(
     eye_pad[...] = np.eye(d)
     Rpad = eye_pad
     Rpad[owner, e_slot] = Rm
+    put = jax.device_put  # host arrays to the device: a transfer, no JAX dispatch
     edges = RobotEdges(
-        robot_i=jnp.asarray(padded(ri[edge_id], 0, np.int32)),
-        slot_i=jnp.asarray(padded(slot_of_pose[gi[edge_id]], 0, np.int32)),
-        robot_j=jnp.asarray(padded(rj[edge_id], 0, np.int32)),
-        slot_j=jnp.asarray(padded(slot_of_pose[gj[edge_id]], 0, np.int32)),
-        local_i=jnp.asarray(padded(ri[edge_id] == owner, False, bool)),
-        local_j=jnp.asarray(padded(rj[edge_id] == owner, False, bool)),
-        R=jnp.asarray(Rpad),
-        t=jnp.asarray(padded(tm, 0.0, fdt)),
-        kappa=jnp.asarray(padded(np.asarray(graph.kappa)[edge_id], 0.0, fdt)),
-        tau=jnp.asarray(padded(np.asarray(graph.tau)[edge_id], 0.0, fdt)),
+        robot_i=put(padded(ri[edge_id], 0, np.int32)),
+        slot_i=put(padded(slot_of_pose[gi[edge_id]], 0, np.int32)),
+        robot_j=put(padded(rj[edge_id], 0, np.int32)),
+        slot_j=put(padded(slot_of_pose[gj[edge_id]], 0, np.int32)),
+        local_i=put(padded(ri[edge_id] == owner, False, bool)),
+        local_j=put(padded(rj[edge_id] == owner, False, bool)),
+        R=put(Rpad),
+        t=put(padded(tm, 0.0, fdt)),
+        kappa=put(padded(np.asarray(graph.kappa)[edge_id], 0.0, fdt)),
+        tau=put(padded(np.asarray(graph.tau)[edge_id], 0.0, fdt)),
     )
     return Partition(
-        pose_index=jnp.asarray(pose_index, jnp.int32),
-        pose_mask=jnp.asarray(pose_mask),
+        pose_index=put(pose_index.astype(np.int32)),
+        pose_mask=put(pose_mask),
         edges=edges,
-        robot_of_pose=jnp.asarray(robot_of_pose, jnp.int32),
-        slot_of_pose=jnp.asarray(slot_of_pose, jnp.int32),
+        robot_of_pose=put(robot_of_pose.astype(np.int32)),
+        slot_of_pose=put(slot_of_pose.astype(np.int32)),
         num_poses=n,
     )
 

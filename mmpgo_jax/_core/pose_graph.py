@@ -15,6 +15,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from .geometry import sym
+from .precision import default_float_dtype
 
 
 class Poses(eqx.Module):
@@ -71,35 +72,60 @@ class PoseGraph(eqx.Module):
         j = np.asarray(j, dtype=np.int64)
         if num_poses is None:
             num_poses = int(max(i.max(initial=-1), j.max(initial=-1)) + 1)
-        fdt = dtype or jnp.asarray(0.0).dtype
+        fdt = np.dtype(dtype or default_float_dtype())
+
+        def put(x, dt):  # host arrays to the device: a transfer, no JAX dispatch
+            return jax.device_put(np.asarray(x, dtype=dt))
+
         return PoseGraph(
-            i=jnp.asarray(i, jnp.int32),
-            j=jnp.asarray(j, jnp.int32),
-            R=jnp.asarray(R, fdt),
-            t=jnp.asarray(t, fdt),
-            kappa=jnp.asarray(kappa, fdt),
-            tau=jnp.asarray(tau, fdt),
+            i=put(i, np.int32),
+            j=put(j, np.int32),
+            R=put(R, fdt),
+            t=put(t, fdt),
+            kappa=put(kappa, fdt),
+            tau=put(tau, fdt),
             num_poses=int(num_poses),
         )
 
 
+def _xp(*arrays):
+    """numpy when every array is a NumPy array (host-side callers: no JAX dispatch), else jax.numpy."""
+    return np if all(isinstance(a, np.ndarray) for a in arrays) else jnp
+
+
+def _segment_sum(xp, values, index, n: int):
+    """Sum of ``values`` rows into ``n`` segments (jax.ops.segment_sum, or a bincount on the host)."""
+    if xp is jnp:
+        return jax.ops.segment_sum(values, index, n)
+    # one bincount over (segment, component) pairs: the same sums, in input order, as np.add.at
+    k = int(np.prod(values.shape[1:], dtype=np.int64))
+    flat = (np.asarray(index, np.int64)[:, None] * k + np.arange(k)).reshape(-1)
+    return np.bincount(flat, values.reshape(-1), minlength=n * k).reshape(n, *values.shape[1:]).astype(values.dtype)
+
+
 def edge_residuals(graph: PoseGraph, poses: Poses):
-    """Rotation residuals R_i Rt - R_j (m, d, d) and translation residuals R_i tt + t_i - t_j (m, d)."""
+    """Rotation residuals R_i Rt - R_j (m, d, d) and translation residuals R_i tt + t_i - t_j (m, d).
+
+    Like every function of this group, it runs in NumPy when the graph and poses hold NumPy arrays
+    (:func:`host_graph`) and is jittable otherwise."""
+    xp = _xp(graph.R, poses.R)
     Ri, Rj = poses.R[graph.i], poses.R[graph.j]
     rot = Ri @ graph.R - Rj
-    trans = jnp.einsum("mab,mb->ma", Ri, graph.t) + poses.t[graph.i] - poses.t[graph.j]
+    trans = xp.einsum("mab,mb->ma", Ri, graph.t) + poses.t[graph.i] - poses.t[graph.j]
     return rot, trans
 
 
 def edge_costs(graph: PoseGraph, poses: Poses):
     """Per-edge cost kappa ||rot||^2 + tau ||trans||^2 (the f = 2F convention)."""
     rot, trans = edge_residuals(graph, poses)
-    return graph.kappa * jnp.sum(rot**2, axis=(-1, -2)) + graph.tau * jnp.sum(trans**2, axis=-1)
+    xp = _xp(rot)
+    return graph.kappa * xp.sum(rot**2, axis=(-1, -2)) + graph.tau * xp.sum(trans**2, axis=-1)
 
 
 def cost(graph: PoseGraph, poses: Poses):
     """f = 2F: the objective as reported in the paper's tables and by SE-Sync."""
-    return jnp.sum(edge_costs(graph, poses))
+    costs = edge_costs(graph, poses)
+    return _xp(costs).sum(costs)
 
 
 def objective(graph: PoseGraph, poses: Poses):
@@ -110,18 +136,19 @@ def objective(graph: PoseGraph, poses: Poses):
 def euclidean_gradient(graph: PoseGraph, poses: Poses) -> Poses:
     """Euclidean gradient of F with respect to (R, t), as a ``Poses`` of the same shapes."""
     rot, trans = edge_residuals(graph, poses)
+    xp = _xp(rot)
     wr = graph.kappa[:, None, None] * rot
     wt = graph.tau[:, None] * trans
     n = graph.num_poses
-    gRi = wr @ jnp.swapaxes(graph.R, -1, -2) + wt[:, :, None] * graph.t[:, None, :]
-    gR = jax.ops.segment_sum(gRi, graph.i, n) - jax.ops.segment_sum(wr, graph.j, n)
-    gt = jax.ops.segment_sum(wt, graph.i, n) - jax.ops.segment_sum(wt, graph.j, n)
+    gRi = wr @ graph.R.swapaxes(-1, -2) + wt[:, :, None] * graph.t[:, None, :]
+    gR = _segment_sum(xp, gRi, graph.i, n) - _segment_sum(xp, wr, graph.j, n)
+    gt = _segment_sum(xp, wt, graph.i, n) - _segment_sum(xp, wt, graph.j, n)
     return Poses(gR, gt)
 
 
 def riemannian_gradient_from_euclidean(poses: Poses, egrad: Poses) -> Poses:
     """Project a Euclidean gradient onto the tangent space of R^{d x n} x SO(d)^n (B.9-B.11)."""
-    RtG = jnp.swapaxes(poses.R, -1, -2) @ egrad.R
+    RtG = poses.R.swapaxes(-1, -2) @ egrad.R
     return Poses(egrad.R - poses.R @ sym(RtG), egrad.t)
 
 
@@ -132,12 +159,22 @@ def riemannian_gradient(graph: PoseGraph, poses: Poses) -> Poses:
 
 def tangent_norm(v: Poses):
     """Frobenius norm of a tangent vector (or any Poses-shaped array pair)."""
-    return jnp.sqrt(jnp.sum(v.R**2) + jnp.sum(v.t**2))
+    xp = _xp(v.R, v.t)
+    return xp.sqrt(xp.sum(v.R**2) + xp.sum(v.t**2))
 
 
 def riemannian_gradient_norm(graph: PoseGraph, poses: Poses):
     """||grad F|| (of F, the 1/2 convention)."""
     return tangent_norm(riemannian_gradient(graph, poses))
+
+
+def host_graph(graph: PoseGraph) -> PoseGraph:
+    """``graph`` with NumPy leaves (int64 indices, float64 values): the functions above then run on
+    the host in float64, without JAX dispatch."""
+    return PoseGraph(i=np.asarray(graph.i, np.int64), j=np.asarray(graph.j, np.int64),
+                     R=np.asarray(graph.R, np.float64), t=np.asarray(graph.t, np.float64),
+                     kappa=np.asarray(graph.kappa, np.float64), tau=np.asarray(graph.tau, np.float64),
+                     num_poses=graph.num_poses)
 
 
 def poses_to_matrix(poses: Poses) -> np.ndarray:

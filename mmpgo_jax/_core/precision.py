@@ -22,5 +22,5 @@ def float64_enabled() -> bool:
 
 
 def default_float_dtype():
-    """The float dtype new arrays get: float64 when enabled, else float32."""
-    return jnp.asarray(0.0).dtype
+    """The float dtype new arrays get: float64 when enabled, else float32 (no JAX dispatch)."""
+    return jax.dtypes.canonicalize_dtype(jnp.float64)

@@ -77,11 +77,12 @@ import functools
 import math
 from dataclasses import dataclass
 
-import jax.numpy as jnp
+import jax
 import numpy as np
 from scipy import integrate, optimize, special
 
 from .._core.pose_graph import PoseGraph, Poses
+from .._core.precision import default_float_dtype
 
 __all__ = [
     "SyntheticDataset",
@@ -469,8 +470,8 @@ def lattice_dataset(
     graph = PoseGraph.from_arrays(
         I, J, Rmeas, tmeas, np.full(m, kap_w), np.full(m, tau_w), num_poses=num_poses, dtype=dtype
     )
-    fdt = dtype or jnp.asarray(0.0).dtype
-    gt = Poses(jnp.asarray(Rgt, fdt), jnp.asarray(tgt, fdt))
+    fdt = np.dtype(dtype or default_float_dtype())
+    gt = Poses(jax.device_put(np.asarray(Rgt, fdt)), jax.device_put(np.asarray(tgt, fdt)))
     if name is None:
         name = f"{'cube' if dim == 3 else 'grid2d'}_seed{seed}"
     return SyntheticDataset(name=name, graph=graph, ground_truth=gt, sigma_t=float(sigma_t),

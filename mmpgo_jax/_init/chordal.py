@@ -28,14 +28,13 @@ from collections import deque
 from pathlib import Path
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 
 from .._core.gauge import FixedPoses, anchor_poses, anchor_set
 from .._core.geometry import project_to_so
 from .._core.pose_graph import PoseGraph, Poses, assemble_edge_blocks, edge_blocks
+from .._core.sparse import block_order, pose_order, solve_spd
 
 __all__ = [
     "INITIALIZATION_METHODS",
@@ -76,7 +75,7 @@ def _edges_np(graph: PoseGraph):
 
 
 def _float_dtype(graph: PoseGraph):
-    return jnp.asarray(graph.R).dtype
+    return np.dtype(graph.R.dtype)
 
 
 def rotation_connection_laplacian(graph: PoseGraph) -> sp.csr_matrix:
@@ -115,13 +114,10 @@ def translation_rhs(graph: PoseGraph, R) -> np.ndarray:
     return b
 
 
-def _solve_spd(A: sp.spmatrix, B: np.ndarray) -> np.ndarray:
-    """Solve A X = B for a sparse symmetric positive-definite A (SuperLU, symmetric ordering)."""
-    if A.shape[0] == 0:
-        return np.zeros_like(B)
-    lu = spla.splu(A.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                   options={"SymmetricMode": True})
-    return lu.solve(np.ascontiguousarray(B))
+def pose_order_of(graph: PoseGraph) -> np.ndarray:
+    """The fill-reducing order of ``graph``'s poses used by every sparse solve here
+    (:func:`~mmpgo_jax._core.sparse.pose_order`: METIS nested dissection)."""
+    return pose_order(graph.num_poses, np.asarray(graph.i), np.asarray(graph.j))
 
 
 def _free_mask(n: int, anchors: np.ndarray) -> np.ndarray:
@@ -135,11 +131,13 @@ def _free_mask(n: int, anchors: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------------------------
 
 
-def chordal_relaxed_rotations(graph: PoseGraph, fixed: FixedPoses | None = None) -> np.ndarray:
+def chordal_relaxed_rotations(graph: PoseGraph, fixed: FixedPoses | None = None, *,
+                              order: np.ndarray | None = None) -> np.ndarray:
     """Minimiser of the relaxed rotation problem (22) with the anchor poses held (:func:`anchor_set`:
     the ``fixed`` poses at their rotations, else I): (n, d, d).
 
-    The blocks are general d x d matrices (not yet projected to SO(d)). float64 numpy.
+    The blocks are general d x d matrices (not yet projected to SO(d)). float64 numpy. One sparse
+    LDLᵀ factorization in the pose order ``order`` (default :func:`pose_order_of`).
     """
     n, d = graph.num_poses, graph.dim
     anchor = anchor_set(graph, fixed)
@@ -148,10 +146,10 @@ def chordal_relaxed_rotations(graph: PoseGraph, fixed: FixedPoses | None = None)
     # L_ff V_f = -L_fa V_a.
     L = rotation_connection_laplacian(graph).tocsr()
     fdof = np.repeat(free, d)
-    L_ff = L[fdof][:, fdof]
-    L_fa = L[fdof][:, ~fdof]
+    L_f = L[fdof]
     Va = np.swapaxes(anchor.R, 1, 2).reshape(-1, d)  # (d*|anchors|, d): V_a = R_a^T
-    Vf = _solve_spd(L_ff, -(L_fa @ Va))
+    order = pose_order_of(graph) if order is None else order
+    Vf = solve_spd(L_f[:, fdof], -(L_f[:, ~fdof] @ Va), block_order(order, d, fdof))
     V = np.zeros((d * n, d))
     V[fdof] = Vf
     V[~fdof] = Va
@@ -175,9 +173,11 @@ def relaxed_translation_cost(graph: PoseGraph, R, t) -> float:
     return float(np.sum(tau * np.sum(res**2, axis=1)))
 
 
-def translations_given_rotations(graph: PoseGraph, R, fixed: FixedPoses | None = None) -> np.ndarray:
+def translations_given_rotations(graph: PoseGraph, R, fixed: FixedPoses | None = None, *,
+                                 order: np.ndarray | None = None) -> np.ndarray:
     """Minimiser of the translation problem (25) for rotations ``R`` with the anchor translations
-    held (:func:`anchor_set`: the ``fixed`` poses' translations, else 0).
+    held (:func:`anchor_set`: the ``fixed`` poses' translations, else 0); a sparse factorization in
+    the pose order ``order`` (default :func:`pose_order_of`).
 
     Returns (n, d) float64.
     """
@@ -189,14 +189,21 @@ def translations_given_rotations(graph: PoseGraph, R, fixed: FixedPoses | None =
     t = np.zeros((n, d))
     t[anchor.index] = anchor.t
     # L_ff t_f = b_f - L_fa t_a
-    t[free] = _solve_spd(L[free][:, free], b[free] - L[free][:, ~free] @ t[~free])
+    L_f = L[free]
+    order = pose_order_of(graph) if order is None else order
+    t[free] = solve_spd(L_f[:, free], b[free] - L_f[:, ~free] @ t[~free], block_order(order, 1, free))
     return t
 
 
 def _project_np(R: np.ndarray) -> np.ndarray:
-    # The host-side init is float64 throughout; in float32 mode JAX computes the projection in float32.
-    dt = jnp.float64 if jax.config.jax_enable_x64 else jnp.float32
-    return np.array(project_to_so(jnp.asarray(R, dtype=dt)), dtype=np.float64)
+    """SO(d) projection on the host (numpy's SVD), float64."""
+    return project_to_so(np.asarray(R, dtype=np.float64))
+
+
+def _poses(graph: PoseGraph, R: np.ndarray, t: np.ndarray) -> Poses:
+    """Host arrays as the graph's dtype, on the device (a transfer, no JAX dispatch)."""
+    dt = _float_dtype(graph)
+    return Poses(jax.device_put(np.asarray(R, dt)), jax.device_put(np.asarray(t, dt)))
 
 
 def chordal_initialization(graph: PoseGraph, fixed: FixedPoses | None = None) -> Poses:
@@ -204,12 +211,12 @@ def chordal_initialization(graph: PoseGraph, fixed: FixedPoses | None = None) ->
     relaxed rotations, SO(d) projection, translations by linear least squares. The anchor poses
     (:func:`anchor_set`: the ``fixed`` poses at their values, else pose 0 when connected, at
     identity) are held."""
-    R = _project_np(chordal_relaxed_rotations(graph, fixed))
+    order = pose_order_of(graph)
+    R = _project_np(chordal_relaxed_rotations(graph, fixed, order=order))
     if fixed is not None:
         R[fixed.index] = fixed.R  # exactly, not their projection
-    t = translations_given_rotations(graph, R, fixed)
-    dt = _float_dtype(graph)
-    return Poses(jnp.asarray(R, dt), jnp.asarray(t, dt))
+    t = translations_given_rotations(graph, R, fixed, order=order)
+    return _poses(graph, R, t)
 
 
 # --------------------------------------------------------------------------------------------
@@ -303,8 +310,7 @@ def odometry_initialization(graph: PoseGraph, fixed: FixedPoses | None = None) -
     R = _project_np(R)  # remove round-off drift along long chains
     if fixed is not None:
         R[fixed.index] = fixed.R  # exactly, not their projection
-    dt = _float_dtype(graph)
-    return Poses(jnp.asarray(R, dt), jnp.asarray(t, dt))
+    return _poses(graph, R, t)
 
 
 # --------------------------------------------------------------------------------------------
@@ -323,8 +329,7 @@ def poses_from_arrays(graph: PoseGraph, R, t, *, what: str = "initial poses") ->
         raise ValueError(f"{what}: translations must have shape ({n}, {d}), got {t.shape}")
     if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
         raise ValueError(f"{what}: contain non-finite values")
-    dt = _float_dtype(graph)
-    return Poses(jnp.asarray(_project_np(R), dt), jnp.asarray(t, dt))
+    return _poses(graph, _project_np(R), t)
 
 
 def _id_list(ids: np.ndarray, limit: int = 5) -> str:

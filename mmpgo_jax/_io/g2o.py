@@ -92,12 +92,13 @@ import re
 import warnings
 from dataclasses import dataclass
 
-import jax.numpy as jnp
+import jax
 import numpy as np
 
 from .._core.gauge import FixedPoses
 from .._core.geometry import angle_2d, rotation_to_quaternion
 from .._core.pose_graph import PoseGraph, Poses
+from .._core.precision import default_float_dtype
 from .atomic import atomic_write
 
 __all__ = [
@@ -972,7 +973,7 @@ def _read(path, *, dtype, strict_information: bool, family: _Family, need: str =
           warn: bool = True) -> G2OFile:
     """``need="any"``: a robot's file of a multi-robot folder, which may hold VERTEX lines only."""
     spath = os.fspath(path)
-    fdt = dtype or jnp.asarray(0.0).dtype
+    fdt = np.dtype(dtype or default_float_dtype())
     p = _parse(spath, need=need, strict=strict_information, limits=_Limits.of(fdt), family=family)
     out = _build(spath, p, fdt)
     if warn:
@@ -1016,7 +1017,7 @@ def _build(spath: str, p: _Parsed, fdt) -> G2OFile:
         np.minimum.at(vertex_line, k, np.asarray(vg.lines, dtype=np.int64))
     initial = None
     if has_vertex.all():
-        initial = Poses(jnp.asarray(vertex_R, fdt), jnp.asarray(vertex_t, fdt))
+        initial = Poses(jax.device_put(vertex_R.astype(fdt)), jax.device_put(vertex_t.astype(fdt)))
     return G2OFile(
         path=spath,
         dim=dim,

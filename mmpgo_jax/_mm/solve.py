@@ -22,6 +22,7 @@ from .._core.pose_graph import PoseGraph, Poses
 from .._core.precision import float64_enabled
 from .._experiments.metrics import TrajectoryAccuracy, trajectory_accuracy
 from .._init.chordal import initialize
+from .centralized import NewtonConfig, newton_optimum
 from .driver import RESULTS, History, Monitor, NonFiniteError, Termination, compile_once, drive
 from .majorization import unstack
 from .outer import IterationRecord, MMConfig, MMProblem, check_consistent, run, start_state
@@ -42,7 +43,7 @@ class SolveResult:
     poses: Poses
     history: History
     partition: Partition
-    config: MMConfig
+    config: MMConfig | None  # None for the centralized Newton solver
     result: RESULTS
     stats: dict = field(default_factory=dict)
     accuracy: TrajectoryAccuracy | None = None  # against ``ground_truth`` when one was given
@@ -234,23 +235,32 @@ def centralized_optimum(
     callback: Callable[[int, np.ndarray], bool | None] | None = None,
     monitor: Monitor | None = None,
     chunk_size: int = 25,
+    method: Literal["newton", "mm"] = "newton",
 ) -> SolveResult:
-    """Centralized mode: one robot (A = 1) and MM run to a tight gradient tolerance.
+    """The centralized optimum: one robot, run to ||grad F|| <= ``grad_tol`` (f* of every reported gap).
 
-    With A = 1 the majorizer is F plus the proximal term xi/2 ||X - X^k||^2, so each outer iteration
-    is a damped Riemannian Newton step on F itself. The default inner solve is near exact (CG to a
-    relative residual 1e-8 in float64, 1e-4 in float32, at most 1000 iterations) with a tiny xi: then
-    the outer iteration is
-    Newton's method and converges in tens of iterations. A cheap inner solve (e.g. 20 CG
-    iterations per outer iteration) needs thousands on ill-conditioned files (parking-garage: its
-    rotation weights span 9 decades). In float32, which stalls far above ``grad_tol``, it also stops
-    once a chunk of ``chunk_size`` iterations lowers f by less than a relative 1e-7 (the
-    stopping rules are checked, and ``callback`` / ``monitor`` told, after each chunk; a chunk of 1
-    stops at the first iterate with ||grad F|| <= ``grad_tol``). Used by the benchmarks as f*; check a
-    result with :func:`~mmpgo_jax.certify`. ``init`` / ``initial`` / ``fixed`` / ``frame`` /
-    ``callback`` / ``monitor``: as for :func:`solve` (with two or more fixed poses the optimum is a
-    constrained one, which the certificate does not cover).
+    ``method="newton"`` (default): Riemannian Newton steps with Levenberg–Marquardt damping and a
+    sparse direct solve per step, on the host in float64 (:mod:`~mmpgo_jax._mm.centralized`);
+    ``xi`` is the initial damping. It converges quadratically near the optimum: 5–30 iterations
+    on the benchmark files (benchmarks/centralized.md compares it with GTSAM's Levenberg–Marquardt
+    on the same objective). The stopping rules are checked, and ``callback(k, f)`` /
+    ``monitor`` told, after every iteration; ``result.config`` is None.
+
+    ``method="mm"``: MM with A = 1 (:func:`solve`), where the majorizer is F plus the proximal term
+    xi/2 ||X - X^k||^2, so each outer iteration is a damped Riemannian Newton step solved by
+    truncated CG (``subproblem``; default near exact: CG to a relative residual 1e-8 in float64,
+    1e-4 in float32, at most 1000 iterations); checked every ``chunk_size`` iterations, and in
+    float32, which stalls far above ``grad_tol``, also stopped once a chunk lowers f by less than
+    a relative 1e-7.
+
+    Check a result with :func:`~mmpgo_jax.certify`. ``init`` / ``initial`` / ``fixed`` /
+    ``frame`` / ``callback`` / ``monitor``: as for :func:`solve` (with two or more fixed poses the
+    optimum is a constrained one, which the certificate does not cover).
     """
+    if method == "newton":
+        return _newton_optimum(graph, init, initial, grad_tol, max_iterations, xi, fixed, frame, callback, monitor)
+    if method != "mm":
+        raise ValueError(f"method must be 'newton' or 'mm', got {method!r}")
     # float32 cannot resolve a 1e-8 residual: CG would always run to its cap
     tol = 1e-8 if float64_enabled() else 1e-4
     sub = subproblem or SubproblemConfig(max_steps=4, gradient_tolerance=0.1, cg_iterations=1000, cg_tolerance=tol)
@@ -271,4 +281,32 @@ def centralized_optimum(
         frame=frame,
         callback=callback,
         monitor=monitor,
+    )
+
+
+def _newton_optimum(graph, init, initial, grad_tol, max_iterations, xi, fixed, frame, callback, monitor) -> SolveResult:
+    """:func:`centralized_optimum` by the host Newton solver."""
+    termination = Termination(max_iterations, 1, grad_tol)
+    config = NewtonConfig(initial_damping=xi)
+    monitor = monitor or Monitor()
+    clock = _Clock()
+    monitor.phase("initializing")
+    X0 = initialize(graph, init, initial=initial, fixed=fixed)
+    clock.lap("initialize")
+    monitor.phase("building")
+    R, t, history, result, stats = newton_optimum(graph, np.asarray(X0.R), np.asarray(X0.t), termination, fixed=fixed,
+                                                  config=config, callback=callback, monitor=monitor)
+    dt = np.dtype(X0.R.dtype)
+    poses = output_frame(Poses(jax.device_put(R.astype(dt)), jax.device_put(t.astype(dt))), fixed, frame)
+    seconds = clock.seconds
+    return SolveResult(
+        poses=poses,
+        history=history,
+        partition=partition(graph, 1),
+        config=None,
+        result=result,
+        stats=dict(initialize_seconds=seconds["initialize"], build_seconds=stats["build_seconds"],
+                   init_seconds=seconds["initialize"] + stats["build_seconds"], compile_seconds=0.0,
+                   solve_seconds=stats["solve_seconds"], factorizations=stats["factorizations"]),
+        termination=termination,
     )

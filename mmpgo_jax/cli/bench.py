@@ -13,7 +13,9 @@ and reports f = 2F after 100 / 250 / 1000 iterations beside the paper's MM / AMM
 numbers of the authors' C++ code (docs/conventions.md §7); our f* (:func:`~mmpgo_jax.centralized_optimum`)
 beside the paper's printed f* and SE-Sync's certified f* (§6 there); milliseconds per iteration
 and compile time; and the iterations and seconds each run needs to reach a relative
-suboptimality (f − f*)/f* ≤ 1e-2 / 1e-3 / 1e-4.
+suboptimality (f − f*)/f* ≤ 1e-2 / 1e-3 / 1e-4. With gtsam installed (the ``benchmark`` extra), the
+f* table also gives GTSAM's Levenberg–Marquardt from the same chordal start, timed in the same run
+(:mod:`mmpgo_jax._experiments.gtsam_lm`), and f = 2F at its result.
 
 Honest comparison columns
 -------------------------
@@ -289,6 +291,19 @@ def _table_value(info, column: str, k: int) -> float | None:
     return None if v is None else float(v)
 
 
+def _gtsam_reference(graph, X0) -> dict:
+    """GTSAM's Levenberg–Marquardt from the same chordal start, timed in the same run (when gtsam
+    is installed: the benchmark extra), and f = 2F at its result."""
+    from .._core.pose_graph import cost, host_graph
+    from .._experiments.gtsam_lm import gtsam_available, gtsam_levenberg_marquardt
+
+    if not gtsam_available():
+        return {"gtsam_seconds": None, "gtsam_iterations": None, "gtsam_f": None}
+    lm = gtsam_levenberg_marquardt(graph, X0)
+    return {"gtsam_seconds": lm.seconds, "gtsam_iterations": lm.iterations,
+            "gtsam_f": float(cost(host_graph(graph), lm.poses))}  # F at GTSAM's point (float64)
+
+
 def _bench_one(job: _Job, args, iterations: int, no_progress: bool) -> _Result:
     from .._core.partition import split_robots
     from .._core.pose_graph import connected_components, cost
@@ -330,6 +345,7 @@ def _bench_one(job: _Job, args, iterations: int, no_progress: bool) -> _Result:
         ref = centralized_optimum(graph, init=X0, max_iterations=5000 if float64_enabled() else 1000, monitor=bar)
     ref_seconds = time.perf_counter() - t
     ours = ref.f
+    gtsam = _gtsam_reference(graph, X0)
     converged = ref.stop_reason == "grad_tol"
     # SE-Sync's dual certificate: is our critical point the global optimum? (host-side, < 1 s here)
     certificate = certify(graph, ref.poses) if converged else None
@@ -352,6 +368,7 @@ def _bench_one(job: _Job, args, iterations: int, no_progress: bool) -> _Result:
         "ours_seconds": ref_seconds,
         "ours_certified": None if certificate is None else certificate.certified,
         "ours_min_eigenvalue": None if certificate is None else certificate.min_eigenvalue,
+        **gtsam,
         "paper": paper_fstar,
         "sesync": sesync,
         "ours_vs_sesync": _rel(ours, sesync),
@@ -410,7 +427,8 @@ def _bench_one(job: _Job, args, iterations: int, no_progress: bool) -> _Result:
 
 _F_HEADER = ["dataset", "method", "k", "f ours", "paper", "ours vs paper", "verdict", "authors' code", "ours vs code"]
 _STAR_HEADER = ["dataset", "d", "n", "m", "f chordal (ours)", "f chordal (reference)", "f* ours", "f* iters / s",
-                "certificate λ_min(S)", "f* paper", "f* SE-Sync", "ours vs SE-Sync", "reference for gaps"]
+                "GTSAM LM iters / s (f)", "certificate λ_min(S)", "f* paper", "f* SE-Sync", "ours vs SE-Sync",
+                "reference for gaps"]
 _SPEED_HEADER = ["dataset", "method", "threads", "ms/iter", "ms/iter code", "compile s", "f final", "gap final",
                  "iters → 1e-2", "iters → 1e-3", "iters → 1e-4", "s → 1e-2", "s → 1e-3", "s → 1e-4",
                  "code iters → 1e-3"]
@@ -430,7 +448,9 @@ def _star_row(res: _Result) -> list[str]:
     conv = "" if s["ours_converged"] else " (not converged)"
     return [res.name, str(res.dim), str(res.num_poses), str(res.num_edges), _fmt(c["f"], ".6g"),
             _fmt(c["notes_f"], ".6g"),
-            _fmt(s["ours"], ".9g") + conv, f"{s['ours_iterations']} / {s['ours_seconds']:.1f}",
+            _fmt(s["ours"], ".9g") + conv, f"{s['ours_iterations']} / {s['ours_seconds']:.2f}",
+            "not installed" if s.get("gtsam_seconds") is None
+            else f"{s['gtsam_iterations']} / {s['gtsam_seconds']:.2f} ({s['gtsam_f']:.9g})",
             "—" if s.get("ours_certified") is None
             else f"{s['ours_min_eigenvalue']:.1e} ({'certified' if s['ours_certified'] else 'NOT certified'})",
             _fmt_paper(s["paper"]), _fmt(s["sesync"], ".6g"),
@@ -487,7 +507,7 @@ def _markdown(results: list[_Result], meta: dict, done: bool) -> str:
       "The gaps and iteration counts below use \"reference for gaps\": the certified f* of the registry "
       "(`ours_fstar`, 12 digits, `benchmarks/certified_optimum.py`) where it has one, else our f* of this run "
       "when it converged, else the published (rounded) value.\n\n")
-    w(_table(_STAR_HEADER, [_star_row(res) for res in results], "l" + "r" * 11 + "l") + "\n\n")
+    w(_table(_STAR_HEADER, [_star_row(res) for res in results], "l" + "r" * 12 + "l") + "\n\n")
     w("## Speed and iterations to relative suboptimality (f − f*)/f* ≤ tol\n\n")
     w("ms/iter: compiled outer iterations (all robots, one process), excluding compilation; \"ms/iter code\": the "
       "authors' C++ code, one thread, the robots one after another (docs/conventions.md §7). s → tol = iterations "
@@ -623,7 +643,7 @@ def run_bench(args) -> int:
         print(f"\n## {res.name} ({res.num_poses} poses, {res.num_edges} edges, d = {res.dim}; "
               f"{time.perf_counter() - t:.1f} s)\n")
         print(_table(_F_HEADER, _f_rows(res), "llrrrrlrr") + "\n")
-        print(_table(_STAR_HEADER, [_star_row(res)], "l" + "r" * 10 + "l") + "\n")
+        print(_table(_STAR_HEADER, [_star_row(res)], "l" + "r" * 12 + "l") + "\n")
         print(_table(_SPEED_HEADER, _speed_rows(res)), flush=True)
         _write_all(out, results, meta, done=False)
     meta["total_seconds"] = time.perf_counter() - t_all

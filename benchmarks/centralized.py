@@ -1,0 +1,120 @@
+"""The centralized reference (``centralized_optimum``, Riemannian Newton / Levenberg–Marquardt with a
+sparse LDLᵀ) side by side with GTSAM's Levenberg–Marquardt, both from the same chordal start.
+
+For each benchmark file: read it, compute the chordal start once (:func:`mmpgo_jax.chordal_initialization`),
+then time
+
+* ours: ``centralized_optimum(graph, init=X0)`` (to ||grad F|| <= 1e-6, the default), and
+* GTSAM: :func:`mmpgo_jax._experiments.gtsam_lm.gtsam_levenberg_marquardt` (Between factors whose
+  diagonal precisions match this package's weights to second order, pose 0 held by a prior,
+  relative and absolute decrease thresholds 1e-10, at most 200 iterations); only GTSAM's
+  ``optimize()`` is timed.
+
+GTSAM minimises the geodesic objective, not F; its result is evaluated with F here (``f GTSAM``),
+so its gap to the certified f* is the two objectives' difference plus its own stopping point.
+
+Needs the benchmark extra: ``pip install "mmpgo-jax[benchmark]"`` (gtsam: wheels for Linux and macOS;
+not a dependency of the package). Run::
+
+    nice -n 5 python benchmarks/centralized.py [--data DIR] [--only MIT.g2o ...] [--json out.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+import numpy as np  # noqa: E402
+
+import mmpgo_jax as mm  # noqa: E402
+from mmpgo_jax._experiments.gtsam_lm import gtsam_available, gtsam_levenberg_marquardt  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+FILES = ["MIT.g2o", "CSAIL.g2o", "intel.g2o", "M3500.g2o", "city10000.g2o", "manhattan.g2o", "kitti_00.g2o",
+         "sphere2500.g2o", "torus3D.g2o", "parking-garage.g2o", "smallGrid3D.g2o", "tinyGrid3D.g2o"]
+
+
+def grad_norm(graph, poses) -> float:
+    """||grad F|| of F at ``poses`` (host, float64; pose 0's gradient included)."""
+    from mmpgo_jax._core.pose_graph import host_graph, riemannian_gradient_norm
+
+    return float(riemannian_gradient_norm(host_graph(graph), mm.Poses(np.asarray(poses.R), np.asarray(poses.t))))
+
+
+def one_file(path: Path) -> dict:
+    g = mm.read_g2o(path).graph
+    info = mm.benchmark_info(path.name)
+    t = time.perf_counter()
+    X0 = mm.chordal_initialization(g)
+    chordal_s = time.perf_counter() - t
+    X0h = mm.Poses(np.asarray(X0.R), np.asarray(X0.t))
+    t = time.perf_counter()
+    ours = mm.centralized_optimum(g, init=X0)
+    ours_s = time.perf_counter() - t
+    cert = mm.certify(g, ours.poses)
+    row = {"file": path.name, "poses": g.num_poses, "edges": g.num_edges, "dim": g.dim, "chordal_s": chordal_s,
+           "ours_s": ours_s, "ours_f": ours.f, "ours_iterations": ours.iterations,
+           "ours_grad_norm": float(ours.history.grad_norm[-1]), "ours_stop": ours.stop_reason,
+           "ours_factorizations": ours.stats.get("factorizations"), "certified": bool(cert.certified)}
+    if gtsam_available():
+        lm = gtsam_levenberg_marquardt(g, X0h)
+        row.update(gtsam_s=lm.seconds, gtsam_iterations=lm.iterations, gtsam_f=float(mm.cost(g, lm.poses)),
+                   gtsam_grad_norm=grad_norm(g, lm.poses))
+    else:
+        row.update(gtsam_s=None)
+    row["certified_fstar"] = None if info is None else info.certified_fstar  # the registry's (MM-computed)
+    return row
+
+
+def table(rows) -> str:
+    out = ["| file | poses | ours s | iterations (factorizations) | f ours | certified | GTSAM LM s | GTSAM "
+           "iterations | F at GTSAM's point | ours / GTSAM time |",
+           "|---|---:|---:|---:|---:|:-:|---:|---:|---:|---:|"]
+    for r in rows:
+        g = r.get("gtsam_s")
+        gcols = (f"{g:.3f} | {r['gtsam_iterations']} | {r['gtsam_f']:.10g} | {r['ours_s'] / g:.1f}x"
+                 if g is not None else "not installed | | |")
+        cert = "yes" if r["certified"] else "no"
+        out.append(f"| {r['file']} | {r['poses']} | {r['ours_s']:.3f} | {r['ours_iterations']} "
+                   f"({r['ours_factorizations']}) | {r['ours_f']:.10g} | {cert} | {gcols} |")
+    return "\n".join(out)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    default_data = os.environ.get("MMPGO_DATA", REPO.parent / "shared" / "datasets")
+    ap.add_argument("--data", type=Path, default=Path(default_data))
+    ap.add_argument("--only", nargs="*", default=None)
+    ap.add_argument("--json")
+    args = ap.parse_args(argv)
+    load0 = os.getloadavg()
+    print(f"# {dt.datetime.now(dt.UTC).isoformat(timespec='seconds')}, {platform.platform()}, "
+          f"{os.cpu_count()} CPUs, load {load0[0]:.2f}", flush=True)
+    rows = []
+    for name in args.only or FILES:
+        path = args.data / name
+        if not path.is_file():
+            print(f"skip {name}: not in {args.data}", file=sys.stderr)
+            continue
+        r = one_file(path)
+        print(json.dumps(r), file=sys.stderr, flush=True)
+        rows.append(r)
+    print(table(rows))
+    print(f"load average at the end: {os.getloadavg()[0]:.2f}")
+    if args.json:
+        Path(args.json).write_text(json.dumps(rows, indent=1) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

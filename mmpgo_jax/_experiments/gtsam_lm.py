@@ -1,0 +1,100 @@
+"""GTSAM's Levenberg–Marquardt on a pose graph, as the timing reference of the centralized solver.
+
+Optional: needs ``gtsam`` (``pip install "mmpgo-jax[benchmark]"``; wheels for Linux and macOS),
+which is not a dependency of the package. Used by ``mmpgo bench`` (when gtsam is installed) and
+``benchmarks/centralized.py``.
+
+The factors are GTSAM's Between factors with diagonal precisions 2 kappa on the rotation tangent
+coordinates and tau on the translation ones: they match this package's weights to second order
+(the chordal ||R_a - R_b||_F^2 is 2 theta^2 + O(theta^4)). GTSAM minimises the geodesic
+objective, not F: its optimum differs from f* by the two objectives' difference, so compare
+F at GTSAM's result with f*, not its own error. Pose 0 is held by a prior of precision 1e12 (the
+gauge).
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from .._core.pose_graph import PoseGraph, Poses
+
+__all__ = ["GtsamResult", "gtsam_available", "gtsam_levenberg_marquardt"]
+
+
+def gtsam_available() -> bool:
+    return importlib.util.find_spec("gtsam") is not None
+
+
+@dataclass(frozen=True)
+class GtsamResult:
+    poses: Poses  # host float64 arrays
+    seconds: float  # optimize() alone (building GTSAM's graph and values is not counted)
+    iterations: int
+
+
+def _pose_type(d: int):
+    import gtsam
+
+    if d == 2:
+        return (lambda R, t: gtsam.Pose2(t[0], t[1], np.arctan2(R[1, 0], R[0, 0])),
+                lambda k, w: np.array([w, w, 2 * k]),  # Pose2 tangent: (x, y, theta)
+                gtsam.BetweenFactorPose2, gtsam.PriorFactorPose2)
+    return (lambda R, t: gtsam.Pose3(gtsam.Rot3(R), t),
+            lambda k, w: np.array([2 * k] * 3 + [w] * 3),  # Pose3 tangent: (rotation, translation)
+            gtsam.BetweenFactorPose3, gtsam.PriorFactorPose3)
+
+
+def _problem(graph: PoseGraph, start: Poses):
+    import gtsam
+
+    d = graph.dim
+    pose, precisions, between, prior = _pose_type(d)
+    i, j = np.asarray(graph.i), np.asarray(graph.j)
+    Rm, tm = np.asarray(graph.R, np.float64), np.asarray(graph.t, np.float64)
+    kappa, tau = np.asarray(graph.kappa, np.float64), np.asarray(graph.tau, np.float64)
+    R0, t0 = np.asarray(start.R, np.float64), np.asarray(start.t, np.float64)
+    fg = gtsam.NonlinearFactorGraph()
+    for e in range(i.size):  # GTSAM's Python API builds factors one by one
+        noise = gtsam.noiseModel.Diagonal.Precisions(precisions(kappa[e], tau[e]))
+        fg.add(between(int(i[e]), int(j[e]), pose(Rm[e], tm[e]), noise))
+    fg.add(prior(0, pose(R0[0], t0[0]), gtsam.noiseModel.Isotropic.Precision(3 if d == 2 else 6, 1e12)))
+    values = gtsam.Values()
+    for k in range(graph.num_poses):
+        values.insert(k, pose(R0[k], t0[k]))
+    return fg, values
+
+
+def _poses(result, n: int, d: int) -> Poses:
+    if d == 2:
+        ps = [result.atPose2(k) for k in range(n)]
+        th = np.array([p.theta() for p in ps])
+        c, s = np.cos(th), np.sin(th)
+        R = np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
+        return Poses(R, np.array([[p.x(), p.y()] for p in ps]))
+    ps = [result.atPose3(k) for k in range(n)]
+    return Poses(np.array([p.rotation().matrix() for p in ps]), np.array([p.translation() for p in ps]))
+
+
+def gtsam_levenberg_marquardt(graph: PoseGraph, start: Poses, *, error_tol: float = 1e-10,
+                              max_iterations: int = 200) -> GtsamResult:
+    """GTSAM's ``LevenbergMarquardtOptimizer`` from ``start`` (its defaults: COLAMD ordering,
+    multifrontal Cholesky), relative and absolute error-decrease thresholds ``error_tol`` (GTSAM's
+    default 1e-5 stops well above the optimum). Raises ImportError when gtsam is not installed."""
+    if not gtsam_available():
+        raise ImportError("GTSAM's reference needs gtsam: pip install 'mmpgo-jax[benchmark]' (or pip install gtsam)")
+    import gtsam
+
+    fg, values = _problem(graph, start)
+    params = gtsam.LevenbergMarquardtParams()
+    params.setRelativeErrorTol(error_tol)
+    params.setAbsoluteErrorTol(error_tol)
+    params.setMaxIterations(max_iterations)
+    optimizer = gtsam.LevenbergMarquardtOptimizer(fg, values, params)
+    t = time.perf_counter()
+    result = optimizer.optimize()
+    seconds = time.perf_counter() - t
+    return GtsamResult(_poses(result, graph.num_poses, graph.dim), seconds, int(optimizer.iterations()))
