@@ -264,13 +264,15 @@ class _TrustRegionState(eqx.Module):
     value: jax.Array  # G^alpha(Y) - const
     gnorm: jax.Array  # ||grad G^alpha(Y)|| (Riemannian)
     radius: jax.Array
-    moved: jax.Array  # a step has been accepted
+    moved: jax.Array  # a step has been accepted, or none can be: its predicted decrease is at rounding level
 
 
 # Trust-region steps allowed beyond ``max_steps`` while none has been accepted: each rejection
 # shrinks the radius at least 4-fold, so 30 cover any scale of a first (infinite-radius) step that
 # overshoots (4^-30 ~ 1e-18). Without them a subproblem that rejects ``max_steps`` steps returns its
-# start, and the next outer iteration, from the same point and radius, repeats them forever.
+# start, and the next outer iteration, from the same point and radius, repeats them forever. Steps
+# whose predicted decrease is itself at the rounding level of G (a converged robot) end the extra
+# steps at once: nothing measurable is left to gain.
 EXTRA_REJECTED_STEPS = 30
 
 
@@ -321,7 +323,7 @@ def _solve(gamma, preconditioner, start, center, g, config: SubproblemConfig, fr
             steps=st.steps + 1, cg=st.cg + cg, Y=Y_new, egrad=egrad_new,
             value=jnp.where(accept, value_c, st.value),
             gnorm=jnp.where(accept, _norm(tangent(Y_new, egrad_new)), st.gnorm),
-            radius=radius, moved=st.moved | accept,
+            radius=radius, moved=st.moved | accept | (predicted <= noise),
         )
 
     egrad, value = evaluate(start)

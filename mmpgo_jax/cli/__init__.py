@@ -294,6 +294,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-progress", action="store_true")
     _add_common(p)
 
+    from .sharded import add_threads_option
+
     p = sub.add_parser("bench", help="reproduce the paper's Tables I/II on the available datasets")
     p.add_argument("--quick", action="store_true", help="a small run for CI: one small dataset, few iterations")
     p.add_argument("--datasets", nargs="*", help="benchmark names (default: all available)")
@@ -301,6 +303,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="outer iterations, >= 1 (default 1000)")
     p.add_argument("--robots", "-A", type=ROBOTS, default=10, help="robots, >= 1 (default 10)")
     add_robots_from(p, ("blocks", "metis", "random"))
+    add_threads_option(p)
     p.add_argument("--out-dir", default="bench-results", help="folder for the Markdown, CSV and JSON tables")
     p.add_argument("--no-progress", action="store_true")
     _add_common(p)

@@ -269,6 +269,7 @@ class _Result:
     fstar: dict
     runs: dict = field(default_factory=dict)
     figure: str | None = None
+    threads: int = 1  # CPU devices the robots were split over
 
 
 def _checkpoints(iterations: int) -> list[int]:
@@ -292,10 +293,12 @@ def _bench_one(job: _Job, args, iterations: int, no_progress: bool) -> _Result:
     from .._core.partition import split_robots
     from .._core.pose_graph import connected_components, cost
     from .._core.precision import float64_enabled
+    from .._distributed.solve import solve_sharded
     from .._experiments.certificate import certify
     from .._init.chordal import initialize
     from .._io.g2o import read_g2o
     from .._mm.solve import centralized_optimum, solve
+    from .sharded import thread_devices
 
     if job.synthetic is not None:
         graph = job.synthetic.graph
@@ -357,9 +360,13 @@ def _bench_one(job: _Job, args, iterations: int, no_progress: bool) -> _Result:
     }
     res = _Result(job.name, file, graph.dim, n, graph.num_edges, A, iterations, chordal, fstar)
 
+    # as `mmpgo solve` runs it: the robots split over the CPU cores from AUTO_THREAD_POSES poses on
+    devices = thread_devices(args, n, int(np.max(robots)) + 1 if np.ndim(robots) else int(robots))
+    res.threads = 1 if devices is None else len(devices)
     for key, label, method, restart, pcol, ccol in RUNS:
         with progress_bar(f"[{job.name}] {label}", iterations, disable=no_progress, leave=False) as bar:
-            r = solve(graph, robots, method=method, restart=restart, iterations=iterations, init=X0, monitor=bar)
+            kw = dict(method=method, restart=restart, iterations=iterations, init=X0, monitor=bar)
+            r = solve(graph, robots, **kw) if devices is None else solve_sharded(graph, robots, devices=devices, **kw)
         h = r.history
         at = {}
         for k in _checkpoints(h.iterations):
@@ -404,7 +411,7 @@ def _bench_one(job: _Job, args, iterations: int, no_progress: bool) -> _Result:
 _F_HEADER = ["dataset", "method", "k", "f ours", "paper", "ours vs paper", "verdict", "authors' code", "ours vs code"]
 _STAR_HEADER = ["dataset", "d", "n", "m", "f chordal (ours)", "f chordal (reference)", "f* ours", "f* iters / s",
                 "certificate λ_min(S)", "f* paper", "f* SE-Sync", "ours vs SE-Sync", "reference for gaps"]
-_SPEED_HEADER = ["dataset", "method", "ms/iter", "ms/iter code", "compile s", "f final", "gap final",
+_SPEED_HEADER = ["dataset", "method", "threads", "ms/iter", "ms/iter code", "compile s", "f final", "gap final",
                  "iters → 1e-2", "iters → 1e-3", "iters → 1e-4", "s → 1e-2", "s → 1e-3", "s → 1e-4",
                  "code iters → 1e-3"]
 
@@ -436,7 +443,8 @@ def _speed_rows(res: _Result) -> list[list[str]]:
         tt = run["to_tol"]
         its = [_fmt(tt[_tk(tol)]["iterations"], "d", f"> {run['iterations']}") for tol in TOLS]
         secs = [_fmt(tt[_tk(tol)]["seconds"], ".2f") for tol in TOLS]
-        rows.append([res.name, key, f"{run['ms_per_iteration']:.2f}", _fmt(run["code_ms_per_iteration"], ".3g"),
+        rows.append([res.name, key, str(res.threads), f"{run['ms_per_iteration']:.2f}",
+                     _fmt(run["code_ms_per_iteration"], ".3g"),
                      f"{run['compile_seconds']:.1f}", _fmt(run["f_final"], ".7g"), f"{run['rel_gap_final']:.2e}",
                      *its, *secs, _fmt(run["code_iters_to_1e-3"], "d")])
     return rows
@@ -498,8 +506,8 @@ def _markdown(results: list[_Result], meta: dict, done: bool) -> str:
 _CSV_FIELDS = ["dataset", "file", "dim", "num_poses", "num_edges", "robots", "run", "method", "restart", "k", "f",
                "paper_f", "rel_vs_paper", "verdict", "code_f", "rel_vs_code", "fstar_used", "fstar_source",
                "fstar_ours", "fstar_ours_converged", "fstar_ours_certified", "fstar_paper", "fstar_sesync", "chordal_f",
-               "ms_per_iteration", "code_ms_per_iteration", "compile_seconds", "iters_to_1e-2", "iters_to_1e-3",
-               "iters_to_1e-4", "seconds_to_1e-2", "seconds_to_1e-3", "seconds_to_1e-4"]
+               "threads", "ms_per_iteration", "code_ms_per_iteration", "compile_seconds", "iters_to_1e-2",
+               "iters_to_1e-3", "iters_to_1e-4", "seconds_to_1e-2", "seconds_to_1e-3", "seconds_to_1e-4"]
 
 
 def _csv(results: list[_Result]) -> str:
@@ -519,7 +527,7 @@ def _csv(results: list[_Result]) -> str:
                     "fstar_ours_converged": res.fstar["ours_converged"],
                     "fstar_ours_certified": res.fstar["ours_certified"], "fstar_paper": res.fstar["paper"],
                     "fstar_sesync": res.fstar["sesync"], "chordal_f": repr(res.chordal["f"]),
-                    "ms_per_iteration": f"{run['ms_per_iteration']:.4f}",
+                    "threads": res.threads, "ms_per_iteration": f"{run['ms_per_iteration']:.4f}",
                     "code_ms_per_iteration": run["code_ms_per_iteration"],
                     "compile_seconds": f"{run['compile_seconds']:.3f}",
                 }
