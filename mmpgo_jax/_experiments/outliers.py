@@ -75,7 +75,7 @@ def add_outliers(graph: PoseGraph, rate: float, *, reference: Poses, seed: int =
         raise ValueError(f"rate must lie in [0, 1), got {rate!r}")
     n, d = graph.num_poses, graph.dim
     loops = _loop_closures(graph)
-    count = int(round(rate * int(loops.sum()) / (1.0 - rate)))
+    count = round(rate * int(loops.sum()) / (1.0 - rate))
     rop = None
     if inter_robot_only:
         if robot_of_pose is None:

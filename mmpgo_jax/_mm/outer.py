@@ -41,7 +41,15 @@ from .preconditioner import (
     build_newton_preconditioner,
     newton_from_gamma,
 )
-from .robust import RobustLoss, WeightSchedule, initial_schedule, next_weights, robust_cost, start_weights
+from .robust import (
+    RobustLoss,
+    WeightSchedule,
+    initial_schedule,
+    next_weights,
+    robust_cost,
+    robust_edges,
+    start_weights,
+)
 from .subproblem import (
     PRECONDITIONERS,
     SubproblemConfig,
@@ -161,6 +169,7 @@ class RobustData(eqx.Module):
     loss: RobustLoss
     layout: GammaLayout
     coarse: CoarseParts | None
+    robust_edge: jax.Array  # (A, e_max) bool: the incident edges the loss applies to (others: weight 1)
 
 
 class MMProblem(eqx.Module):
@@ -255,8 +264,14 @@ class MMProblem(eqx.Module):
         if loss is not None:
             n_max = partition.max_poses
             coarse = build_coarse_parts(partition.edges, newton, n_max) if newton.has_coarse else None
-            robust = RobustData(loss=loss.with_defaults(partition.edges.t.shape[-1]),
-                                layout=gamma_layout(partition.edges, n_max, min_couplings=min_couplings), coarse=coarse)
+            e = partition.edges
+            index = np.asarray(partition.pose_index)
+            gi = index[np.asarray(e.robot_i), np.asarray(e.slot_i)]
+            gj = index[np.asarray(e.robot_j), np.asarray(e.slot_j)]
+            mask = robust_edges(loss, gi.reshape(-1), gj.reshape(-1)).reshape(gi.shape)
+            robust = RobustData(loss=loss.with_defaults(e.t.shape[-1]),
+                                layout=gamma_layout(e, n_max, min_couplings=min_couplings), coarse=coarse,
+                                robust_edge=jnp.asarray(mask))
         del gamma  # the stacked-layout copy is not kept: the solver reads gamma_soa
         free = None  # no fixed pose: the solver runs without a mask (same compiled code as ever)
         if fixed is not None:
@@ -297,6 +312,8 @@ class IterationRecord(eqx.Module):
     f: jax.Array  # 2F(X^{k+1}) (the tables' convention)
     grad_norm: jax.Array  # ||grad F(X^{k+1})|| (Riemannian, of F)
     restarted: jax.Array  # (A,) bool: robot took the MM fallback this iteration
+    # robust losses only: GNC has ended (the stopping rules may apply); None for least squares
+    settled: jax.Array | None = None
 
 
 class Collectives(eqx.Module):
@@ -343,7 +360,7 @@ def _robust_gradients(problem: MMProblem, rot, trans, s, weights):
     """(grad of 1/2 sum w s (stacked), robust shares of F_rho, shares of 1/2 sum w s) per robot."""
     part = problem.partition
     grad = jax.vmap(lambda e, r, t, w: weighted_gradient(e, r, t, w, part.max_poses))(part.edges, rot, trans, weights)
-    share = jax.vmap(robot_share)(part.edges, robust_cost(problem.robust.loss, s))
+    share = jax.vmap(robot_share)(part.edges, robust_cost(problem.robust.loss, s, problem.robust.robust_edge))
     weighted = jax.vmap(robot_share)(part.edges, weights * s)
     return stack(grad), share, weighted
 
@@ -378,14 +395,16 @@ def _reweight(problem: MMProblem, config: MMConfig, st: MMState, X, comm: Collec
     """At the new iterate X: the weights (updated when the schedule says so, and Gamma^alpha with its
     preconditioner rebuilt then only), the gradient of the new majorizer, the robust shares."""
     rot, trans, s = _residuals(problem, X, comm)
-    loss = problem.robust.loss
+    rb = problem.robust
     weighted_f = 2.0 * comm.sum(jax.vmap(robot_share)(problem.partition.edges, st.weights * s))
-    update, weights, schedule = next_weights(loss, st.schedule, s, st.weights, weighted_f, comm.max(s), comm.sum)
+    s_max = comm.max(jnp.where(rb.robust_edge, s, 0.0))
+    update, weights, schedule = next_weights(rb.loss, st.schedule, s, st.weights, weighted_f, s_max, comm.sum,
+                                             rb.robust_edge)
     gamma, newton = jax.lax.cond(update, lambda: _weighted_operators(problem, config, weights),
                                  lambda: (st.gamma, st.newton))
     grad, share, weighted = _robust_gradients(problem, rot, trans, s, weights)
     schedule = eqx.tree_at(lambda sc: sc.weighted_f, schedule, 2.0 * comm.sum(weighted))
-    return grad, share, dict(weights=weights, gamma=gamma, newton=newton, schedule=schedule)
+    return grad, share, update, dict(weights=weights, gamma=gamma, newton=newton, schedule=schedule)
 
 
 def _riemannian_grad_norm(X, grad, free, comm: Collectives = LOCAL):
@@ -410,11 +429,12 @@ def init_state(problem: MMProblem, X0: Poses, config: MMConfig = None) -> MMStat
     if problem.robust is None:
         grad, share, local = _gradients(problem, X0)
     else:
+        rb = problem.robust
         rot, trans, s = _residuals(problem, X0)
-        weights = start_weights(problem.robust.loss, s)
+        weights = start_weights(rb.loss, s, rb.robust_edge)
         gamma, newton = _weighted_operators(problem, config, weights)
         grad, share, weighted = _robust_gradients(problem, rot, trans, s, weights)
-        local = jax.vmap(lambda e, c: 0.5 * jnp.sum(c))(problem.partition.edges, robust_cost(problem.robust.loss, s))
+        local = 0.5 * jnp.sum(robust_cost(rb.loss, s, rb.robust_edge), axis=-1)
         robust = dict(weights=weights, gamma=gamma, newton=newton,
                       schedule=initial_schedule(problem.robust.loss, 2.0 * jnp.sum(weighted)))
     A = share.shape[0]
@@ -525,10 +545,13 @@ def step(problem: MMProblem, config: MMConfig, st: MMState, comm: Collectives = 
     else:
         raise ValueError(f"unknown method {config.method!r}: use 'mm' or 'amm'")
     robust = {}
+    settled = None
     if problem.robust is None:
         grad, share, _ = _gradients(problem, X_new, comm)
     else:
-        grad, share, robust = _reweight(problem, config, st, X_new, comm)
+        grad, share, update, robust = _reweight(problem, config, st, X_new, comm)
+        s_new = jnp.where(update, 1.0, s_new)  # a new majorizer: AMM's momentum starts afresh
+        settled = robust["schedule"].done | ~jnp.asarray(problem.robust.loss.use_gnc)
     new = MMState(
         X=X_new,
         grad=grad,
@@ -544,7 +567,8 @@ def step(problem: MMProblem, config: MMConfig, st: MMState, comm: Collectives = 
         **robust,
     )
     rec = IterationRecord(
-        f=2.0 * comm.sum(share), grad_norm=_riemannian_grad_norm(X_new, grad, problem.free, comm), restarted=restart
+        f=2.0 * comm.sum(share), grad_norm=_riemannian_grad_norm(X_new, grad, problem.free, comm), restarted=restart,
+        settled=settled,
     )
     return new, rec
 
@@ -600,7 +624,12 @@ run = _CheckedJit(_run, """``length`` outer iterations in one ``lax.scan``; retu
 
 def _skipped_record(st: MMState) -> IterationRecord:
     nan = jnp.full((), jnp.nan, st.share.dtype)
-    return IterationRecord(f=nan, grad_norm=nan, restarted=jnp.zeros_like(st.s, dtype=bool))
+    return IterationRecord(f=nan, grad_norm=nan, restarted=jnp.zeros_like(st.s, dtype=bool), settled=_settled(st))
+
+
+def _settled(st: MMState):
+    """A record's ``settled`` outside the step: True (robust losses) or None (least squares)."""
+    return None if st.schedule is None else jnp.ones((), bool)
 
 
 def evaluate(problem: MMProblem, state: MMState) -> IterationRecord:

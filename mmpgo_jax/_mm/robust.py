@@ -152,13 +152,16 @@ class GNCConfig(eqx.Module):
     A stage ends when the weighted objective changes by less than a relative ``stage_tolerance``
     over one iteration, or after ``stage_iterations``; GNC ends when the weights are binary within
     ``weight_tolerance`` (TLS), when mu reaches 1 (GM) or after ``max_stages`` stages; the weights
-    then stay fixed and the rest of the budget solves the weighted least squares. All fields are
+    then stay fixed and the rest of the budget solves the weighted least squares. Stages solved
+    loosely misclassify: on a 200-pose Cube with 50 % outlier loop closures, 30 iterations / 1e-4
+    per stage ended GNC at a wrong solution (outlier precision 0.92, ATE 1.5x the outlier-free
+    one), 100 / 1e-6 found every outlier and no inlier (ATE equal to the outlier-free one). All fields are
     traced numbers (a new value reuses the compiled code), checked when the config is built.
     """
 
     factor: float = 1.4
-    stage_iterations: int = 30
-    stage_tolerance: float = 1e-4
+    stage_iterations: int = 100
+    stage_tolerance: float = 1e-6
     weight_tolerance: float = 1e-4
     max_stages: int = 200
 
@@ -180,7 +183,11 @@ class RobustLoss(eqx.Module):
     :class:`GNCConfig` to run the kernel through GNC (``tls`` always does; ``geman-mcclure`` may;
     the others may not); None otherwise. ``update_every`` (K >= 1): M-estimator weights are set
     to rho'(s) every K outer iterations (and at the start); ``max_updates``: at most this many
-    updates after the start (None: no bound), after which the weights stay.
+    updates after the start (None: no bound), after which the weights stay. ``trust_odometry``
+    (default True, as dpgo and Kimera-Multi do): edges between consecutive poses (|i - j| = 1,
+    odometry) are known inliers, weight 1 and cost s; only the loop closures are robust. This keeps
+    every robot's trajectory connected whatever the weights, and GNC's first stages from discarding
+    odometry bent by outliers.
     """
 
     kernel: int
@@ -189,9 +196,11 @@ class RobustLoss(eqx.Module):
     use_gnc: bool = False
     update_every: int = 1
     max_updates: int | None = None
+    trust_odometry: bool = eqx.field(static=True, default=True)
 
     def __init__(self, kernel="huber", scale=None, *, gnc=None, update_every: int = 1, max_updates=None,
-                 use_gnc=None):
+                 use_gnc=None, trust_odometry: bool = True):
+        self.trust_odometry = bool(trust_odometry)
         code = concrete_value(kernel)
         if code is None or code.dtype.kind in "iu":  # traced or already a code (pytree unflattening)
             self.kernel = kernel if code is None else loss_code(int(code))
@@ -228,7 +237,7 @@ class RobustLoss(eqx.Module):
         return RobustLoss(self.kernel, chi2_scale(dim) if self.scale is None else self.scale,
                           gnc=self.gnc if self.gnc is not None else GNCConfig(), update_every=self.update_every,
                           max_updates=np.iinfo(np.int32).max if self.max_updates is None else self.max_updates,
-                          use_gnc=self.use_gnc)
+                          use_gnc=self.use_gnc, trust_odometry=self.trust_odometry)
 
 
 def as_loss(loss, scale=None, gnc=None, **options) -> RobustLoss | None:
@@ -276,9 +285,10 @@ def initial_schedule(loss: RobustLoss, weighted_f) -> WeightSchedule:
                           done=jnp.asarray(loss.kernel == L2), weighted_f=jnp.asarray(weighted_f, dt))
 
 
-def next_weights(loss: RobustLoss, sched: WeightSchedule, s, weights, weighted_f, s_max, total):
+def next_weights(loss: RobustLoss, sched: WeightSchedule, s, weights, weighted_f, s_max, total, robust_edge):
     """(update?, new weights, new schedule) after an iteration that ended at residuals ``s``
-    ((A, e) incident edges; ``s_max`` their maximum over all robots, ``weighted_f`` the weighted
+    ((A, e) incident edges; ``robust_edge`` (A, e) the edges the loss applies to, the others keep
+    weight 1; ``s_max`` the maximum of s over those edges of all robots, ``weighted_f`` the weighted
     objective with the current weights, ``total`` the sum over all robots). Every robot decides
     alike (the inputs are global), and an edge held by two robots has the same residual on both
     sides, so it gets the same weight on both."""
@@ -296,7 +306,7 @@ def next_weights(loss: RobustLoss, sched: WeightSchedule, s, weights, weighted_f
     mu = jnp.where(jnp.isnan(sched.mu), gnc_initial_mu(loss.kernel, s_max, c2), sched.mu)
     w_gnc = gnc_weight(loss.kernel, s, c2, mu)
     w_new = jnp.where(use_gnc, w_gnc, weight(loss.kernel, s, c2))
-    between = (w_gnc > gnc.weight_tolerance) & (w_gnc < 1.0 - gnc.weight_tolerance)
+    between = robust_edge & (w_gnc > gnc.weight_tolerance) & (w_gnc < 1.0 - gnc.weight_tolerance)
     binary = total(jnp.sum(between, axis=tuple(range(1, between.ndim)))) == 0
     mu_next = jnp.where(loss.kernel == TLS, mu * gnc.factor, jnp.maximum(mu / gnc.factor, 1.0))
     gnc_over = jnp.where(loss.kernel == TLS, binary | jnp.isinf(mu), mu <= 1.0) | (sched.stage + 1 >= gnc.max_stages)
@@ -309,19 +319,28 @@ def next_weights(loss: RobustLoss, sched: WeightSchedule, s, weights, weighted_f
         done=done,
         weighted_f=weighted_f,
     )
-    return update, jnp.where(update, w_new, weights), new
+    return update, jnp.where(update & robust_edge, w_new, weights), new
 
 
-def start_weights(loss: RobustLoss, s):
-    """Weights at X^0: rho'(s) for an M-estimator, 1 for GNC (its first stage is least squares)."""
+def start_weights(loss: RobustLoss, s, robust_edge):
+    """Weights at X^0: rho'(s) for an M-estimator, 1 for GNC (its first stage is least squares);
+    1 on the edges outside ``robust_edge``."""
     c2 = jnp.asarray(loss.scale, s.dtype) ** 2
-    return jnp.where(jnp.asarray(loss.use_gnc), jnp.ones_like(s), weight(loss.kernel, s, c2))
+    w = jnp.where(jnp.asarray(loss.use_gnc), jnp.ones_like(s), weight(loss.kernel, s, c2))
+    return jnp.where(robust_edge, w, 1.0)
 
 
-def robust_cost(loss: RobustLoss, s):
-    """rho_c(s) per edge (the f = 2F_rho convention); GNC kernels report their final kernel."""
+def robust_cost(loss: RobustLoss, s, robust_edge):
+    """rho_c(s) per edge (the f = 2F_rho convention; s outside ``robust_edge``); GNC kernels report
+    their final kernel."""
     c2 = jnp.asarray(loss.scale, s.dtype) ** 2
-    return rho(loss.kernel, s, c2)
+    return jnp.where(robust_edge, rho(loss.kernel, s, c2), s)
+
+
+def robust_edges(loss: RobustLoss, graph_i, graph_j) -> np.ndarray:
+    """(m,) bool: the edges the loss applies to (all, or all but odometry with ``trust_odometry``)."""
+    gi, gj = np.asarray(graph_i, np.int64), np.asarray(graph_j, np.int64)
+    return np.abs(gi - gj) != 1 if loss.trust_odometry else np.ones(len(gi), bool)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -359,7 +378,7 @@ def robust_outcome(loss: RobustLoss, graph, partition, weights, poses):
                                 partition.max_edges)
     w = edge_values(np.asarray(weights), index, graph.num_edges)
     s = np.asarray(edge_costs(graph, poses))
-    return w, s <= float(np.asarray(loss.scale)) ** 2
+    return w, (s <= float(np.asarray(loss.scale)) ** 2) | ~robust_edges(loss, graph.i, graph.j)
 
 
 def edge_values(per_slot, index: np.ndarray, num_edges: int) -> np.ndarray:

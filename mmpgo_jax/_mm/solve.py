@@ -213,13 +213,18 @@ def solve(
     check_consistent(problem, config)  # (the exported program below skips run()'s own check)
 
     def compile_chunk(state, length, limit):
-        out = (state, IterationRecord(f=0.0, grad_norm=0.0, restarted=0.0))  # the structure of run's result
+        settled = None if problem.robust is None else 0.0
+        out = (state, IterationRecord(f=0.0, grad_norm=0.0, restarted=0.0, settled=settled))  # run's result structure
         compiled = compile_once(run, problem, config, state, length, limit, static=(length,),
                                 exported=(run.__wrapped__, (3,), out))
         return lambda st, lim: compiled(problem, config, st, lim)
 
-    out = drive(compile_chunk, state, (start.f, start.grad_norm, start.restarted), termination,
-                fetch=lambda rec: jax.device_get((rec.f, rec.grad_norm, rec.restarted)), callback=callback,
+    def fetch(rec):  # robust runs add whether GNC has ended (the stopping rules wait for it)
+        extra = () if problem.robust is None else (rec.settled,)
+        return jax.device_get((rec.f, rec.grad_norm, rec.restarted, *extra))
+
+    out = drive(compile_chunk, state, (start.f, start.grad_norm, start.restarted), termination, fetch=fetch,
+                callback=callback,
                 monitor=monitor)
     poses = output_frame(part.gather(unstack(out.state.X)), fixed, frame)
     outcome, robust_stats = robust_fields(problem, graph, part, out.state, poses)
