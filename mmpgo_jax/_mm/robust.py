@@ -214,7 +214,8 @@ class RobustLoss(eqx.Module):
         if gnc is not None and name not in GNC_LOSSES:
             raise ValueError(f"RobustLoss: GNC applies to {' and '.join(GNC_LOSSES)}, not {name!r}")
         self.scale, self.gnc, self.update_every, self.max_updates = scale, gnc, update_every, max_updates
-        self.use_gnc = gnc is not None
+        # use_gnc=False keeps a GNC kernel a plain M-estimator (weights rho'(s) from the start)
+        self.use_gnc = gnc is not None if use_gnc is None else bool(use_gnc)
 
     def __check_init__(self):
         owner = "RobustLoss"
