@@ -386,14 +386,40 @@ def build_coarse_parts(edges, newton: NewtonPreconditioner, n_max: int) -> Coars
 
 
 def _scaled_pseudo_inverse(M):
-    """The host's symmetric-scaled pseudo-inverse of one coarse matrix, in JAX (eigh)."""
+    """The host's symmetric-scaled inverse of one coarse matrix (:func:`_coarse_inverse`), in JAX.
+
+    Cholesky written with XLA operations only: LAPACK calls (eigh, potrf, trsm) inside the sharded
+    program hang with several CPU devices in one process. A pivot at rounding level (xi = 0: the
+    gauge; an aggregate whose every edge has weight 0) drops its row and column, as the host's
+    pseudo-inverse does for a null direction."""
+    n = M.shape[0]
     M = jnp.where(jnp.all(jnp.isfinite(M)), M, 0.0)
     dg = jnp.diagonal(M)
     scale = jnp.where(dg > 0, 1.0 / jnp.sqrt(jnp.where(dg > 0, dg, 1.0)), 0.0)
-    lam, V = jnp.linalg.eigh(M * scale[:, None] * scale[None, :])
-    keep = jnp.abs(lam) > PINV_RCOND * jnp.max(jnp.abs(lam))
-    inv = jnp.where(keep, 1.0 / jnp.where(keep, lam, 1.0), 0.0)
-    return (V * inv) @ V.T * scale[:, None] * scale[None, :]
+    S = M * scale[:, None] * scale[None, :]
+    idx = jnp.arange(n)
+
+    def column(k, carry):
+        L, dropped = carry
+        row = jnp.where(idx < k, L[k], 0.0)
+        pivot = S[k, k] - row @ row
+        ok = pivot > 1e-10  # S has a unit diagonal: relative to it
+        lkk = jnp.sqrt(jnp.where(ok, pivot, 1.0))
+        col = jnp.where(idx > k, (S[:, k] - L @ row) / lkk, 0.0).at[k].set(lkk)
+        col = jnp.where(ok, col, (idx == k).astype(S.dtype))
+        return L.at[:, k].set(col), dropped.at[k].set(~ok)
+
+    L, dropped = jax.lax.fori_loop(0, n, column, (jnp.zeros_like(S), jnp.zeros(n, bool)))
+
+    def row(k, Li):  # forward substitution: row k of L^-1
+        r = (jnp.where(idx == k, 1.0, 0.0) - jnp.where(idx < k, L[k], 0.0) @ Li) / L[k, k]
+        return Li.at[k].set(r)
+
+    Li = jax.lax.fori_loop(0, n, row, jnp.zeros_like(S))
+    inverse = Li.T @ Li
+    drop = dropped | (dg <= 0)
+    inverse = jnp.where(drop[:, None] | drop[None, :], 0.0, inverse)
+    return inverse * scale[:, None] * scale[None, :]
 
 
 def newton_from_gamma(diag, base: NewtonPreconditioner, parts: CoarseParts | None, weights,
