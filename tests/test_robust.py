@@ -229,3 +229,31 @@ def test_gnc_tls_cube_half_outliers():
     scores = outlier_scores(r.inliers, bad.outlier)
     assert scores.recall == 1.0 and scores.precision >= 0.95, scores
     assert r.accuracy.ate <= 2.0 * clean.accuracy.ate, (r.accuracy.ate, clean.accuracy.ate)
+
+
+def test_cli_robust_outputs(tmp_path, capsys):
+    """mmpgo solve --loss tls: the --edge-weights CSV (original ids, weight, inlier) matches the run,
+    --drop-outliers writes only the inlier edges, --plot draws; the robust options need a robust loss."""
+    from mmpgo_jax import read_g2o, write_g2o
+    from mmpgo_jax.cli import main
+
+    graph, X0, outlier = _outlier_problem(seed=5, n=20, loops=8, outliers=5)
+    path = tmp_path / "bad.g2o"
+    write_g2o(path, graph, X0, vertex_ids=np.arange(graph.num_poses) + 100)
+    csv, out, png = tmp_path / "w.csv", tmp_path / "out.g2o", tmp_path / "p.png"
+    rc = main(["solve", str(path), "-A", "2", "--loss", "tls", "-n", "300", "--edge-weights", str(csv),
+               "--drop-outliers", "--out", str(out), "--plot", str(png), "--no-progress"])
+    assert rc == 0, capsys.readouterr()
+    assert "edges rejected" in capsys.readouterr().out
+    rows = np.loadtxt(csv, delimiter=",", skiprows=1)
+    assert rows.shape == (graph.num_edges, 4)
+    np.testing.assert_array_equal(rows[:, 0], np.asarray(graph.i) + 100)
+    np.testing.assert_array_equal(rows[:, 1], np.asarray(graph.j) + 100)
+    kept = rows[:, 3] == 1
+    assert np.all((rows[:, 2] >= 0) & (rows[:, 2] <= 1)) and set(np.unique(rows[:, 3])) <= {0.0, 1.0}
+    odometry = np.abs(np.asarray(graph.i) - np.asarray(graph.j)) == 1
+    assert np.all(kept[odometry]) and np.all(rows[odometry, 2] == 1.0)  # trusted by default
+    assert read_g2o(out).graph.num_edges == int(kept.sum()) < graph.num_edges
+    assert png.stat().st_size > 0
+    rc = main(["solve", str(path), "--edge-weights", str(csv), "--no-progress"])
+    assert rc != 0 and "needs a robust --loss" in capsys.readouterr().err
