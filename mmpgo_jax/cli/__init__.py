@@ -227,7 +227,7 @@ def _add_robust_options(p: argparse.ArgumentParser) -> None:
                         "odometry edges (consecutive poses) always keep weight 1")
     g.add_argument("--loss-scale", metavar="C", type=finite_float(0.0, strict=True), default=None,
                    help="scale c of the kernel in residual units, > 0 (default: sqrt of the 0.99 chi-square quantile "
-                        "with d(d+1)/2 degrees of freedom, 4.1 in 3D, 2.8 in 2D)")
+                        "with d(d+1)/2 degrees of freedom: 3.37 in 2D, 4.10 in 3D)")
     g.add_argument("--edge-weights", metavar="OUT.csv",
                    help="write every edge's final weight and inlier flag as CSV (i, j, weight, inlier; original ids)")
     g.add_argument("--drop-outliers", action="store_true",
