@@ -257,3 +257,42 @@ def test_cli_robust_outputs(tmp_path, capsys):
     assert png.stat().st_size > 0
     rc = main(["solve", str(path), "--edge-weights", str(csv), "--no-progress"])
     assert rc != 0 and "needs a robust --loss" in capsys.readouterr().err
+
+
+def test_padding_and_sharding_give_the_weights_of_a_single_solve(tmp_path):
+    """The same run padded to larger shapes, and sharded over 2 CPU devices (two-level
+    preconditioner, halo exchange; a child process with its own XLA flags), ends with the weights of
+    the plain single-device solve (mid-GNC: fractional weights compared)."""
+    import os
+    import subprocess
+    import sys
+    import textwrap
+
+    graph, _, _ = _outlier_problem(seed=6, n=24, loops=10, outliers=6)
+    gnc = GNCConfig(stage_iterations=3, stage_tolerance=0.0)
+    ref = mg.solve(graph, 3, loss="tls", iterations=7, grad_tol=None, gnc=gnc)
+    robots = mg.contiguous_robots(graph.num_poses, 3)
+    padded = mg.solve(graph, partition(graph, robots, min_max_poses=graph.num_poses + 5,
+                                       min_max_edges=graph.num_edges + 7), loss="tls", iterations=7,
+                      grad_tol=None, gnc=gnc)
+    # inexact inner solves (CG to a tolerance) round differently with other shapes: agreement to 1e-4,
+    # while a wrong edge-to-slot map would differ by O(1)
+    np.testing.assert_allclose(padded.weights, ref.weights, rtol=1e-4, atol=1e-6)
+    assert np.any((ref.weights > 1e-6) & (ref.weights < 1 - 1e-6))
+    np.savez(tmp_path / "g.npz", i=graph.i, j=graph.j, R=graph.R, t=graph.t, kappa=graph.kappa, tau=graph.tau)
+    child = textwrap.dedent(f"""
+        import numpy as np, jax
+        assert len(jax.devices()) == 2
+        from mmpgo_jax import GNCConfig, PoseGraph
+        from mmpgo_jax.sharding import solve_sharded
+        a = np.load({str(tmp_path / "g.npz")!r})
+        graph = PoseGraph.from_arrays(a["i"], a["j"], a["R"], a["t"], a["kappa"], a["tau"], num_poses={graph.num_poses})
+        r = solve_sharded(graph, 3, devices=2, loss="tls", iterations=7, grad_tol=None,
+                          gnc=GNCConfig(stage_iterations=3, stage_tolerance=0.0))
+        np.save({str(tmp_path / "w.npy")!r}, r.weights)
+    """)
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2", JAX_ENABLE_X64="1",
+               JAX_PLATFORMS="cpu")
+    proc = subprocess.run([sys.executable, "-c", child], env=env, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    np.testing.assert_allclose(np.load(tmp_path / "w.npy"), ref.weights, rtol=1e-4, atol=1e-6)
