@@ -259,6 +259,7 @@ def test_cli_robust_outputs(tmp_path, capsys):
     assert rc != 0 and "needs a robust --loss" in capsys.readouterr().err
 
 
+@pytest.mark.slow  # about 100 s on 2 cores (a child process compiles the sharded program)
 def test_padding_and_sharding_give_the_weights_of_a_single_solve(tmp_path):
     """The same run padded to larger shapes, and sharded over 2 CPU devices (two-level
     preconditioner, halo exchange; a child process with its own XLA flags), ends with the weights of
