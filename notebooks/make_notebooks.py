@@ -228,12 +228,14 @@ def robot_sweeps() -> nbformat.NotebookNode:
             "runs them with ONE compiled `jit(vmap(run))` chunk. Here: small Cube datasets, 5/10/20 "
             "robots, MM vs AMM, and the two panels of the paper's Fig. 1 (f − f* and (f − f*)/f*, "
             "median and 10–90 % band over datasets). The full study is `benchmarks/fig1.py`.\n\n"
-            "Budget: `MMPGO_NOTEBOOK_ITERATIONS` (default 150)."),
+            "Budget: `MMPGO_NOTEBOOK_ITERATIONS` (default 150); robot counts `MMPGO_NOTEBOOK_ROBOTS` "
+            "(default `5,10,20`) and number of Cube datasets `MMPGO_NOTEBOOK_CUBES` (default 3)."),
         setup_cell(150, stdlib=("os", "tempfile", "time"),
                    third_party="from IPython.display import Markdown, display",
                    first_party="from mmpgo_jax import reference_optimum, sweep\n"
                                "from mmpgo_jax._experiments.sweep import TRACE_COUNTS  # counts compilations",
-                   after="ROBOTS = [5, 10, 20]\nNUM_DATASETS = 3"),
+                   after='ROBOTS = [int(a) for a in os.environ.get("MMPGO_NOTEBOOK_ROBOTS", "5,10,20").split(",")]\n'
+                         'NUM_DATASETS = int(os.environ.get("MMPGO_NOTEBOOK_CUBES", "3"))'),
         new_code_cell(
             'datasets = {f"cube{s}": mm.cube_dataset(s, num_poses=600, grid=6) for s in range(NUM_DATASETS)}\n'
             'fstar = {name: reference_optimum(ds.graph) for name, ds in datasets.items()}  # centralized optimum\n'
@@ -282,9 +284,9 @@ def robot_sweeps() -> nbformat.NotebookNode:
             '            gap = np.maximum(gap, 1e-14)\n'
             '            x = np.arange(gap.shape[1])\n'
             '            label = f"{method.upper()}-PGO, {a} robots"\n'
-            '            ax.plot(x, np.median(gap, 0), style, color=colors[a], label=label)\n'
+            '            ax.plot(x, np.median(gap, 0), style, color=colors.get(a), label=label)\n'
             '            lo, hi = np.quantile(gap, 0.1, 0), np.quantile(gap, 0.9, 0)\n'
-            '            ax.fill_between(x, lo, hi, color=colors[a], alpha=0.1)\n'
+            '            ax.fill_between(x, lo, hi, color=colors.get(a), alpha=0.1)\n'
             'for ax, label in zip(axes, ("f - f*", "(f - f*) / f*"), strict=True):\n'
             '    ax.set_yscale("log")\n'
             '    ax.set_xlabel("iteration")\n'

@@ -275,6 +275,7 @@ def test_bench_quick(tmp_path):
     _no_temp_files(out)
 
 
+@pytest.mark.slow  # the no-data path of the CLI is in the default run through the demo test
 def test_bench_quick_falls_back_to_cube(tmp_path):
     """With no benchmark data at all, --quick still exercises everything on a generated Cube dataset."""
     from mmpgo_jax._io.datasets import available_benchmarks
@@ -422,3 +423,29 @@ def test_version(capsys):
     declared = tomllib.loads((Path(__file__).resolve().parents[1] / "pyproject.toml").read_text())["project"]["version"]
     assert main(["--version"]) == 0
     assert capsys.readouterr().out.strip() == f"mmpgo-jax {declared}"
+
+
+def test_sweep_command_matches_solve(tmp_path):
+    """``mmpgo sweep``: every (method, robot count) of a file in one run, its CSV tables written
+    together; the final f of each configuration is what ``solve`` gives for the same split."""
+    import mmpgo_jax as mg
+
+    cube = mg.cube_dataset(0, num_poses=60, grid=4)
+    g2o = tmp_path / "cube60.g2o"
+    mg.write_g2o(g2o, cube.graph, cube.ground_truth)
+    out, configs = tmp_path / "sweep.csv", tmp_path / "configs.csv"
+    proc = mmpgo("sweep", g2o, "-A", "2", "3", "-n", "6", "--robots-from", "metis", "--methods", "amm",
+                 "--fstar", "centralized", "--out", out, "--configs", configs)
+    _ok(proc)
+    with open(out, newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert len(rows) == 2 * 7  # robot counts x (iterations + the start)
+    with open(configs, newline="") as fh:
+        finals = {(r["method"], int(r["robots"])): float(r["f"]) for r in csv.DictReader(fh)}
+    graph = mg.read_g2o(g2o).graph
+    for (method, robots), f in finals.items():
+        ref = mg.solve(graph, mg.split_robots(graph, "metis", robots), method=method, iterations=6)
+        assert abs(f - float(ref.history.f[-1])) <= 1e-9 * abs(f), (method, robots)
+        assert f"| {method.upper()} | {robots} |" in proc.stdout
+    assert all(float(r["relative_gap"]) >= -1e-9 for r in rows)
+    _no_temp_files(tmp_path)

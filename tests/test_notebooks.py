@@ -54,6 +54,8 @@ def test_notebook_runs(name, monkeypatch):
     # the kernel imports this checkout even where the package is not installed (or installed elsewhere)
     monkeypatch.setenv("PYTHONPATH", os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")])))
     monkeypatch.setenv("MMPGO_NOTEBOOK_DATASETS", "MITb")  # 02: one file (when present) keeps CI short
+    monkeypatch.setenv("MMPGO_NOTEBOOK_ROBOTS", "5,10")  # 03: two robot counts, two Cube datasets
+    monkeypatch.setenv("MMPGO_NOTEBOOK_CUBES", "2")
     nb = nbformat.read(NOTEBOOK_DIR / name, as_version=4)
     client = nbclient.NotebookClient(nb, timeout=300, kernel_name="python3",
                                      resources={"metadata": {"path": str(NOTEBOOK_DIR)}})

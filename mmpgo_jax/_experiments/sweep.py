@@ -58,6 +58,7 @@ from .._core.gauge import FixedPoses
 from .._core.partition import SPLITS, Partition, RobotEdges, partition, split_robots
 from .._core.pose_graph import PoseGraph, Poses
 from .._init.chordal import initialize
+from .._io.atomic import atomic_write
 from .._mm.driver import NonFiniteError, Termination, compile_once, drive
 from .._mm.majorization import gamma_couplings, stack, unstack
 from .._mm.outer import MMConfig, MMProblem, evaluate, init_state, run
@@ -237,7 +238,7 @@ class SweepResult:
 
 
 def _write_csv(path, columns, rows) -> None:
-    with open(path, "w", newline="", encoding="utf-8") as fh:
+    with atomic_write(path, newline="") as fh:  # all or nothing
         w = csv.DictWriter(fh, fieldnames=list(columns), extrasaction="ignore")
         w.writeheader()
         for row in rows:

@@ -324,6 +324,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out-dir", default="bench-results", help="folder for the Markdown, CSV and JSON tables")
     p.add_argument("--no-progress", action="store_true")
     _add_common(p)
+
+    from .sweep import add_sweep_parser
+
+    add_sweep_parser(sub, add_common=_add_common, robots_type=ROBOTS, iterations_type=int_in(1, INT_MAX))
     return parser
 
 
@@ -387,6 +391,10 @@ def _dispatch(args, argv) -> int:
         from .bench import run_bench
 
         return run_bench(args)
+    if args.command == "sweep":
+        from .sweep import run_sweep
+
+        return run_sweep(args, _resolve_file)
     return 0
 
 
