@@ -12,6 +12,8 @@ Public API (the private modules are implementation details):
   :func:`read_robot_folder` / :func:`write_robot_folder` (one g2o per robot), :func:`write_robot_tum`,
   :func:`symbol_keys`; TORO: :func:`read_toro`, :func:`write_toro`
 * starts: :func:`initialize`, :func:`chordal_initialization`, :func:`distributed_chordal_initialization`
+* robust losses (outlier loop closures): ``solve(..., loss=, loss_scale=, gnc=)``, :class:`RobustLoss`,
+  :class:`GNCConfig`, :func:`chi2_scale`, :data:`LOSSES`
 * solvers: :func:`solve`, :func:`centralized_optimum`, :func:`certify` (global optimality check), and the
   jittable core :class:`MMConfig`, :class:`MMProblem`, :func:`init_state`, :func:`run`, :func:`step`,
   :class:`SubproblemConfig`
@@ -100,6 +102,7 @@ from ._io.multi_robot import (
 )
 from ._mm.driver import RESULTS, Monitor, Termination
 from ._mm.outer import MMConfig, MMProblem, MMState, init_state, run, step
+from ._mm.robust import LOSSES, GNCConfig, RobustLoss, chi2_scale
 from ._mm.solve import (
     History,
     NonFiniteError,
@@ -114,6 +117,7 @@ __version__ = "0.1.0"
 
 __all__ = [
     "BENCHMARKS",
+    "LOSSES",
     "RESULTS",
     "DatasetNotFoundError",
     "FStarReference",
@@ -122,6 +126,7 @@ __all__ = [
     "G2OFormatError",
     "G2OPoses",
     "G2OWarning",
+    "GNCConfig",
     "History",
     "MMConfig",
     "MMProblem",
@@ -133,6 +138,7 @@ __all__ = [
     "PoseGraph",
     "Poses",
     "RelativePoseError",
+    "RobustLoss",
     "SolveResult",
     "SubproblemConfig",
     "SweepResult",
@@ -146,6 +152,7 @@ __all__ = [
     "centralized_optimum",
     "certificate_matrix",
     "certify",
+    "chi2_scale",
     "chordal_initialization",
     "connected_components",
     "contiguous_robots",

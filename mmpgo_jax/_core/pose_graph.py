@@ -65,6 +65,12 @@ class PoseGraph(eqx.Module):
     def num_edges(self) -> int:
         return self.i.shape[0]
 
+    def select_edges(self, keep) -> PoseGraph:
+        """The graph with only the edges where ``keep`` (m,) is True (the poses unchanged)."""
+        keep = np.asarray(keep, bool)
+        return PoseGraph(self.i[keep], self.j[keep], self.R[keep], self.t[keep], self.kappa[keep], self.tau[keep],
+                         num_poses=self.num_poses)
+
     @staticmethod
     def from_arrays(i, j, R, t, kappa, tau, num_poses: int | None = None, dtype=None) -> PoseGraph:
         """Build a graph from array-likes; float dtype follows JAX's default unless given."""

@@ -35,6 +35,9 @@ class MeshCollectives(Collectives):
     def sum(self, x):
         return jax.lax.psum(jnp.sum(x), self.axis_name)
 
+    def max(self, x):
+        return jax.lax.pmax(jnp.max(x), self.axis_name)
+
 
 class HaloCollectives(MeshCollectives):
     """Neighbour-only pose exchange: one ``all_to_all`` of fixed-size halo buffers per iteration.

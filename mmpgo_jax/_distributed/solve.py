@@ -27,7 +27,8 @@ from .._mm.outer import (
     start_state,
     step,
 )
-from .._mm.solve import SolveResult, output_frame
+from .._mm.robust import GNCConfig, RobustLoss, as_loss
+from .._mm.solve import SolveResult, output_frame, robust_fields, start_for
 from .._mm.subproblem import SubproblemConfig
 from .collectives import (
     _SHARD_MAP_NO_CHECK,
@@ -105,7 +106,8 @@ def _sharded_runner(mesh: Mesh, specs: _Specs, length: int):
 
     def skipped(st):
         nan = jnp.full((), jnp.nan, st.share.dtype)
-        return IterationRecord(f=nan, grad_norm=nan, restarted=jnp.zeros_like(st.s, dtype=bool))
+        settled = None if st.schedule is None else jnp.ones((), bool)
+        return IterationRecord(f=nan, grad_norm=nan, restarted=jnp.zeros_like(st.s, dtype=bool), settled=settled)
 
     def chunk(problem, config, state, comm, limit):
         TRACE_COUNT[0] += 1
@@ -116,9 +118,10 @@ def _sharded_runner(mesh: Mesh, specs: _Specs, length: int):
 
         st, rec = jax.lax.scan(body, state, None, length=length)
         restarted = jax.lax.all_gather(rec.restarted, AXIS, axis=1, tiled=True)
-        return st, IterationRecord(f=rec.f, grad_norm=rec.grad_norm, restarted=restarted)
+        return st, IterationRecord(f=rec.f, grad_norm=rec.grad_norm, restarted=restarted, settled=rec.settled)
 
-    rec_specs = IterationRecord(f=P(), grad_norm=P(), restarted=P())
+    robust = problem_specs.robust is not None
+    rec_specs = IterationRecord(f=P(), grad_norm=P(), restarted=P(), settled=P() if robust else None)
     mapped = _shard_map(
         chunk,
         mesh=mesh,
@@ -142,7 +145,7 @@ def solve_sharded(
     devices: int | Sequence | None = None,
     method: Literal["mm", "amm"] = "amm",
     iterations: int = 1000,
-    init="chordal",
+    init=None,
     initial: Poses | None = None,
     xi: float = 1e-3,
     restart: Literal["paper", "adaptive", "average"] = "adaptive",
@@ -158,6 +161,9 @@ def solve_sharded(
     frame: FixedPoses | Literal["raw"] | None = None,
     monitor: Monitor | None = None,
     ground_truth: Poses | None = None,
+    loss: str | RobustLoss = "l2",
+    loss_scale: float | None = None,
+    gnc: GNCConfig | None = None,
 ) -> SolveResult:
     """:func:`mmpgo_jax.solve` with the robots sharded over the devices of a 1-D mesh.
 
@@ -182,6 +188,7 @@ def solve_sharded(
         raise ValueError(f"the mesh must have exactly one axis named {AXIS!r}, got {mesh.axis_names}")
     num_devices = mesh.devices.size
     config = MMConfig(method=method, restart=restart, xi=xi, subproblem=subproblem or SubproblemConfig())
+    robust = as_loss(loss, loss_scale, gnc)
     multiprocess = jax.process_count() > 1
 
     monitor = monitor or Monitor()
@@ -197,10 +204,10 @@ def solve_sharded(
             part = user_part
         else:
             part = partition(graph, plan.sharded_robot_of_pose, num_robots=plan.padded_robots)
-        X0 = _initial_poses(graph, init, initial, user_part, multiprocess, fixed)
+        X0 = _initial_poses(graph, start_for(init, robust), initial, user_part, multiprocess, fixed)
         X0 = part.scatter(X0)
         monitor.phase("building")
-        problem = MMProblem.build(part, xi, config=config, fixed=fixed, poses=X0)
+        problem = MMProblem.build(part, xi, config=config, fixed=fixed, poses=X0, loss=robust)
         state0, start = start_state(problem, X0, config)
         start = jax.device_get(start)
     problem_specs = _problem_specs(problem)
@@ -231,13 +238,17 @@ def solve_sharded(
         return lambda st, lim: compiled(problem, config, st, comm, lim)
 
     def fetch(rec):
-        return _to_host(rec.f), _to_host(rec.grad_norm), user_restarts(_to_host(rec.restarted))
+        extra = () if rec.settled is None else (_to_host(rec.settled),)
+        return _to_host(rec.f), _to_host(rec.grad_norm), user_restarts(_to_host(rec.restarted)), *extra
 
     start_record = (start.f, start.grad_norm, user_restarts(np.asarray(start.restarted)[None])[0])
     out = drive(compile_chunk, state, start_record, termination, fetch=fetch, callback=callback,
                 agree=_agree if multiprocess else None, monitor=monitor)
     X = _to_host(out.state.X)
     poses = output_frame(part.gather(unstack(jnp.asarray(X))), fixed, frame)
+    final = out.state if problem.robust is None else eqx.tree_at(lambda st: st.weights, out.state,
+                                                                 _to_host(out.state.weights))
+    outcome, robust_stats = robust_fields(problem, graph, part, final, poses)
     return SolveResult(
         poses=poses,
         accuracy=None if ground_truth is None else trajectory_accuracy(poses, ground_truth),
@@ -255,8 +266,10 @@ def solve_sharded(
             "sharded_partition": part,
             "exchange": exchange,
             "halo_size": int(comm.send_index.shape[-1]) if exchange == "halo" else None,
+            **robust_stats,
         },
         termination=termination,
+        **outcome,
     )
 
 

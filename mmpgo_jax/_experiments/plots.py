@@ -95,13 +95,26 @@ def _is_3d(ax) -> bool:
 # --------------------------------------------------------------------------------------------
 
 
-def plot_trajectory(ax, graph, poses, robot_of_pose, *, inter_robot_edges: bool = True, legend: bool = True):
+def _draw_segments(ax, segs, three_d: bool, **style):
+    """Line segments (k, 2, d) on a 2D or 3D axes."""
+    if three_d:
+        from mpl_toolkits.mplot3d.art3d import Line3DCollection
+
+        ax.add_collection3d(Line3DCollection(segs[..., :3], **style))
+    else:
+        ax.add_collection(LineCollection(segs[..., :2], **style))
+
+
+def plot_trajectory(ax, graph, poses, robot_of_pose, *, inter_robot_edges: bool = True, legend: bool = True,
+                    outliers=None):
     """Draw the positions of ``poses`` as one polyline per robot, coloured by robot.
 
     ``ax`` is a 2D axes for d = 2 and a 3D axes (``projection="3d"``) for d = 3 (a 2D axes with 3D
     poses shows the x-y top view).  Consecutive pose indices owned by the same robot are joined;
     inter-robot edges (measurements between poses of different robots) are drawn as thin dashed
-    black lines.  The legend lists at most 10 robots (then "…").  Axis units are metres.
+    black lines.  ``outliers`` (m,) bool: edges a robust loss rejected, drawn as thin solid red
+    lines (and not among the inter-robot edges).  The legend lists at most 10 robots (then "…").
+    Axis units are metres.
     """
     t = np.asarray(poses.t, dtype=np.float64)
     n, d = t.shape
@@ -137,25 +150,23 @@ def plot_trajectory(ax, graph, poses, robot_of_pose, *, inter_robot_edges: bool 
         ax.plot(t[:1, 0], t[:1, 1], "o", color="k", ms=5, zorder=5)
     start = Line2D([], [], marker="o", color="k", ls="", ms=5, label="pose 0")
 
-    inter_handle = None
+    inter_handle = outlier_handle = None
+    rejected = np.zeros(0 if graph is None else graph.num_edges, bool) if outliers is None else np.asarray(outliers)
     if inter_robot_edges and graph is not None:
         i = np.asarray(graph.i)
         j = np.asarray(graph.j)
-        inter = rop[i] != rop[j]
+        inter = (rop[i] != rop[j]) & ~rejected
         k = int(inter.sum())
         if k:
-            segs = np.stack([t[i[inter]], t[j[inter]]], axis=1)
             # many inter-robot edges (e.g. city10000) would hide the trajectory: draw them fainter
             alpha, ew = (0.6, 0.5) if k < 500 else (0.35, 0.5) if k < 2000 else (0.2, 0.3)
-            if three_d:
-                from mpl_toolkits.mplot3d.art3d import Line3DCollection
-
-                coll = Line3DCollection(segs[..., :3], colors="k", linestyles="--", linewidths=ew, alpha=alpha)
-                ax.add_collection3d(coll)
-            else:
-                coll = LineCollection(segs[..., :2], colors="k", linestyles="--", linewidths=ew, alpha=alpha)
-                ax.add_collection(coll)
+            _draw_segments(ax, np.stack([t[i[inter]], t[j[inter]]], axis=1), three_d, colors="k", linestyles="--",
+                           linewidths=ew, alpha=alpha)
             inter_handle = Line2D([], [], color="k", ls="--", lw=0.8, label=f"inter-robot edges ({k})")
+    if graph is not None and rejected.any():
+        i, j = np.asarray(graph.i)[rejected], np.asarray(graph.j)[rejected]
+        _draw_segments(ax, np.stack([t[i], t[j]], axis=1), three_d, colors="tab:red", linewidths=0.5, alpha=0.5)
+        outlier_handle = Line2D([], [], color="tab:red", lw=0.8, label=f"rejected edges ({int(rejected.sum())})")
 
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
@@ -179,7 +190,7 @@ def plot_trajectory(ax, graph, poses, robot_of_pose, *, inter_robot_edges: bool 
         if len(handles) > MAX_LEGEND_ROBOTS:
             rest = len(handles) - (MAX_LEGEND_ROBOTS - 1)
             shown = [*handles[:MAX_LEGEND_ROBOTS - 1], Line2D([], [], ls="", label=f"… (+{rest} more robots)")]
-        extra = [start] + ([inter_handle] if inter_handle is not None else [])
+        extra = [start] + [h for h in (inter_handle, outlier_handle) if h is not None]
         items = shown + extra
         # below the axes, so that it never hides the trajectory
         ax.legend(handles=items, fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.06 if three_d else -0.1),
@@ -374,7 +385,8 @@ def save_solve_figure(path, graph, result, *, fstar: float | None = None, title:
     """One PNG for a :class:`~mmpgo_jax.SolveResult`: trajectory (left), convergence (right).
 
     Left: the estimate's positions coloured by robot (top view for 2D, 3D axes for 3D) with the
-    inter-robot edges.  Right: f vs iteration and, when ``fstar`` is given, (f − f*)/f* below it.
+    inter-robot edges, and in red the edges a robust loss rejected.  Right: f vs iteration and,
+    when ``fstar`` is given, (f − f*)/f* below it.
     ``fstar_label`` names the reference in the legend and the gap's title (e.g. "certified f*",
     :attr:`~mmpgo_jax.FStarReference.label`).
     """
@@ -388,7 +400,7 @@ def save_solve_figure(path, graph, result, *, fstar: float | None = None, title:
         ax_t = fig.add_subplot(gs[:, 0], projection="3d")
     else:
         ax_t = fig.add_subplot(gs[:, 0])
-    plot_trajectory(ax_t, graph, result.poses, rop)
+    plot_trajectory(ax_t, graph, result.poses, rop, outliers=getattr(result, "outliers", None))
     cfg = getattr(result, "config", None)
     method = f"{cfg.method.upper()}-PGO" if cfg is not None else "estimate"
     A = getattr(result.partition, "num_robots", len(np.unique(rop)))

@@ -219,7 +219,8 @@ def drive(
     ``compile_chunk(state, length, limit)`` returns ``chunk(state, limit) -> (state, record)``
     (compiled once: every chunk reuses it; ``limit`` is the traced iteration budget, iterations
     past it leave the state unchanged). ``start``: (f, grad_norm, restarted) at X^0. ``fetch(record)``:
-    the chunk's (f, grad_norm, restarted) as numpy arrays, iterations on the last axis of f and
+    the chunk's (f, grad_norm, restarted[, settled]) as numpy arrays (``settled``: per iteration,
+    whether the stopping rules may apply yet, e.g. GNC has ended), iterations on the last axis of f and
     grad_norm (restarted: (..., length, A)); leading axes (a sweep's configurations) are kept.
     ``fetch=None``: the run cannot stop early (no tolerance, no callback), so the records stay on
     the device and are fetched once at the end. ``callback(k, f)`` after each chunk (k iterations
@@ -256,12 +257,15 @@ def drive(
             if lazy:
                 pending.append((rec, take))
                 continue
-            f, g, r = fetch(rec)  # waits for the chunk: the time of the compiled iterations
+            fetched = fetch(rec)  # waits for the chunk: the time of the compiled iterations
+            f, g, r = fetched[:3]
             solve_seconds += time.perf_counter() - t
             fs.append(f[..., :take])
             gs.append(g[..., :take])
             rs.append(r[..., :take, :])
             reason = termination(fs, gs)
+            if len(fetched) > 3 and not np.all(np.asarray(fetched[3])[..., take - 1]):
+                reason = None  # GNC still running: the stopping rules wait for its end
             monitor.chunk(done, fs[-1], gs[-1])
             if callback is not None and callback(done, f[..., :take]):
                 reason = reason or RESULTS.callback

@@ -32,6 +32,13 @@ def _edge_residuals(edges: RobotEdges, Ri, ti, Rj, tj):
     return rot, trans
 
 
+def _gathered_residuals(edges: RobotEdges, X: Poses):
+    """Residuals of the robot's incident edges, endpoint poses gathered from the padded global ``X``."""
+    Ri, ti = X.R[edges.robot_i, edges.slot_i], X.t[edges.robot_i, edges.slot_i]
+    Rj, tj = X.R[edges.robot_j, edges.slot_j], X.t[edges.robot_j, edges.slot_j]
+    return _edge_residuals(edges, Ri, ti, Rj, tj)
+
+
 def _adjoint_to_slots(edges: RobotEdges, wrot, wtrans, mask_i, mask_j, n_max: int) -> Poses:
     """Scatter weighted residuals back to the local endpoint slots (adjoint of the residual map)."""
     gRi = bmm(wrot, mT(edges.R)) + wtrans[:, :, None] * edges.t[:, None, :]
@@ -53,15 +60,34 @@ def gradient_and_share(edges: RobotEdges, X: Poses, n_max: int):
     ``X`` is the padded GLOBAL pose array (A, n_max, ...): endpoint poses are gathered from it,
     which is exactly the neighbour communication of one iteration.
     """
-    Ri, ti = X.R[edges.robot_i, edges.slot_i], X.t[edges.robot_i, edges.slot_i]
-    Rj, tj = X.R[edges.robot_j, edges.slot_j], X.t[edges.robot_j, edges.slot_j]
-    rot, trans = _edge_residuals(edges, Ri, ti, Rj, tj)
+    rot, trans = _gathered_residuals(edges, X)
     wrot = edges.kappa[:, None, None] * rot
     wtrans = edges.tau[:, None] * trans
     grad = _adjoint_to_slots(edges, wrot, wtrans, edges.local_i, edges.local_j, n_max)
     edge_F = 0.5 * (jnp.sum(wrot * rot, axis=(-1, -2)) + jnp.sum(wtrans * trans, axis=-1))
     share = jnp.sum(jnp.where(edges.is_inter, 0.5, 1.0) * edge_F)
     return grad, share, jnp.sum(edge_F)
+
+
+def incident_residuals(edges: RobotEdges, X: Poses):
+    """(rotation residuals, translation residuals, s) of one robot's incident edges at the padded
+    global poses ``X``: s_e = kappa ||R_i Rt - R_j||^2 + tau ||R_i tt + t_i - t_j||^2 (0 on padding)."""
+    rot, trans = _gathered_residuals(edges, X)
+    s = edges.kappa * jnp.sum(rot * rot, axis=(-1, -2)) + edges.tau * jnp.sum(trans * trans, axis=-1)
+    return rot, trans, s
+
+
+def weighted_gradient(edges: RobotEdges, rot, trans, weights, n_max: int) -> Poses:
+    """grad_alpha of 1/2 sum_e w_e s_e over the robot's local slots, from its edges' residuals."""
+    wrot = (weights * edges.kappa)[:, None, None] * rot
+    wtrans = (weights * edges.tau)[:, None] * trans
+    return _adjoint_to_slots(edges, wrot, wtrans, edges.local_i, edges.local_j, n_max)
+
+
+def robot_share(edges: RobotEdges, edge_cost):
+    """The robot's share 1/2 sum(own edges) c_e + 1/4 sum(inter edges) c_e of per-edge costs c_e in
+    the f = 2F convention (the shares of all robots add up to 1/2 sum_e c_e, docs/conventions.md §3.4)."""
+    return 0.5 * jnp.sum(jnp.where(edges.is_inter, 0.5, 1.0) * edge_cost)
 
 
 def apply_gamma(edges: RobotEdges, xi, V: Poses) -> Poses:
@@ -82,11 +108,14 @@ def apply_gamma(edges: RobotEdges, xi, V: Poses) -> Poses:
     return Poses(out.R + xi * V.R, out.t + xi * V.t)
 
 
-def gamma_diagonal_blocks(edges: RobotEdges, xi, n_max: int):
-    """Diagonal blocks (n_max, d+1, d+1) of Gamma^alpha in the layout Y_i = [t_i | R_i]."""
+def gamma_diagonal_blocks(edges: RobotEdges, xi, n_max: int, weights=None):
+    """Diagonal blocks (n_max, d+1, d+1) of Gamma^alpha in the layout Y_i = [t_i | R_i]; with per-edge
+    ``weights`` (e_max,), those of the weighted majorizer (kappa and tau of edge e times w_e)."""
     d = edges.t.shape[-1]
     dt = edges.t.dtype
     w = jnp.where(edges.is_inter, 2.0, 1.0)
+    if weights is not None:
+        w = w * weights
     a = jnp.concatenate([jnp.ones((*edges.t.shape[:-1], 1), dt), edges.t], -1)  # [1; tt]
     rot_block = jnp.diag(jnp.concatenate([jnp.zeros(1, dt), jnp.ones(d, dt)]))
     e0 = jnp.zeros(d + 1, dt).at[0].set(1.0)
@@ -166,6 +195,31 @@ def _loop_closure_edges(edges: RobotEdges):
     return np.repeat(np.arange(A), e_max), own & ~chain
 
 
+def _coupling_list(robot, si, sj, rest, A: int, e_max: int, n_max: int, min_couplings: int):
+    """The loop-closure couplings of Gamma as per-robot lists sorted by destination slot (host):
+    (src, dst, edge, transposed, valid), each (A, k). Each edge in ``rest`` gives two directed
+    couplings: out[i] += Y[j] @ H_ij^T (transposed) and out[j] += Y[i] @ H_ij; ``edge`` is its
+    incident-edge slot; padding entries (``valid`` False) add a zero block to the last slot."""
+    r_rob = np.concatenate([robot[rest], robot[rest]])
+    r_src = np.concatenate([sj[rest], si[rest]])
+    r_dst = np.concatenate([si[rest], sj[rest]])
+    r_edge = np.concatenate([np.flatnonzero(rest), np.flatnonzero(rest)]) % e_max
+    r_T = np.repeat([True, False], int(rest.sum()))
+    counts = np.bincount(r_rob, minlength=A)
+    k = max(int(counts.max(initial=0)), 1, min_couplings)
+    src = np.zeros((A, k), np.int64)
+    dst = np.full((A, k), n_max - 1, np.int64)
+    edge = np.zeros((A, k), np.int64)
+    transposed = np.zeros((A, k), bool)
+    valid = np.zeros((A, k), bool)
+    order = np.lexsort((r_dst, r_rob))
+    r_rob, r_src, r_dst, r_edge, r_T = r_rob[order], r_src[order], r_dst[order], r_edge[order], r_T[order]
+    pos = np.arange(len(r_rob)) - np.repeat(np.concatenate([[0], np.cumsum(counts)[:-1]]), counts)
+    src[r_rob, pos], dst[r_rob, pos], edge[r_rob, pos], transposed[r_rob, pos] = r_src, r_dst, r_edge, r_T
+    valid[r_rob, pos] = True
+    return src, dst, edge, transposed, valid
+
+
 def gamma_couplings(edges: RobotEdges) -> int:
     """The loop-closure coupling count k of ``build_gamma_operator(edges, ...)`` without padding
     (host, cheap: no Gamma is built). Pass the largest k of a batch as ``min_couplings``."""
@@ -183,11 +237,7 @@ def build_gamma_operator(edges: RobotEdges, xi: float, n_max: int, *, min_coupli
     Hii, Hjj, Hij = _edge_hessian_blocks(
         np.asarray(edges.R, np.float64).reshape(-1, d, d), np.asarray(edges.t, np.float64).reshape(-1, d), kappa, tau
     )
-    robot = np.repeat(np.arange(A), e_max)
-    si = np.asarray(edges.slot_i).reshape(-1).astype(np.int64)
-    sj = np.asarray(edges.slot_j).reshape(-1).astype(np.int64)
-    li = np.asarray(edges.local_i).reshape(-1)
-    lj = np.asarray(edges.local_j).reshape(-1)
+    robot, si, sj, li, lj = _edge_slots(edges)
     own = li & lj
     inter = li ^ lj
     w = np.where(inter, 2.0, 1.0)[:, None, None]
@@ -204,21 +254,11 @@ def build_gamma_operator(edges: RobotEdges, xi: float, n_max: int, *, min_coupli
     bwd = own & (si == sj + 1)  # edge from slot s+1 to s: H_{s,s+1} = H_ji = H_ij^T
     np.add.at(band, (robot[fwd], si[fwd]), Hij[fwd])
     np.add.at(band, (robot[bwd], sj[bwd]), np.swapaxes(Hij[bwd], -1, -2))
-    rest = own & ~fwd & ~bwd
-    # Directed couplings: out[i] += Y[j] @ H_ji (= H_ij^T), out[j] += Y[i] @ H_ij.
-    r_rob = np.concatenate([robot[rest], robot[rest]])
-    r_src = np.concatenate([sj[rest], si[rest]])
-    r_dst = np.concatenate([si[rest], sj[rest]])
-    r_blk = np.concatenate([np.swapaxes(Hij[rest], -1, -2), Hij[rest]])
-    counts = np.bincount(r_rob, minlength=A)
-    k = max(int(counts.max(initial=0)), 1, min_couplings)
-    src = np.zeros((A, k), np.int64)
-    dst = np.full((A, k), n_max - 1, np.int64)  # padding: zero blocks added to the last slot
-    blk = np.zeros((A, k, d + 1, d + 1))
-    order = np.lexsort((r_dst, r_rob))
-    r_rob, r_src, r_dst, r_blk = r_rob[order], r_src[order], r_dst[order], r_blk[order]
-    pos = np.arange(len(r_rob)) - np.repeat(np.concatenate([[0], np.cumsum(counts)[:-1]]), counts)
-    src[r_rob, pos], dst[r_rob, pos], blk[r_rob, pos] = r_src, r_dst, r_blk
+    src, dst, edge, transposed, valid = _coupling_list(robot, si, sj, own & ~fwd & ~bwd, A, e_max, n_max,
+                                                       min_couplings)
+    flat = np.arange(A)[:, None] * e_max + edge
+    blk = np.where(transposed[..., None, None], np.swapaxes(Hij[flat], -1, -2), Hij[flat])
+    blk[~valid] = 0.0
     fdt = np.asarray(edges.kappa).dtype
     return GammaOperator(
         diag=jnp.asarray(diag, fdt),
@@ -227,6 +267,80 @@ def build_gamma_operator(edges: RobotEdges, xi: float, n_max: int, *, min_coupli
         dst=jnp.asarray(dst, jnp.int32),
         blocks=jnp.asarray(blk, fdt),
     )
+
+
+def _edge_slots(edges: RobotEdges):
+    """(robot, slot_i, slot_j, local_i, local_j) of every incident edge, flattened (host)."""
+    A, e_max = np.asarray(edges.kappa).shape
+    robot = np.repeat(np.arange(A), e_max)
+    si = np.asarray(edges.slot_i).reshape(-1).astype(np.int64)
+    sj = np.asarray(edges.slot_j).reshape(-1).astype(np.int64)
+    return robot, si, sj, np.asarray(edges.local_i).reshape(-1), np.asarray(edges.local_j).reshape(-1)
+
+
+# ----------------------------------------------------------------------------------------------
+# Gamma^alpha of weighted edges, assembled inside the compiled step (robust losses). Gamma's blocks
+# are linear in the per-edge weights with a sparsity fixed by the partition: the layout (which band
+# slot or loop-closure coupling an edge feeds) is computed once on the host; the blocks themselves
+# are a few flops per edge and are recomputed from the edges at each assembly.
+# ----------------------------------------------------------------------------------------------
+
+
+class GammaLayout(eqx.Module):
+    """Where each robot's incident edges go in its :class:`GammaOperator` (batched over robots),
+    for :func:`assemble_gamma`; the loop-closure list is :func:`build_gamma_operator`'s."""
+
+    band_slot: jax.Array  # (e_max,): band entry a consecutive-slot own edge adds to (n_max: none)
+    band_transposed: jax.Array  # (e_max,) bool: the edge runs from slot s+1 to s (adds H_ij^T)
+    src: jax.Array  # (k,) loop-closure couplings, as GammaOperator.src / dst
+    dst: jax.Array
+    coupling_edge: jax.Array  # (k,): the incident edge of each coupling
+    coupling_transposed: jax.Array  # (k,) bool: the coupling's block is H_ij^T
+    coupling_valid: jax.Array  # (k,) bool: False on padding (a zero block)
+
+
+def gamma_layout(edges: RobotEdges, n_max: int, *, min_couplings: int = 0) -> GammaLayout:
+    """The :class:`GammaLayout` of a partition's edges (host, once; ``min_couplings`` as for
+    :func:`build_gamma_operator`, whose couplings it lists in the same order)."""
+    A, e_max = np.asarray(edges.kappa).shape
+    robot, si, sj, li, lj = _edge_slots(edges)
+    own = li & lj
+    fwd = own & (sj == si + 1)
+    bwd = own & (si == sj + 1)
+    band_slot = np.where(fwd, si, np.where(bwd, sj, n_max)).reshape(A, e_max)
+    src, dst, edge, transposed, valid = _coupling_list(robot, si, sj, own & ~fwd & ~bwd, A, e_max, n_max,
+                                                       min_couplings)
+    i32 = jnp.int32
+    return GammaLayout(band_slot=jnp.asarray(band_slot, i32), band_transposed=jnp.asarray(bwd.reshape(A, e_max)),
+                       src=jnp.asarray(src, i32), dst=jnp.asarray(dst, i32), coupling_edge=jnp.asarray(edge, i32),
+                       coupling_transposed=jnp.asarray(transposed), coupling_valid=jnp.asarray(valid))
+
+
+def _off_diagonal_blocks(edges: RobotEdges):
+    """H_ij = -tau a e0^T - kappa diag(0, Rt) per edge (e_max, d+1, d+1) (see :func:`edge_hessian_blocks`)."""
+    d = edges.t.shape[-1]
+    dt = edges.t.dtype
+    a = jnp.concatenate([jnp.ones((*edges.t.shape[:-1], 1), dt), edges.t], -1)
+    col0 = jnp.zeros((*a.shape, d + 1), dt).at[..., 0].set(-edges.tau[:, None] * a)
+    return col0.at[..., 1:, 1:].add(-edges.kappa[:, None, None] * edges.R)
+
+
+def assemble_gamma(edges: RobotEdges, layout: GammaLayout, weights, xi, n_max: int):
+    """Gamma^alpha of one robot (stacked layout) for per-edge ``weights`` (e_max,): kappa and tau of
+    edge e times w_e (JAX; :func:`build_gamma_operator` of the weighted edges, up to rounding).
+    Slots whose diagonal block vanishes (padding; with xi = 0, a pose whose every edge has weight 0)
+    get I, as on the host: their gradient is zero, and the extra proximal term keeps G a majorizer.
+    Returns (Gamma, those slots (n_max,) bool)."""
+    k = edges.t.shape[-1] + 1
+    diag = gamma_diagonal_blocks(edges, xi, n_max, weights)
+    empty = ~jnp.any(diag != 0.0, axis=(-1, -2))
+    diag = jnp.where(empty[:, None, None], jnp.eye(k, dtype=diag.dtype), diag)
+    H = weights[:, None, None] * _off_diagonal_blocks(edges)
+    band = jax.ops.segment_sum(jnp.where(layout.band_transposed[:, None, None], mT(H), H), layout.band_slot, n_max)
+    C = H[layout.coupling_edge]
+    blocks = jnp.where(layout.coupling_valid[:, None, None], jnp.where(layout.coupling_transposed[:, None, None],
+                                                                       mT(C), C), 0.0)
+    return GammaOperator(diag=diag, band=band, src=layout.src, dst=layout.dst, blocks=blocks), empty
 
 
 def stack(P: Poses):

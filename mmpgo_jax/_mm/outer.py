@@ -18,16 +18,38 @@ import numpy as np
 from .._core.partition import Partition
 from .._core.pose_graph import Poses
 from .majorization import (
+    GammaLayout,
     GammaOperator,
     GammaSoA,
+    assemble_gamma,
     build_gamma_operator,
+    gamma_layout,
+    gamma_to_soa,
     gradient_and_share,
     host_soa,
+    incident_residuals,
+    robot_share,
     soa_to_gamma,
     stack,
     unstack,
+    weighted_gradient,
 )
-from .preconditioner import NewtonPreconditioner, build_newton_preconditioner
+from .preconditioner import (
+    CoarseParts,
+    NewtonPreconditioner,
+    build_coarse_parts,
+    build_newton_preconditioner,
+    newton_from_gamma,
+)
+from .robust import (
+    RobustLoss,
+    WeightSchedule,
+    initial_schedule,
+    next_weights,
+    robust_cost,
+    robust_edges,
+    start_weights,
+)
 from .subproblem import (
     PRECONDITIONERS,
     SubproblemConfig,
@@ -139,6 +161,17 @@ def check_xi(problem: MMProblem, config: MMConfig) -> None:
             )
 
 
+class RobustData(eqx.Module):
+    """What a robust run needs beyond the least-squares problem: the loss (its numbers filled in,
+    :meth:`RobustLoss.with_defaults`), where each edge goes in Gamma, and each edge's contribution to
+    the coarse matrix of the two-level preconditioner (None with block-Jacobi alone)."""
+
+    loss: RobustLoss
+    layout: GammaLayout
+    coarse: CoarseParts | None
+    robust_edge: jax.Array  # (A, e_max) bool: the incident edges the loss applies to (others: weight 1)
+
+
 class MMProblem(eqx.Module):
     """Constant data of a run: the partition, Gamma^alpha of every robot and the constant part of
     the subproblem's preconditioner (built once).
@@ -153,6 +186,11 @@ class MMProblem(eqx.Module):
     see :class:`~mmpgo_jax.FixedPoses`), which keep their value in X^0; None when no pose is fixed
     (``build(..., fixed=mask)`` with an all-False mask gives an all-True array, e.g. to batch
     problems with and without fixed poses).
+
+    ``robust`` (:class:`RobustData`) is None for least squares (``loss`` "l2": the program of a
+    plain run). With a robust loss Gamma and the preconditioner depend on the edge weights and live
+    in the state (:class:`MMState`); ``gamma_soa`` and ``newton`` then hold those of unit weights,
+    from which the loop-closure list and the coarse space are read.
     """
 
     partition: Partition
@@ -160,6 +198,7 @@ class MMProblem(eqx.Module):
     newton: NewtonPreconditioner  # batched over robots: the subproblem's preconditioner data
     free: jax.Array | None  # (A, n_max) bool, or None when no pose is fixed
     xi: jax.Array  # () the xi of Gamma
+    robust: RobustData | None = None
 
     @property
     def gamma(self) -> GammaOperator:
@@ -179,7 +218,7 @@ class MMProblem(eqx.Module):
     @staticmethod
     def build(partition: Partition, xi: float | None = None, *, config: MMConfig | None = None,
               preconditioner: str | None = None, min_couplings: int = 0, fixed=None,
-              poses=None, aggregate: int | None = None) -> MMProblem:
+              poses=None, aggregate: int | None = None, loss: RobustLoss | None = None) -> MMProblem:
         """Gamma^alpha of every robot, its preconditioner data and the fixed-pose mask (host, once).
 
         ``xi``: the proximal term; default ``config.xi`` (1e-3 without a config). Given both and
@@ -190,7 +229,8 @@ class MMProblem(eqx.Module):
         (default the config's ``subproblem.aggregate``, else chosen from the robots' size; one value
         for problems batched together).
         ``min_couplings`` pads Gamma's loop-closure list (to batch problems of one shape);
-        ``fixed``: a :class:`~mmpgo_jax.FixedPoses` (or (n,) bool mask) of poses that never move."""
+        ``fixed``: a :class:`~mmpgo_jax.FixedPoses` (or (n,) bool mask) of poses that never move.
+        ``loss``: a :class:`~mmpgo_jax.RobustLoss` (None: least squares)."""
         if config is not None and config.xi is not None:
             if xi is None:
                 xi = config.xi
@@ -220,6 +260,18 @@ class MMProblem(eqx.Module):
                                                  stack(poses), partition.pose_mask, dtype, aggregate=aggregate)
         else:
             newton = build_newton_preconditioner(gamma.diag, dtype=dtype)
+        robust = None
+        if loss is not None:
+            n_max = partition.max_poses
+            coarse = build_coarse_parts(partition.edges, newton, n_max) if newton.has_coarse else None
+            e = partition.edges
+            index = np.asarray(partition.pose_index)
+            gi = index[np.asarray(e.robot_i), np.asarray(e.slot_i)]
+            gj = index[np.asarray(e.robot_j), np.asarray(e.slot_j)]
+            mask = robust_edges(loss, gi.reshape(-1), gj.reshape(-1)).reshape(gi.shape)
+            robust = RobustData(loss=loss.with_defaults(e.t.shape[-1]),
+                                layout=gamma_layout(e, n_max, min_couplings=min_couplings), coarse=coarse,
+                                robust_edge=jnp.asarray(mask))
         del gamma  # the stacked-layout copy is not kept: the solver reads gamma_soa
         free = None  # no fixed pose: the solver runs without a mask (same compiled code as ever)
         if fixed is not None:
@@ -230,7 +282,8 @@ class MMProblem(eqx.Module):
             free = np.ones(partition.pose_mask.shape, dtype=bool)
             free[np.asarray(partition.robot_of_pose)[mask], np.asarray(partition.slot_of_pose)[mask]] = False
             free = jnp.asarray(free)
-        return MMProblem(partition=partition, gamma_soa=soa, newton=newton, free=free, xi=jnp.asarray(xi, dtype))
+        return MMProblem(partition=partition, gamma_soa=soa, newton=newton, free=free, xi=jnp.asarray(xi, dtype),
+                         robust=robust)
 
 
 class MMState(eqx.Module):
@@ -247,12 +300,20 @@ class MMState(eqx.Module):
     share_slow: jax.Array  # (A,) slow moving average of Gbar^alpha ("average" restart)
     share_fast: jax.Array  # (A,) fast moving average of Gbar^alpha
     soft_hits: jax.Array  # (A,) consecutive iterations above the fast average
+    # robust losses only (None for least squares): the edge weights of the current majorizer, its
+    # Gamma^alpha and preconditioner, and where the weight updates stand
+    weights: jax.Array | None = None  # (A, e_max) per incident edge
+    gamma: GammaSoA | None = None
+    newton: NewtonPreconditioner | None = None
+    schedule: WeightSchedule | None = None
 
 
 class IterationRecord(eqx.Module):
     f: jax.Array  # 2F(X^{k+1}) (the tables' convention)
     grad_norm: jax.Array  # ||grad F(X^{k+1})|| (Riemannian, of F)
     restarted: jax.Array  # (A,) bool: robot took the MM fallback this iteration
+    # robust losses only: GNC has ended (the stopping rules may apply); None for least squares
+    settled: jax.Array | None = None
 
 
 class Collectives(eqx.Module):
@@ -270,6 +331,10 @@ class Collectives(eqx.Module):
         """Sum over all robots of a per-robot quantity (A_local,) -> scalar."""
         return jnp.sum(x)
 
+    def max(self, x):
+        """Maximum over all robots of a per-robot array (A_local, ...) -> scalar."""
+        return jnp.max(x)
+
 
 LOCAL = Collectives()
 
@@ -283,6 +348,63 @@ def _gradients(problem: MMProblem, X, comm: Collectives = LOCAL):
     Xp = unstack(comm.gather_poses(X))
     grad, share, local = jax.vmap(lambda e: gradient_and_share(e, Xp, part.max_poses))(part.edges)
     return stack(grad), share, local
+
+
+def _residuals(problem: MMProblem, X, comm: Collectives = LOCAL):
+    """(rotation, translation residuals, s) of every robot's incident edges at stacked poses X."""
+    Xp = unstack(comm.gather_poses(X))
+    return jax.vmap(lambda e: incident_residuals(e, Xp))(problem.partition.edges)
+
+
+def _robust_gradients(problem: MMProblem, rot, trans, s, weights):
+    """(grad of 1/2 sum w s (stacked), robust shares of F_rho, shares of 1/2 sum w s) per robot."""
+    part = problem.partition
+    grad = jax.vmap(lambda e, r, t, w: weighted_gradient(e, r, t, w, part.max_poses))(part.edges, rot, trans, weights)
+    share = jax.vmap(robot_share)(part.edges, robust_cost(problem.robust.loss, s, problem.robust.robust_edge))
+    weighted = jax.vmap(robot_share)(part.edges, weights * s)
+    return stack(grad), share, weighted
+
+
+def _weighted_operators(problem: MMProblem, config: MMConfig, weights):
+    """Gamma^alpha (structure of arrays) and the preconditioner of every robot for edge ``weights``
+    (A, e_max), assembled in the compiled step; the coarse level only when the config uses it."""
+    rb = problem.robust
+    base = problem.newton.without_coarse() if config.subproblem.preconditioner == "block-jacobi" else problem.newton
+    n_max = problem.partition.max_poses
+
+    def one(edges, layout, w, base_a, parts_a):
+        gamma, empty = assemble_gamma(edges, layout, w, problem.xi, n_max)
+        slot_weight = jnp.where(empty, 1.0, problem.xi).astype(w.dtype)
+        return gamma_to_soa(gamma), newton_from_gamma(gamma.diag, base_a, parts_a, w, slot_weight)
+
+    parts = rb.coarse if base.has_coarse else None
+    return jax.vmap(one)(problem.partition.edges, rb.layout, weights, base, parts)
+
+
+def _operators(problem: MMProblem, config: MMConfig, st: MMState):
+    """(Gamma^alpha, preconditioner) of the current majorizer: the problem's for least squares, the
+    state's (of the current weights) for a robust loss."""
+    if st.gamma is None:
+        return problem.gamma_soa, problem.preconditioner(config)
+    check_preconditioner(problem, config)
+    pre = st.newton.without_coarse() if config.subproblem.preconditioner == "block-jacobi" else st.newton
+    return st.gamma, pre
+
+
+def _reweight(problem: MMProblem, config: MMConfig, st: MMState, X, comm: Collectives):
+    """At the new iterate X: the weights (updated when the schedule says so, and Gamma^alpha with its
+    preconditioner rebuilt then only), the gradient of the new majorizer, the robust shares."""
+    rot, trans, s = _residuals(problem, X, comm)
+    rb = problem.robust
+    weighted_f = 2.0 * comm.sum(jax.vmap(robot_share)(problem.partition.edges, st.weights * s))
+    s_max = comm.max(jnp.where(rb.robust_edge, s, 0.0))
+    update, weights, schedule = next_weights(rb.loss, st.schedule, s, st.weights, weighted_f, s_max, comm.sum,
+                                             rb.robust_edge)
+    gamma, newton = jax.lax.cond(update, lambda: _weighted_operators(problem, config, weights),
+                                 lambda: (st.gamma, st.newton))
+    grad, share, weighted = _robust_gradients(problem, rot, trans, s, weights)
+    schedule = eqx.tree_at(lambda sc: sc.weighted_f, schedule, 2.0 * comm.sum(weighted))
+    return grad, share, update, dict(weights=weights, gamma=gamma, newton=newton, schedule=schedule)
 
 
 def _riemannian_grad_norm(X, grad, free, comm: Collectives = LOCAL):
@@ -303,7 +425,18 @@ def init_state(problem: MMProblem, X0: Poses, config: MMConfig = None) -> MMStat
     else:
         check_xi(problem, config)
     X0 = stack(X0)
-    grad, share, local = _gradients(problem, X0)
+    robust = {}
+    if problem.robust is None:
+        grad, share, local = _gradients(problem, X0)
+    else:
+        rb = problem.robust
+        rot, trans, s = _residuals(problem, X0)
+        weights = start_weights(rb.loss, s, rb.robust_edge)
+        gamma, newton = _weighted_operators(problem, config, weights)
+        grad, share, weighted = _robust_gradients(problem, rot, trans, s, weights)
+        local = 0.5 * jnp.sum(robust_cost(rb.loss, s, rb.robust_edge), axis=-1)
+        robust = dict(weights=weights, gamma=gamma, newton=newton,
+                      schedule=initial_schedule(problem.robust.loss, 2.0 * jnp.sum(weighted)))
     A = share.shape[0]
     return MMState(
         X=X0,
@@ -317,23 +450,27 @@ def init_state(problem: MMProblem, X0: Poses, config: MMConfig = None) -> MMStat
         share_slow=share,
         share_fast=share,
         soft_hits=jnp.zeros(A, jnp.int32),
+        **robust,
     )
 
 
-def _mm_update(problem: MMProblem, config: MMConfig, X, grad):
-    """X^{alpha,k+1} = argmin G^alpha(. | X^k) for every robot (Algorithm 1 line 6)."""
+def _mm_update(problem: MMProblem, config: MMConfig, X, grad, gamma=None, pre=None):
+    """X^{alpha,k+1} = argmin G^alpha(. | X^k) for every robot (Algorithm 1 line 6); ``gamma``,
+    ``pre``: the majorizer's Gamma^alpha and preconditioner (default: the problem's)."""
     def solve(G, P, x, g, free):
         return solve_subproblem(G, P, x, x, g, config.subproblem, free)[0]
-    return jax.vmap(solve, in_axes=(0, 0, 0, 0, _free_axis(problem)))(
-        problem.gamma_soa, problem.preconditioner(config), X, grad, problem.free)
+    if gamma is None:
+        gamma, pre = problem.gamma_soa, problem.preconditioner(config)
+    return jax.vmap(solve, in_axes=(0, 0, 0, 0, _free_axis(problem)))(gamma, pre, X, grad, problem.free)
 
 
 def _free_axis(problem: MMProblem):
     return None if problem.free is None else 0
 
 
-def _amm_update(problem: MMProblem, config: MMConfig, st: MMState):
-    """Algorithm 2 lines 11-20 (per robot) with the configured restart test."""
+def _amm_update(problem: MMProblem, config: MMConfig, st: MMState, gamma_soa, pre):
+    """Algorithm 2 lines 11-20 (per robot) with the configured restart test, for the majorizer with
+    Gamma^alpha ``gamma_soa`` and preconditioner ``pre``."""
     s_next = 0.5 * (jnp.sqrt(4.0 * st.s**2 + 1.0) + 1.0)
     gamma = ((st.s - 1.0) / s_next)[:, None, None, None]
     Y = st.X + gamma * (st.X - st.X_prev)
@@ -341,14 +478,13 @@ def _amm_update(problem: MMProblem, config: MMConfig, st: MMState):
     start = Y.at[..., 1:].set(project_rotations(Y[..., 1:]))
     if problem.free is not None:  # fixed slots have Y = X exactly; unprojected, they stay bit-exact
         start = jnp.where(problem.free[..., None, None], start, Y)
-    pre = problem.preconditioner(config)
 
     def solve(G, P, x0, c, g, free):
         return solve_subproblem(G, P, x0, c, g, config.subproblem, free)[0]
 
     def restart_test(Z):
         # G^alpha(Z | X^k) - Gbar^alpha(k): no objective evaluation needed (paper Eq. (19); docs/conventions.md §3).
-        decrease = jax.vmap(majorizer_value)(problem.gamma_soa, Z, st.X, st.grad)
+        decrease = jax.vmap(majorizer_value)(gamma_soa, Z, st.X, st.grad)
         soft_hits = st.soft_hits
         soft = jnp.zeros_like(decrease, dtype=bool)
         if config.restart == "paper":
@@ -376,7 +512,7 @@ def _amm_update(problem: MMProblem, config: MMConfig, st: MMState):
         k, restart, soft, soft_hits, _ = carry
         r = restart[:, None, None, None]
         Z = jax.vmap(solve, in_axes=(0, 0, 0, 0, 0, _free_axis(problem)))(
-            problem.gamma_soa, pre, jnp.where(r, st.X, start), jnp.where(r, st.X, Y), jnp.where(r, st.grad, gY),
+            gamma_soa, pre, jnp.where(r, st.X, start), jnp.where(r, st.X, Y), jnp.where(r, st.grad, gY),
             problem.free)
         first = k == 0
         tested = restart_test(Z)
@@ -396,17 +532,26 @@ def _amm_update(problem: MMProblem, config: MMConfig, st: MMState):
 
 
 def step(problem: MMProblem, config: MMConfig, st: MMState, comm: Collectives = LOCAL):
-    """One outer iteration; returns (new state, record)."""
+    """One outer iteration; returns (new state, record). With a robust loss the weights of the next
+    majorizer are set at the new iterate when their schedule says so (:func:`~mmpgo_jax._mm.robust.next_weights`)."""
+    gamma, pre = _operators(problem, config, st)
     if config.method == "mm":
-        X_new = _mm_update(problem, config, st.X, st.grad)
+        X_new = _mm_update(problem, config, st.X, st.grad, gamma, pre)
         s_new = st.s
         restart = jnp.zeros_like(st.s, dtype=bool)
         soft_hits = st.soft_hits
     elif config.method == "amm":
-        X_new, s_new, restart, soft_hits = _amm_update(problem, config, st)
+        X_new, s_new, restart, soft_hits = _amm_update(problem, config, st, gamma, pre)
     else:
         raise ValueError(f"unknown method {config.method!r}: use 'mm' or 'amm'")
-    grad, share, _ = _gradients(problem, X_new, comm)
+    robust = {}
+    settled = None
+    if problem.robust is None:
+        grad, share, _ = _gradients(problem, X_new, comm)
+    else:
+        grad, share, update, robust = _reweight(problem, config, st, X_new, comm)
+        s_new = jnp.where(update, 1.0, s_new)  # a new majorizer: AMM's momentum starts afresh
+        settled = robust["schedule"].done | ~jnp.asarray(problem.robust.loss.use_gnc)
     new = MMState(
         X=X_new,
         grad=grad,
@@ -419,9 +564,11 @@ def step(problem: MMProblem, config: MMConfig, st: MMState, comm: Collectives = 
         share_slow=st.share_slow + config.average_rates[0] * (share - st.share_slow),
         share_fast=st.share_fast + config.average_rates[1] * (share - st.share_fast),
         soft_hits=soft_hits,
+        **robust,
     )
     rec = IterationRecord(
-        f=2.0 * comm.sum(share), grad_norm=_riemannian_grad_norm(X_new, grad, problem.free, comm), restarted=restart
+        f=2.0 * comm.sum(share), grad_norm=_riemannian_grad_norm(X_new, grad, problem.free, comm), restarted=restart,
+        settled=settled,
     )
     return new, rec
 
@@ -477,7 +624,12 @@ run = _CheckedJit(_run, """``length`` outer iterations in one ``lax.scan``; retu
 
 def _skipped_record(st: MMState) -> IterationRecord:
     nan = jnp.full((), jnp.nan, st.share.dtype)
-    return IterationRecord(f=nan, grad_norm=nan, restarted=jnp.zeros_like(st.s, dtype=bool))
+    return IterationRecord(f=nan, grad_norm=nan, restarted=jnp.zeros_like(st.s, dtype=bool), settled=_settled(st))
+
+
+def _settled(st: MMState):
+    """A record's ``settled`` outside the step: True (robust losses) or None (least squares)."""
+    return None if st.schedule is None else jnp.ones((), bool)
 
 
 def evaluate(problem: MMProblem, state: MMState) -> IterationRecord:

@@ -238,6 +238,25 @@ def _coarse_matrices(diag, band, src, dst, blocks, E, b: int):
     return coarse
 
 
+def _fine_constants(diag, xp):
+    """(gamma00, g, S_Gamma) of Gamma's diagonal blocks (..., n, k, k) in the stacked layout, with the
+    array module ``xp`` (numpy on the host, jax.numpy in the compiled step): gamma00 = Gamma_ss[0, 0],
+    g = Gamma_ss[1:, 0] and the Schur complement of the tangent block (p, p) for W = 0."""
+    d = diag.shape[-1] - 1
+    gamma00 = diag[..., 0, 0]
+    g = diag[..., 1:, 0]  # (..., n, d)
+    G = diag[..., 1:, 1:]
+    trG = xp.trace(G, axis1=-2, axis2=-1)
+    gg = xp.einsum("...i,...i->...", g, g)
+    if d == 2:
+        schur = (trG - gg / gamma00)[..., None, None]
+    else:
+        eye = xp.eye(3)
+        schur = trG[..., None, None] * eye - G - (gg[..., None, None] * eye - g[..., :, None] * g[..., None, :]) \
+            / gamma00[..., None, None]
+    return gamma00, g, schur
+
+
 def _coarse_inverse(coarse):
     """(B^T Gamma B)^+ for every robot, scaled symmetrically to a unit diagonal first (empty
     aggregates: zero rows stay zero). By Cholesky when every matrix is positive definite (xi > 0,
@@ -257,7 +276,7 @@ def _coarse_inverse(coarse):
     except np.linalg.LinAlgError:
         ok = False
     if not ok:
-        inverse = np.linalg.pinv(scaled, rcond=1e-13, hermitian=True)
+        inverse = np.linalg.pinv(scaled, rcond=PINV_RCOND, hermitian=True)
     inverse = np.where(empty[:, :, None] | empty[:, None, :], 0.0, inverse)
     return inverse * scale[:, :, None] * scale[:, None, :]
 
@@ -274,18 +293,8 @@ def build_newton_preconditioner(diag, band=None, src=None, dst=None, blocks=None
     diag = np.asarray(diag, np.float64)
     A, n, k, _ = diag.shape
     d = k - 1
-    gamma00 = diag[..., 0, 0]
-    g = diag[..., 1:, 0]  # (A, n, d)
-    G = diag[..., 1:, 1:]
-    trG = np.trace(G, axis1=-2, axis2=-1)
-    gg = np.einsum("...i,...i->...", g, g)
     with np.errstate(invalid="ignore", over="ignore"):  # non-finite weights: the run reports f = inf itself
-        if d == 2:
-            schur = (trG - gg / gamma00)[..., None, None]
-        else:
-            eye = np.eye(3)
-            schur = trG[..., None, None] * eye - G - (gg[..., None, None] * eye - g[..., :, None] * g[..., None, :]) \
-                / gamma00[..., None, None]
+        gamma00, g, schur = _fine_constants(diag, np)
 
     def soa(x):  # (A, n, ...) -> (A, ..., n)
         return jnp.asarray(np.moveaxis(x, 1, -1), dtype)
@@ -319,3 +328,118 @@ def build_newton_preconditioner(diag, band=None, src=None, dst=None, blocks=None
         inverse = _coarse_inverse(coarse)
     return NewtonPreconditioner(**fine, frame=jnp.asarray(frame_soa, dtype), real=jnp.asarray(real, dtype),
                                 coarse_inverse=jnp.asarray(inverse, dtype), aggregate=b)
+
+
+PINV_RCOND = 1e-13  # relative cut-off of the coarse matrix's pseudo-inverse (host and compiled)
+
+
+# --- the preconditioner of weighted edges, rebuilt inside the compiled step (robust losses) -------
+# Its fine level is a few flops per slot of Gamma's diagonal blocks. Its coarse matrix B^T Gamma B is
+# linear in the edge weights: each edge's contribution (on the rigid motions of the one or two
+# aggregates it touches) is computed once on the host, and the matrix is their weighted sum.
+
+
+class CoarseParts(eqx.Module):
+    """Per-edge and per-slot contributions to B^T Gamma B (batched over robots in front)."""
+
+    edge_blocks: jax.Array  # (e_max, 2c, 2c): the edge's Gamma blocks at unit weight, on [modes at agg(i); at agg(j)]
+    edge_index: jax.Array  # (e_max, 2c): coarse indices of those rows / columns
+    slot_blocks: jax.Array  # (n, c, c): B_s^T B_s (what a slot's identity block adds)
+    slot_index: jax.Array  # (n, c)
+
+
+def build_coarse_parts(edges, newton: NewtonPreconditioner, n_max: int) -> CoarseParts:
+    """The :class:`CoarseParts` of a partition's incident edges on the coarse space of ``newton``
+    (a host-built two-level preconditioner: its start-pose frames and aggregate size; host, once)."""
+    from .majorization import _edge_hessian_blocks, _edge_slots
+
+    frame, real = np.asarray(newton.frame, np.float64), np.asarray(newton.real, np.float64)
+    A, d, _, n = frame.shape
+    b, c = newton.aggregate, d * (d + 1) // 2
+    m = -(-n // b)
+    E = _tangent_basis(frame, real, d)  # (A, n, c, d, k)
+    e_max = np.asarray(edges.kappa).shape[1]
+    robot, si, sj, li, lj = _edge_slots(edges)
+    Hii, Hjj, Hij = _edge_hessian_blocks(np.asarray(edges.R, np.float64).reshape(-1, d, d),
+                                         np.asarray(edges.t, np.float64).reshape(-1, d),
+                                         np.asarray(edges.kappa, np.float64).reshape(-1),
+                                         np.asarray(edges.tau, np.float64).reshape(-1))
+    factor = np.where(li ^ lj, 2.0, 1.0)[:, None, None]  # an inter-robot edge: twice its local block
+    own = (li & lj)[:, None, None]
+    Ei, Ej = E[robot, si], E[robot, sj]  # a remote end's rows are unused: its blocks are zero
+
+    def block(E_dst, E_src, K):  # <E_dst,p, E_src,q K>: the coarse entry of out[dst] += Y[src] @ K
+        return np.einsum("eirc,ejrl,elc->eij", E_dst, E_src, K)
+
+    top = np.concatenate([block(Ei, Ei, factor * Hii * li[:, None, None]),
+                          block(Ei, Ej, np.swapaxes(Hij, -1, -2) * own)], axis=2)
+    bottom = np.concatenate([block(Ej, Ei, Hij * own), block(Ej, Ej, factor * Hjj * lj[:, None, None])], axis=2)
+    modes = np.arange(c) * m
+    index = np.concatenate([modes + (si // b)[:, None], modes + (sj // b)[:, None]], axis=1)
+    slot_blocks = np.einsum("ansrc,antrc->anst", E, E)
+    slot_index = np.broadcast_to(modes + (np.arange(n) // b)[:, None], (A, n, c))
+    fdt = np.asarray(edges.kappa).dtype
+    return CoarseParts(edge_blocks=jnp.asarray(np.concatenate([top, bottom], axis=1).reshape(A, e_max, 2 * c, 2 * c),
+                                               fdt),
+                       edge_index=jnp.asarray(index.reshape(A, e_max, 2 * c), jnp.int32),
+                       slot_blocks=jnp.asarray(slot_blocks, fdt), slot_index=jnp.asarray(slot_index, jnp.int32))
+
+
+def _scaled_pseudo_inverse(M):
+    """The host's symmetric-scaled inverse of one coarse matrix (:func:`_coarse_inverse`), in JAX.
+
+    Cholesky written with XLA operations only: LAPACK calls (eigh, potrf, trsm) inside the sharded
+    program hang with several CPU devices in one process. A pivot at rounding level (xi = 0: the
+    gauge; an aggregate whose every edge has weight 0) drops its row and column, as the host's
+    pseudo-inverse does for a null direction."""
+    n = M.shape[0]
+    M = jnp.where(jnp.all(jnp.isfinite(M)), M, 0.0)
+    dg = jnp.diagonal(M)
+    scale = jnp.where(dg > 0, 1.0 / jnp.sqrt(jnp.where(dg > 0, dg, 1.0)), 0.0)
+    S = M * scale[:, None] * scale[None, :]
+    idx = jnp.arange(n)
+
+    def column(k, carry):
+        L, dropped = carry
+        row = jnp.where(idx < k, L[k], 0.0)
+        pivot = S[k, k] - row @ row
+        ok = pivot > 1e-10  # S has a unit diagonal: relative to it
+        lkk = jnp.sqrt(jnp.where(ok, pivot, 1.0))
+        col = jnp.where(idx > k, (S[:, k] - L @ row) / lkk, 0.0).at[k].set(lkk)
+        col = jnp.where(ok, col, (idx == k).astype(S.dtype))
+        return L.at[:, k].set(col), dropped.at[k].set(~ok)
+
+    L, dropped = jax.lax.fori_loop(0, n, column, (jnp.zeros_like(S), jnp.zeros(n, bool)))
+
+    def row(k, Li):  # forward substitution: row k of L^-1
+        r = (jnp.where(idx == k, 1.0, 0.0) - jnp.where(idx < k, L[k], 0.0) @ Li) / L[k, k]
+        return Li.at[k].set(r)
+
+    Li = jax.lax.fori_loop(0, n, row, jnp.zeros_like(S))
+    inverse = Li.T @ Li
+    drop = dropped | (dg <= 0)
+    inverse = jnp.where(drop[:, None] | drop[None, :], 0.0, inverse)
+    return inverse * scale[:, None] * scale[None, :]
+
+
+def newton_from_gamma(diag, base: NewtonPreconditioner, parts: CoarseParts | None, weights,
+                      slot_weight) -> NewtonPreconditioner:
+    """The preconditioner of one robot whose Gamma has the diagonal blocks ``diag`` (n, k, k) (JAX):
+    its fine level from ``diag``; with a coarse level (``base`` built by
+    :func:`build_newton_preconditioner`, ``parts`` by :func:`build_coarse_parts`), B^T Gamma B from
+    the edge ``weights`` (e_max,) and ``slot_weight`` (n,), the coefficient of each slot's identity
+    block in Gamma (xi, or 1 where the block was empty), then its pseudo-inverse."""
+    gamma00, g, schur = _fine_constants(diag, jnp)
+    fine = dict(gamma00=gamma00, coupling=jnp.moveaxis(g, 0, -1), schur=jnp.moveaxis(schur, 0, -1))
+    if not base.has_coarse:
+        return NewtonPreconditioner(**fine)
+    size = base.coarse_inverse.shape[-1]
+
+    def scatter(values, index):  # sum values (..., r, r) into the coarse matrix at index (..., r)
+        flat = index[..., :, None] * size + index[..., None, :]
+        return jax.ops.segment_sum(values.reshape(-1), flat.reshape(-1), size * size).reshape(size, size)
+
+    coarse = scatter(weights[:, None, None] * parts.edge_blocks, parts.edge_index) + \
+        scatter(slot_weight[:, None, None] * parts.slot_blocks, parts.slot_index)
+    return NewtonPreconditioner(**fine, frame=base.frame, real=base.real,
+                                coarse_inverse=_scaled_pseudo_inverse(coarse), aggregate=base.aggregate)

@@ -26,9 +26,11 @@ from .centralized import NewtonConfig, newton_optimum
 from .driver import RESULTS, History, Monitor, NonFiniteError, Termination, compile_once, drive
 from .majorization import unstack
 from .outer import IterationRecord, MMConfig, MMProblem, check_consistent, run, start_state
+from .robust import GNCConfig, RobustLoss, as_loss, robust_outcome
 from .subproblem import SubproblemConfig
 
-__all__ = ["RESULTS", "History", "NonFiniteError", "SolveResult", "centralized_optimum", "output_frame", "solve"]
+__all__ = ["RESULTS", "ROBUST_START", "History", "NonFiniteError", "SolveResult", "centralized_optimum", "output_frame",
+           "solve"]
 
 
 @dataclass(frozen=True)
@@ -48,6 +50,9 @@ class SolveResult:
     stats: dict = field(default_factory=dict)
     accuracy: TrajectoryAccuracy | None = None  # against ``ground_truth`` when one was given
     termination: Termination | None = None
+    loss: RobustLoss | None = None  # the robust loss (its numbers filled in), None for least squares
+    weights: np.ndarray | None = None  # (m,) final edge weights (robust losses), graph edge order
+    inliers: np.ndarray | None = None  # (m,) bool: final residual within the scale (robust losses)
 
     @property
     def f(self) -> float:
@@ -95,6 +100,35 @@ class SolveResult:
     def ms_per_iteration(self) -> float:
         return 1e3 * self.solve_seconds / max(self.iterations, 1)
 
+    @property
+    def outliers(self) -> np.ndarray | None:
+        """(m,) bool: the edges a robust run rejects (``~inliers``); None for least squares."""
+        return None if self.inliers is None else ~self.inliers
+
+
+def start_for(init, loss: RobustLoss | None):
+    """The start of a run: ``init`` as given, or by default the chordal start for least squares and
+    ``ROBUST_START`` for a robust loss (measured in benchmarks/robust.md)."""
+    if init is not None:
+        return init
+    return "chordal" if loss is None else ROBUST_START
+
+
+ROBUST_START = "chordal"  # the default start of robust runs (benchmarks/robust.md)
+
+
+def robust_fields(problem: MMProblem, graph: PoseGraph, part: Partition, state, poses) -> dict:
+    """The robust outcome of a run for :class:`SolveResult` (``loss``, ``weights``, ``inliers``) and
+    its statistics (weight updates, GNC stages, final mu); empty for least squares."""
+    if problem.robust is None:
+        return {}, {}
+    loss = jax.device_get(problem.robust.loss)
+    weights, inliers = robust_outcome(loss, graph, part, state.weights, poses)
+    sched = jax.device_get(state.schedule)
+    stats = dict(weight_updates=int(sched.updates), gnc_stages=int(sched.stage), gnc_mu=float(sched.mu),
+                 weights_final=bool(sched.done))
+    return dict(loss=loss, weights=weights, inliers=inliers), stats
+
 
 def solve(
     graph: PoseGraph,
@@ -102,7 +136,7 @@ def solve(
     *,
     method: Literal["mm", "amm"] = "amm",
     iterations: int = 1000,
-    init="chordal",
+    init=None,
     initial: Poses | None = None,
     xi: float = 1e-3,
     restart: Literal["paper", "adaptive", "average"] = "adaptive",
@@ -116,12 +150,16 @@ def solve(
     fixed: FixedPoses | None = None,
     frame: FixedPoses | Literal["raw"] | None = None,
     monitor: Monitor | None = None,
+    loss: str | RobustLoss = "l2",
+    loss_scale: float | None = None,
+    gnc: GNCConfig | None = None,
 ) -> SolveResult:
     """Run MM-PGO (``method="mm"``) or AMM-PGO (``"amm"``) on ``graph`` split among ``robots``.
 
     ``robots``: a count (contiguous blocks, as in the paper), an (n,) robot-of-pose array, or a
-    prepared :class:`Partition`. ``init``: see :func:`mmpgo_jax.initialize` (``"chordal"`` is the
-    paper's start); ``initial`` holds the file's VERTEX estimates for ``init="vertices"``.
+    prepared :class:`Partition`. ``init``: see :func:`mmpgo_jax.initialize` (default ``"chordal"``,
+    the paper's start; for a robust loss :data:`ROBUST_START`); ``initial`` holds the file's VERTEX
+    estimates for ``init="vertices"``.
     ``restart``: AMM's restart rule, ``"adaptive"`` (default), ``"average"`` or ``"paper"`` (see
     :class:`MMConfig`; measured in benchmarks/restart_rules.md). Stops after ``iterations`` or,
     checked after each chunk of ``chunk_size`` iterations, when
@@ -139,6 +177,14 @@ def solve(
     moves the result rigidly so that its first pose takes that value; ``"raw"`` keeps the solver's
     own gauge. f and the history do not depend on it.
 
+    ``loss``: the kernel of the robust objective F_rho = 1/2 sum rho_c(s_ij) (docs/conventions.md
+    §10): "l2" (least squares, the default), "huber", "cauchy", "geman-mcclure", "welsch" or
+    "tls" (truncated least squares, through GNC), or a :class:`~mmpgo_jax.RobustLoss` with its
+    weight-update options; ``loss_scale``: c in residual units (default
+    :func:`~mmpgo_jax.chi2_scale`); ``gnc``: a :class:`~mmpgo_jax.GNCConfig` (tls, geman-mcclure).
+    f and the history are then f = 2 F_rho, and the result holds the final edge ``weights`` and the
+    ``inliers`` (edges whose final residual is within the scale).
+
     Raises :class:`NonFiniteError` when f or its gradient stops being finite (data whose weights or
     residuals float arithmetic cannot represent). Numbers are checked (ValueError naming the
     parameter). A second call with the same shapes and configuration structure does not compile
@@ -146,15 +192,16 @@ def solve(
     """
     termination = Termination(iterations, chunk_size, grad_tol, f_target, rel_decrease_tol)
     config = MMConfig(method=method, restart=restart, xi=xi, subproblem=subproblem or SubproblemConfig())
+    robust = as_loss(loss, loss_scale, gnc)
     monitor = monitor or Monitor()
     clock = _Clock()
     monitor.phase("initializing")
     part = robots if isinstance(robots, Partition) else partition(graph, robots)
-    X0 = initialize(graph, init, initial=initial, robots=part, fixed=fixed)
+    X0 = initialize(graph, start_for(init, robust), initial=initial, robots=part, fixed=fixed)
     X0 = jax.block_until_ready(part.scatter(X0))
     clock.lap("initialize")
     monitor.phase("building")
-    problem = jax.block_until_ready(MMProblem.build(part, xi, config=config, fixed=fixed, poses=X0))
+    problem = jax.block_until_ready(MMProblem.build(part, xi, config=config, fixed=fixed, poses=X0, loss=robust))
     clock.lap("build")
     monitor.phase("compiling")
     start_fn = compile_once(start_state, problem, X0, config)
@@ -167,24 +214,31 @@ def solve(
     check_consistent(problem, config)  # (the exported program below skips run()'s own check)
 
     def compile_chunk(state, length, limit):
-        out = (state, IterationRecord(f=0.0, grad_norm=0.0, restarted=0.0))  # the structure of run's result
+        settled = None if problem.robust is None else 0.0
+        out = (state, IterationRecord(f=0.0, grad_norm=0.0, restarted=0.0, settled=settled))  # run's result structure
         compiled = compile_once(run, problem, config, state, length, limit, static=(length,),
                                 exported=(run.__wrapped__, (3,), out))
         return lambda st, lim: compiled(problem, config, st, lim)
 
-    out = drive(compile_chunk, state, (start.f, start.grad_norm, start.restarted), termination,
-                fetch=lambda rec: jax.device_get((rec.f, rec.grad_norm, rec.restarted)), callback=callback,
+    def fetch(rec):  # robust runs add whether GNC has ended (the stopping rules wait for it)
+        extra = () if problem.robust is None else (rec.settled,)
+        return jax.device_get((rec.f, rec.grad_norm, rec.restarted, *extra))
+
+    out = drive(compile_chunk, state, (start.f, start.grad_norm, start.restarted), termination, fetch=fetch,
+                callback=callback,
                 monitor=monitor)
     poses = output_frame(part.gather(unstack(out.state.X)), fixed, frame)
+    outcome, robust_stats = robust_fields(problem, graph, part, out.state, poses)
     return SolveResult(
         poses=poses,
         history=out.history,
         partition=part,
         config=config,
         result=out.result,
-        stats=clock.stats(out),
+        stats={**clock.stats(out), **robust_stats},
         accuracy=None if ground_truth is None else trajectory_accuracy(poses, ground_truth),
         termination=termination,
+        **outcome,
     )
 
 

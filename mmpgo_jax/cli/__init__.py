@@ -218,6 +218,22 @@ def _add_solver_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-progress", action="store_true", help="do not show a progress bar")
 
 
+def _add_robust_options(p: argparse.ArgumentParser) -> None:
+    from .._mm.robust import LOSSES
+
+    g = p.add_argument_group("robust losses (outlier loop closures)")
+    g.add_argument("--loss", choices=LOSSES, default="l2",
+                   help="kernel of the robust objective (default l2, least squares); tls runs through GNC; "
+                        "odometry edges (consecutive poses) always keep weight 1")
+    g.add_argument("--loss-scale", metavar="C", type=finite_float(0.0, strict=True), default=None,
+                   help="scale c of the kernel in residual units, > 0 (default: sqrt of the 0.99 chi-square quantile "
+                        "with d(d+1)/2 degrees of freedom: 3.37 in 2D, 4.10 in 3D)")
+    g.add_argument("--edge-weights", metavar="OUT.csv",
+                   help="write every edge's final weight and inlier flag as CSV (i, j, weight, inlier; original ids)")
+    g.add_argument("--drop-outliers", action="store_true",
+                   help="--out / --out-dir keep only the inlier edges (by default every edge is written)")
+
+
 def _add_strict(p: argparse.ArgumentParser) -> None:
     p.add_argument("--strict-information", action="store_true",
                    help="refuse information matrices that are not positive definite (default: warn and use "
@@ -261,6 +277,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--ground-truth",
         help="poses to compare with (.g2o VERTEX lines or .npz with R, t): reports ATE and RPE after rigid alignment",
     )
+    _add_robust_options(p)
     _add_strict(p)
     _add_common(p)
     from .sharded import add_cli_options, add_threads_option
@@ -425,7 +442,8 @@ def read_input(path, args=None):
     return read(path, args)
 
 
-_OUTPUTS = (("out", "--out"), ("tum", "--tum"), ("history", "--history"), ("plot", "--plot"))
+_OUTPUTS = (("out", "--out"), ("tum", "--tum"), ("history", "--history"), ("plot", "--plot"),
+            ("edge_weights", "--edge-weights"))
 def check_outputs(args) -> None:
     """Refuse unusable output paths before any work: for each of --out, --tum, --history, --plot
     that is set, its folder must exist and be writable, the path must not be a directory (nor a
@@ -614,6 +632,9 @@ def _cmd_solve(args) -> int:
 
     args.file = str(_resolve_file(args.file, args.data))
     check_outputs(args)
+    if args.loss == "l2" and (args.edge_weights or args.drop_outliers or args.loss_scale is not None):
+        flag = "--edge-weights" if args.edge_weights else "--drop-outliers" if args.drop_outliers else "--loss-scale"
+        raise CLIError(f"{flag} needs a robust --loss (huber, cauchy, geman-mcclure, welsch or tls)")
     with progress_bar(f"{args.method.upper()}-PGO", args.iterations, disable=args.no_progress,
                       show_gradient=args.grad_tol is not None) as progress:
         progress.phase("reading")
@@ -653,9 +674,10 @@ def reference_fstar(data: LoadedInput):
 def solve_options(args, data: LoadedInput) -> dict:
     """The keyword arguments of ``solve`` / ``solve_sharded`` from ``mmpgo solve``'s options (the
     start resolved, FIX poses and the input's frame; the robots are ``data.robot_of_pose``)."""
+    robust = {} if getattr(args, "loss", "l2") == "l2" else dict(loss=args.loss, loss_scale=args.loss_scale)
     return dict(method=args.method, iterations=args.iterations, init=data.start(args.init, _SOLVE_STARTS),
                 initial=data.initial, xi=args.xi, restart=args.restart, chunk_size=args.chunk,
-                grad_tol=args.grad_tol, fixed=data.fixed, frame=data.frame)
+                grad_tol=args.grad_tol, fixed=data.fixed, frame=data.frame, **robust)
 
 
 def _print_certificate(data: LoadedInput, poses, *, hint: bool) -> None:
@@ -672,21 +694,25 @@ def _print_certificate(data: LoadedInput, poses, *, hint: bool) -> None:
               "e.g. --robots 1)")
 
 
-def _write_estimate(args, data: LoadedInput, poses) -> list[str]:
+def _write_estimate(args, data: LoadedInput, poses, inliers=None) -> list[str]:
     """--out (g2o, with the FIX lines), --tum, --tum-dir and --out-dir files of an estimate; returns
-    the paths written."""
+    the paths written. ``inliers`` (m,) bool: the edges to write (all when None)."""
     from .._io.g2o import write_g2o, write_tum
     from .._io.multi_robot import write_robot_folder, write_robot_tum
 
     written = []
     robots = dict(robot_of_pose=data.robot_of_pose, robot_names=data.robot_names, vertex_ids=data.vertex_ids)
+    graph, information = data.graph, data.information
+    if inliers is not None:  # --drop-outliers
+        graph = graph.select_edges(inliers)
+        information = None if information is None else np.asarray(information)[inliers]
     if getattr(args, "tum_dir", None):
         written += write_robot_tum(args.tum_dir, poses, **robots)
     if getattr(args, "out_dir", None):
-        written += write_robot_folder(args.out_dir, data.graph, poses, information=data.information,
+        written += write_robot_folder(args.out_dir, graph, poses, information=information,
                                       fixed=data.fixed_mask, **robots)
     if args.out:
-        write_g2o(args.out, data.graph, poses, vertex_ids=data.vertex_ids, information=data.information,
+        write_g2o(args.out, graph, poses, vertex_ids=data.vertex_ids, information=information,
                   fixed=data.fixed_mask)
         written.append(args.out)
     if args.tum:
@@ -703,8 +729,12 @@ def finish_solve(args, data: LoadedInput, result, fstar) -> None:
 
     if args.certify:
         _print_certificate(data, result.poses, hint=True)
+    keep = result.inliers if getattr(args, "drop_outliers", False) else None
     with atomic_group():
-        written = _write_estimate(args, data, result.poses)
+        written = _write_estimate(args, data, result.poses, keep)
+        if getattr(args, "edge_weights", None):
+            write_edge_weights_csv(args.edge_weights, data, result)
+            written.append(args.edge_weights)
         if args.history:
             write_history_csv(args.history, result)
             written.append(args.history)
@@ -763,6 +793,11 @@ def _print_summary(result, fstar, data: LoadedInput | None = None) -> None:
         print(f"f*          {fstar.value:.12g} ({fstar.label})")
         print(f"gap         {fstar.gap(h.f[-1]):.3e} = (f - f*)/f*, relative to the {fstar.label}")
     print(f"|grad F|    {h.grad_norm[-1]:.3e}")
+    if result.loss is not None:
+        rejected = int((~result.inliers).sum())
+        gnc = f", GNC {result.stats['gnc_stages']} stages" if bool(result.loss.use_gnc) else ""
+        print(f"loss        {result.loss.name} (c = {float(result.loss.scale):.4g}{gnc}): {rejected} of "
+              f"{len(result.inliers)} edges rejected (f = sum of rho(r^2))")
     if result.accuracy is not None:
         a = result.accuracy
         print(f"ATE         {a.ate:.6g} RMSE, {a.ate_max:.6g} max (positions after rigid alignment); "
@@ -779,6 +814,18 @@ def print_timing(result, *, read: float, write: float) -> None:
         setup = f"initialize and build {result.init_seconds:.2f} s"
     print(f"time        read {read:.2f} s, {setup}, compile {result.compile_seconds:.2f} s, "
           f"iterations {result.solve_seconds:.2f} s ({result.ms_per_iteration:.2f} ms/iteration), write {write:.2f} s")
+
+
+def write_edge_weights_csv(path, data: LoadedInput, result) -> None:
+    """One line per edge of a robust solve: original ids i, j, final weight, inlier 0/1."""
+    from .._io.atomic import atomic_write
+
+    ids = np.asarray(data.vertex_ids)
+    i, j = ids[np.asarray(data.graph.i)], ids[np.asarray(data.graph.j)]
+    with atomic_write(path) as fh:
+        fh.write("i,j,weight,inlier\n")
+        fh.writelines(f"{a},{b},{float(w)!r},{int(k)}\n" for a, b, w, k in zip(i.tolist(), j.tolist(), result.weights,
+                                                                                result.inliers, strict=True))
 
 
 def write_history_csv(path, result) -> None:
