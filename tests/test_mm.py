@@ -456,6 +456,7 @@ def test_amm_average_bounded_and_faster(runs, problem2d):
     assert np.all(np.abs(st.share_fast - st.share) <= np.abs(st.share_slow - st.share) + 1e-12)
 
 
+@pytest.mark.slow  # keeps the default run under 15 minutes
 def test_amm_average_hard_and_soft_restarts(runs):
     """Hard restart (value above the slow average) takes the MM step; a soft restart keeps the
     momentum step Z but resets s to 1 after ``soft_restart_hits`` consecutive hits."""

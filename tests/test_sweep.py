@@ -155,6 +155,7 @@ def test_sweep_mixed_sizes_and_csv(tmp_path):
     assert (tmp_path / "configs.csv").read_text().startswith("graph,robots,method")
 
 
+@pytest.mark.slow  # keeps the default run under 15 minutes
 def test_batches_of_one_run_unbatched_and_agree(amm_sweep, cube):
     """max_batch_configs=1: every batch runs without vmap (the AMM fallback stays a real cond), the
     group still compiles once, and the histories equal the one-batch vmapped sweep."""
@@ -200,6 +201,7 @@ def test_xi_sweep_compiles_once_and_matches_separate_solves(cube):
     assert sorted({r["xi"] for r in rows}) == sorted(XIS) and {r["xi"] for r in res.configs} == set(XIS)
 
 
+@pytest.mark.slow  # keeps the default run under 15 minutes
 def test_scalar_xi_keeps_keys_and_columns(tmp_path):
     """One xi (a number or a one-element sequence): keys (graph, robots, method), no xi column."""
     g = mm.cube_dataset(3, num_poses=40, grid=3)
