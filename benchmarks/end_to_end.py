@@ -65,7 +65,8 @@ def main() -> None:
         ph = warm[1]
         rows.append(f"| {name} | {ph['threads']} | {cold[0]:.1f} | {cold[1]['compile']:.2f} | {warm[0]:.1f} | "
                     f"{ph['compile']:.2f} | "
-                    + " | ".join(f"{ph[p]:.2f}" for p in ("read", "initialize", "build", "iterations", "write"))
+                    + " | ".join("—" if ph[p] != ph[p] else f"{ph[p]:.2f}"  # nan: not reported apart
+                                 for p in ("read", "initialize", "build", "iterations", "write"))
                     + f" | {authors if authors else '-'} | {ratio} |\n")
         print(rows[-1], end="", flush=True)
     text = (f"# End to end: `mmpgo solve FILE` (AMM, {args.iterations} iterations, 10 robots)\n\n"
