@@ -40,8 +40,6 @@ def run_sweep(args: argparse.Namespace, resolve_file) -> int:
     from .._io.datasets import benchmark_info
     from .robots import read_input
 
-    if getattr(args, "robots_from", None) not in (None, "blocks", "metis", "random"):
-        raise CLIError(f"--robots-from {args.robots_from}: sweep splits by robot counts (blocks, metis, random)")
     graphs, fstar = {}, {}
     for name in args.files:
         path = resolve_file(name, args.data)
