@@ -204,7 +204,7 @@ def solve_sharded(
             part = user_part
         else:
             part = partition(graph, plan.sharded_robot_of_pose, num_robots=plan.padded_robots)
-        X0 = _initial_poses(graph, start_for(init, robust), initial, user_part, multiprocess, fixed)
+        X0 = _initial_poses(graph, *start_for(init, robust), initial, user_part, multiprocess, fixed)
         X0 = part.scatter(X0)
         monitor.phase("building")
         problem = MMProblem.build(part, xi, config=config, fixed=fixed, poses=X0, loss=robust)
@@ -294,10 +294,10 @@ def _agree(reason: RESULTS | None) -> RESULTS | None:
     return _REASONS[int(code)]
 
 
-def _initial_poses(graph, init, initial, robots, multiprocess: bool, fixed=None) -> Poses:
+def _initial_poses(graph, init, options, initial, robots, multiprocess: bool, fixed=None) -> Poses:
     from .._init.chordal import initialize
 
-    X0 = initialize(graph, init, initial=initial, robots=robots, fixed=fixed)
+    X0 = initialize(graph, init, initial=initial, robots=robots, fixed=fixed, **options)
     if not multiprocess:
         return X0
     # Every process computes the same start; broadcast process 0's so that hosts with different

@@ -1,4 +1,5 @@
-"""GTSAM's Levenberg–Marquardt on a pose graph, as the timing reference of the centralized solver.
+"""GTSAM's Levenberg–Marquardt on a pose graph, as the timing reference of the centralized solver,
+and GTSAM's GNC-TLS (``GncOptimizer``) as an independent reference of the robust start.
 
 Optional: needs ``gtsam`` (``pip install "mmpgo-jax[benchmark]"``; wheels for Linux and macOS),
 which is not a dependency of the package. Used by ``mmpgo bench`` (when gtsam is installed) and
@@ -22,7 +23,7 @@ import numpy as np
 
 from .._core.pose_graph import PoseGraph, Poses
 
-__all__ = ["GtsamResult", "gtsam_available", "gtsam_levenberg_marquardt"]
+__all__ = ["GtsamGncResult", "GtsamResult", "gtsam_available", "gtsam_gnc", "gtsam_levenberg_marquardt"]
 
 
 def gtsam_available() -> bool:
@@ -98,3 +99,35 @@ def gtsam_levenberg_marquardt(graph: PoseGraph, start: Poses, *, error_tol: floa
     result = optimizer.optimize()
     seconds = time.perf_counter() - t
     return GtsamResult(_poses(result, graph.num_poses, graph.dim), seconds, int(optimizer.iterations()))
+
+
+@dataclass(frozen=True)
+class GtsamGncResult:
+    poses: Poses  # host float64 arrays
+    weights: np.ndarray  # (m,) GNC's final weights of the graph's edges
+    seconds: float  # optimize() alone
+
+
+def gtsam_gnc(graph: PoseGraph, start: Poses, *, scale: float, trust_odometry: bool = True) -> GtsamGncResult:
+    """GTSAM's ``GncOptimizer`` with TLS and Levenberg–Marquardt stages from ``start``: the inlier
+    threshold is this package's scale c (GTSAM's factor error is half the squared residual, so its
+    threshold is c^2 / 2), odometry edges (|i - j| = 1) and the gauge prior are known inliers when
+    ``trust_odometry``. GTSAM re-solves every stage from ``start`` (see
+    :mod:`~mmpgo_jax._init.robust_start`)."""
+    if not gtsam_available():
+        raise ImportError("GTSAM's reference needs gtsam: pip install 'mmpgo-jax[benchmark]' (or pip install gtsam)")
+    import gtsam
+
+    fg, values = _problem(graph, start)
+    i, j = np.asarray(graph.i), np.asarray(graph.j)
+    known = np.flatnonzero(np.abs(i - j) == 1) if trust_odometry else np.zeros(0, np.int64)
+    params = gtsam.GncLMParams(gtsam.LevenbergMarquardtParams())
+    params.setLossType(gtsam.GncLossType.TLS)
+    params.setKnownInliers([*map(int, known), graph.num_edges])  # the prior is the last factor
+    optimizer = gtsam.GncLMOptimizer(fg, values, params)
+    optimizer.setInlierCostThresholds(0.5 * scale**2)
+    t = time.perf_counter()
+    result = optimizer.optimize()
+    seconds = time.perf_counter() - t
+    weights = np.asarray(optimizer.getWeights())[: graph.num_edges]
+    return GtsamGncResult(_poses(result, graph.num_poses, graph.dim), weights, seconds)

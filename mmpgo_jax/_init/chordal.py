@@ -54,7 +54,7 @@ __all__ = [
     "translations_given_rotations",
 ]
 
-INITIALIZATION_METHODS = ("chordal", "distributed-chordal", "odometry", "vertices")
+INITIALIZATION_METHODS = ("chordal", "distributed-chordal", "gnc-chordal", "odometry", "vertices")
 
 
 # --------------------------------------------------------------------------------------------
@@ -416,7 +416,7 @@ def initialize(
     initial: Poses | None = None,
     robots=None,
     fixed: FixedPoses | None = None,
-    **distributed_options,
+    **options,
 ) -> Poses:
     """Initial poses for ``graph``; the ``fixed`` poses (if any) are at their values in every case.
 
@@ -425,7 +425,10 @@ def initialize(
     * ``"chordal"`` -- :func:`chordal_initialization` (the paper's start, docs/conventions.md §5);
     * ``"distributed-chordal"`` -- :func:`~mmpgo_jax._init.distributed_chordal.distributed_chordal_initialization`
       with ``robots`` (a count, an (n,) robot-of-pose array or a ``Partition``; default
-      min(10, n) contiguous robots) and ``distributed_options`` passed through;
+      min(10, n) contiguous robots) and ``options`` passed through;
+    * ``"gnc-chordal"`` -- :func:`~mmpgo_jax._init.robust_start.gnc_chordal_initialization`: a start
+      that outlier loop closures do not bend (GNC-TLS whose stages are chordal solves refined by
+      Newton), the default start of robust losses; ``options``: ``scale``, ``trust_odometry``;
     * ``"odometry"`` -- :func:`odometry_initialization`;
     * ``"vertices"`` -- the file's VERTEX estimates, given as ``initial``;
     * a :class:`Poses` -- used as given (shapes checked, rotations projected to SO(d));
@@ -439,16 +442,21 @@ def initialize(
     """
     if fixed is not None:
         fixed.check(graph.num_poses, graph.dim)
-    poses = _initial_poses(graph, method, initial, robots, fixed, distributed_options)
+    poses = _initial_poses(graph, method, initial, robots, fixed, options)
     return poses if fixed is None else fixed.apply(poses)
 
 
-def _initial_poses(graph, method, initial, robots, fixed, distributed_options) -> Poses:
+def _initial_poses(graph, method, initial, robots, fixed, options) -> Poses:
     if isinstance(method, Poses):
         return poses_from_arrays(graph, method.R, method.t)
     if isinstance(method, str) and method in INITIALIZATION_METHODS:
-        if distributed_options and method != "distributed-chordal":
-            raise ValueError(f"options {sorted(distributed_options)} only apply to 'distributed-chordal'")
+        if options and method not in ("distributed-chordal", "gnc-chordal"):
+            raise ValueError(f"options {sorted(options)} only apply to 'distributed-chordal' and 'gnc-chordal'")
+        if method == "gnc-chordal":
+            from .robust_start import gnc_chordal_initialization
+
+            start = gnc_chordal_initialization(graph, fixed=fixed, **options)
+            return poses_from_arrays(graph, start.poses.R, start.poses.t)
         if method == "chordal":
             return chordal_initialization(graph, fixed)
         if method == "odometry":
@@ -463,7 +471,7 @@ def _initial_poses(graph, method, initial, robots, fixed, distributed_options) -
 
         if robots is None:
             robots = min(10, graph.num_poses)
-        poses, _ = distributed_chordal_initialization(graph, robots, fixed=fixed, **distributed_options)
+        poses, _ = distributed_chordal_initialization(graph, robots, fixed=fixed, **options)
         return poses
     if isinstance(method, (str, os.PathLike)):
         p = Path(method)

@@ -25,13 +25,16 @@ the compiled step (:func:`~mmpgo_jax._mm.majorization.assemble_gamma`, with the 
 :func:`~mmpgo_jax._mm.preconditioner.newton_from_gamma`) whenever the weights change.
 
 GNC (Yang, Antonante, Tzoumas & Carlone, "Graduated non-convexity for robust spatial perception",
-RA-L 2020): ``tls`` always and ``geman-mcclure`` on request run through a sequence of surrogate
-kernels rho_mu, from a convex one (least squares in practice) to the kernel itself. Each *stage*
-runs the distributed solver with fixed weights until the weighted objective stalls (relative
-change per iteration below ``GNCConfig.stage_tolerance``) or for ``GNCConfig.stage_iterations``;
-then every robot sets the weights of its own edges in closed form, w = rho_mu'(s), and mu moves
-by ``GNCConfig.factor``. The stages are part of the compiled scan (the step decides when a stage
-ends); once the weights are binary (TLS) or mu has reached 1 (GM), GNC ends and the weights stay.
+RA-L 2020): ``tls`` and ``geman-mcclure`` run, when a :class:`GNCConfig` is given, through a
+sequence of surrogate kernels rho_mu, from a convex one (least squares in practice) to the kernel
+itself. Each *stage* runs the distributed solver with fixed weights until the weighted objective
+stalls (relative change per iteration below ``GNCConfig.stage_tolerance``) or for
+``GNCConfig.stage_iterations``; then every robot sets the weights of its own edges in closed form,
+w = rho_mu'(s), and mu moves by ``GNCConfig.factor``. The stages are part of the compiled scan
+(the step decides when a stage ends); once the weights are binary (TLS) or mu has reached 1 (GM),
+GNC ends and the weights stay. Without a GNCConfig every kernel is a plain M-estimator from its
+start, by default the GNC-chordal start (:mod:`mmpgo_jax._init.robust_start`), which runs GNC-TLS
+with stages solved from scratch and is the more reliable of the two (docs/conventions.md §10).
 
 The scale c: with SE-Sync's noise model (docs/conventions.md §8), s of a correct edge is close to
 chi^2 with d(d+1)/2 degrees of freedom (d translation, d(d-1)/2 rotation), so the default c is
@@ -184,8 +187,9 @@ class RobustLoss(eqx.Module):
     ``kernel``: a name of :data:`LOSSES` (stored as an integer code, a traced leaf: problems with
     different kernels batch together). ``scale``: c in residual units (default
     :func:`chi2_scale` of the graph's dimension, filled in by :meth:`with_defaults`). ``gnc``: a
-    :class:`GNCConfig` to run the kernel through GNC (``tls`` always does; ``geman-mcclure`` may;
-    the others may not); None otherwise. ``update_every`` (K >= 1): M-estimator weights are set
+    :class:`GNCConfig` to run GNC stages in the distributed solver (``tls`` and ``geman-mcclure``;
+    the others may not); None otherwise (the default start, GNC-chordal, then does GNC).
+    ``update_every`` (K >= 1): M-estimator weights are set
     to rho'(s) every K outer iterations (and at the start); ``max_updates``: at most this many
     updates after the start (None: no bound), after which the weights stay. ``trust_odometry``
     (default True, as dpgo and Kimera-Multi do): edges between consecutive poses (|i - j| = 1,
@@ -213,12 +217,12 @@ class RobustLoss(eqx.Module):
             return
         name = str(kernel)
         self.kernel = loss_code(name)
-        if gnc is None and name == "tls":
-            gnc = GNCConfig()
         if gnc is not None and name not in GNC_LOSSES:
             raise ValueError(f"RobustLoss: GNC applies to {' and '.join(GNC_LOSSES)}, not {name!r}")
         self.scale, self.gnc, self.update_every, self.max_updates = scale, gnc, update_every, max_updates
-        # use_gnc=False keeps a GNC kernel a plain M-estimator (weights rho'(s) from the start)
+        # GNC runs in the distributed solver only when asked for; otherwise the kernel is a plain
+        # M-estimator (weights rho'(s), for TLS 1 up to c^2 and 0 beyond) from its start, and TLS's
+        # GNC is done by the default robust start (mmpgo_jax._init.robust_start)
         self.use_gnc = gnc is not None if use_gnc is None else bool(use_gnc)
 
     def __check_init__(self):

@@ -26,7 +26,7 @@ from .centralized import NewtonConfig, newton_optimum
 from .driver import RESULTS, History, Monitor, NonFiniteError, Termination, compile_once, drive
 from .majorization import unstack
 from .outer import IterationRecord, MMConfig, MMProblem, check_consistent, run, start_state
-from .robust import GNCConfig, RobustLoss, as_loss, robust_outcome
+from .robust import GNCConfig, RobustLoss, as_loss, loss_code, robust_outcome
 from .subproblem import SubproblemConfig
 
 __all__ = ["RESULTS", "ROBUST_START", "History", "NonFiniteError", "SolveResult", "centralized_optimum", "output_frame",
@@ -106,15 +106,19 @@ class SolveResult:
         return None if self.inliers is None else ~self.inliers
 
 
-def start_for(init, loss: RobustLoss | None):
-    """The start of a run: ``init`` as given, or by default the chordal start for least squares and
-    ``ROBUST_START`` for a robust loss (measured in benchmarks/robust.md)."""
+def start_for(init, loss: RobustLoss | None) -> tuple:
+    """(start, options) of a run: ``init`` as given, or by default the chordal start for least
+    squares and for GNC run by the distributed solver, and :data:`ROBUST_START` (with the loss's
+    scale) for a robust loss otherwise (measured in benchmarks/robust.md)."""
     if init is not None:
-        return init
-    return "chordal" if loss is None else ROBUST_START
+        return init, {}
+    if loss is None or bool(np.asarray(loss.use_gnc)) or int(np.asarray(loss.kernel)) == loss_code("l2"):
+        return "chordal", {}
+    scale = None if loss.scale is None else float(np.asarray(loss.scale))
+    return ROBUST_START, dict(scale=scale, trust_odometry=loss.trust_odometry)
 
 
-ROBUST_START = "chordal"  # the default start of robust runs (benchmarks/robust.md)
+ROBUST_START = "gnc-chordal"  # the default start of robust runs (benchmarks/robust.md)
 
 
 def robust_fields(problem: MMProblem, graph: PoseGraph, part: Partition, state, poses) -> dict:
@@ -179,9 +183,11 @@ def solve(
 
     ``loss``: the kernel of the robust objective F_rho = 1/2 sum rho_c(s_ij) (docs/conventions.md
     §10): "l2" (least squares, the default), "huber", "cauchy", "geman-mcclure", "welsch" or
-    "tls" (truncated least squares, through GNC), or a :class:`~mmpgo_jax.RobustLoss` with its
-    weight-update options; ``loss_scale``: c in residual units (default
-    :func:`~mmpgo_jax.chi2_scale`); ``gnc``: a :class:`~mmpgo_jax.GNCConfig` (tls, geman-mcclure).
+    "tls" (truncated least squares), or a :class:`~mmpgo_jax.RobustLoss` with its weight-update
+    options; ``loss_scale``: c in residual units (default :func:`~mmpgo_jax.chi2_scale`). A robust
+    kernel starts by default from ``init="gnc-chordal"`` (GNC-TLS with chordal + Newton stages, at
+    the loss's scale); ``gnc``: a :class:`~mmpgo_jax.GNCConfig` (tls, geman-mcclure) runs GNC stages
+    in the distributed solver instead, from the chordal start.
     f and the history are then f = 2 F_rho, and the result holds the final edge ``weights`` and the
     ``inliers`` (edges whose final residual is within the scale).
 
@@ -197,7 +203,8 @@ def solve(
     clock = _Clock()
     monitor.phase("initializing")
     part = robots if isinstance(robots, Partition) else partition(graph, robots)
-    X0 = initialize(graph, start_for(init, robust), initial=initial, robots=part, fixed=fixed)
+    start_method, start_options = start_for(init, robust)
+    X0 = initialize(graph, start_method, initial=initial, robots=part, fixed=fixed, **start_options)
     X0 = jax.block_until_ready(part.scatter(X0))
     clock.lap("initialize")
     monitor.phase("building")

@@ -203,8 +203,10 @@ def _add_solver_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--iterations", "-n", type=ITERATIONS, default=1000, help="outer iterations, >= 0 (default 1000)")
     p.add_argument(
         "--init",
-        default="chordal",
-        help="start: chordal (default), distributed-chordal, vertices, odometry, or a .g2o/.npz file of poses",
+        default=None,
+        help="start: chordal (default for least squares), gnc-chordal (default for a robust --loss: GNC-TLS with "
+             "chordal stages, not bent by outliers), distributed-chordal, vertices, odometry, or a .g2o/.npz file "
+             "of poses",
     )
     p.add_argument("--restart", choices=("adaptive", "average", "paper"), default="adaptive",
                    help="AMM restart rule (default adaptive; see README)")
@@ -223,8 +225,11 @@ def _add_robust_options(p: argparse.ArgumentParser) -> None:
 
     g = p.add_argument_group("robust losses (outlier loop closures)")
     g.add_argument("--loss", choices=LOSSES, default="l2",
-                   help="kernel of the robust objective (default l2, least squares); tls runs through GNC; "
-                        "odometry edges (consecutive poses) always keep weight 1")
+                   help="kernel of the robust objective (default l2, least squares), started from the GNC start "
+                        "(--init gnc-chordal); odometry edges (consecutive poses) always keep weight 1")
+    g.add_argument("--gnc", action="store_true",
+                   help="tls, geman-mcclure: run GNC's stages inside the distributed solver (fully distributed, "
+                        "from the chordal start; less reliable than the default GNC start, see README)")
     g.add_argument("--loss-scale", metavar="C", type=finite_float(0.0, strict=True), default=None,
                    help="scale c of the kernel in residual units, > 0 (default: sqrt of the 0.99 chi-square quantile "
                         "with d(d+1)/2 degrees of freedom: 3.37 in 2D, 4.10 in 3D)")
@@ -556,9 +561,9 @@ class LoadedInput:
         full = load_poses(self.g2o.graph, file, vertex_ids=self.g2o.vertex_ids, what=what)
         return full if self.keep is None else Poses(full.R[self.keep], full.t[self.keep])
 
-    def start(self, init: str, methods: tuple[str, ...]):
-        """``init`` for the solver: a method name, or the poses of a file."""
-        if init in methods:
+    def start(self, init: str | None, methods: tuple[str, ...]):
+        """``init`` for the solver: a method name, the poses of a file, or None (the solver's default)."""
+        if init is None or init in methods:
             return init
         if not Path(init).is_file():
             raise CLIError(f"--init {init!r}: not a known method ({', '.join(methods)}) nor a file")
@@ -621,7 +626,7 @@ def _load_for_solve(args, *, announce: bool = True) -> LoadedInput:
                        *robots)
 
 
-_SOLVE_STARTS = ("chordal", "distributed-chordal", "vertices", "odometry")
+_SOLVE_STARTS = ("chordal", "distributed-chordal", "gnc-chordal", "vertices", "odometry")
 _OPTIMUM_STARTS = ("chordal", "vertices", "odometry")
 
 
@@ -632,9 +637,12 @@ def _cmd_solve(args) -> int:
 
     args.file = str(_resolve_file(args.file, args.data))
     check_outputs(args)
-    if args.loss == "l2" and (args.edge_weights or args.drop_outliers or args.loss_scale is not None):
-        flag = "--edge-weights" if args.edge_weights else "--drop-outliers" if args.drop_outliers else "--loss-scale"
+    if args.loss == "l2" and (args.edge_weights or args.drop_outliers or args.loss_scale is not None or args.gnc):
+        flag = ("--edge-weights" if args.edge_weights else "--drop-outliers" if args.drop_outliers
+                else "--gnc" if args.gnc else "--loss-scale")
         raise CLIError(f"{flag} needs a robust --loss (huber, cauchy, geman-mcclure, welsch or tls)")
+    if args.gnc and args.loss not in ("tls", "geman-mcclure"):
+        raise CLIError(f"--gnc applies to --loss tls and geman-mcclure, not {args.loss}")
     with progress_bar(f"{args.method.upper()}-PGO", args.iterations, disable=args.no_progress,
                       show_gradient=args.grad_tol is not None) as progress:
         progress.phase("reading")
@@ -674,7 +682,11 @@ def reference_fstar(data: LoadedInput):
 def solve_options(args, data: LoadedInput) -> dict:
     """The keyword arguments of ``solve`` / ``solve_sharded`` from ``mmpgo solve``'s options (the
     start resolved, FIX poses and the input's frame; the robots are ``data.robot_of_pose``)."""
+    from .._mm.robust import GNCConfig
+
     robust = {} if getattr(args, "loss", "l2") == "l2" else dict(loss=args.loss, loss_scale=args.loss_scale)
+    if robust and getattr(args, "gnc", False):
+        robust["gnc"] = GNCConfig()
     return dict(method=args.method, iterations=args.iterations, init=data.start(args.init, _SOLVE_STARTS),
                 initial=data.initial, xi=args.xi, restart=args.restart, chunk_size=args.chunk,
                 grad_tol=args.grad_tol, fixed=data.fixed, frame=data.frame, **robust)
