@@ -25,93 +25,209 @@ Public API (the private modules are implementation details):
 * precision: :func:`enable_float64`; compilation: :func:`enable_compilation_cache` (JAX's persistent cache)
 """
 
-from ._core.compilation_cache import enable_compilation_cache
-from ._core.gauge import FixedPoses, express_in_frame
-from ._core.geometry import project_to_so, quaternion_to_rotation, rotation_2d
-from ._core.partition import (
-    Partition,
-    contiguous_robots,
-    metis_robots,
-    partition,
-    partition_stats,
-    random_robots,
-    split_robots,
-)
-from ._core.pose_graph import (
-    PoseGraph,
-    Poses,
-    connected_components,
-    cost,
-    data_matrix,
-    edge_costs,
-    euclidean_gradient,
-    matrix_to_poses,
-    objective,
-    poses_to_matrix,
-    riemannian_gradient,
-    riemannian_gradient_norm,
-)
-from ._core.precision import default_float_dtype, enable_float64, float64_enabled
-from ._experiments.certificate import OptimalityCertificate, certificate_matrix, certify
-from ._experiments.metrics import (
-    RelativePoseError,
-    TrajectoryAccuracy,
-    absolute_trajectory_error,
-    align_poses,
-    relative_pose_error,
-    rigid_alignment,
-    trajectory_accuracy,
-)
-from ._experiments.sweep import SweepResult, reference_optimum, sweep
-from ._experiments.synthetic import SyntheticDataset, cube_dataset, grid_2d_dataset
-from ._init.chordal import (
-    chordal_initialization,
-    initialize,
-    load_poses,
-    odometry_initialization,
-)
-from ._init.distributed_chordal import distributed_chordal_initialization
-from ._io.datasets import (
-    BENCHMARKS,
-    DatasetNotFoundError,
-    FStarReference,
-    available_benchmarks,
-    benchmark_info,
-    data_dir,
-    find_benchmark,
-)
-from ._io.g2o import (
-    G2OFile,
-    G2OFormatError,
-    G2OPoses,
-    G2OWarning,
-    read_g2o,
-    read_g2o_poses,
-    read_toro,
-    write_g2o,
-    write_toro,
-    write_tum,
-)
-from ._io.multi_robot import (
-    read_robot_folder,
-    read_robot_labels,
-    robots_from_symbols,
-    symbol_keys,
-    write_robot_folder,
-    write_robot_tum,
-)
-from ._mm.driver import RESULTS, Monitor, Termination
-from ._mm.outer import MMConfig, MMProblem, MMState, init_state, run, step
-from ._mm.robust import LOSSES, GNCConfig, RobustLoss, chi2_scale
-from ._mm.solve import (
-    History,
-    NonFiniteError,
-    SolveResult,
-    centralized_optimum,
-    output_frame,
-    solve,
-)
-from ._mm.subproblem import SubproblemConfig
+import importlib
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # the same names, eagerly, for type checkers and IDEs
+    from ._core.compilation_cache import enable_compilation_cache
+    from ._core.gauge import FixedPoses, express_in_frame
+    from ._core.geometry import project_to_so, quaternion_to_rotation, rotation_2d
+    from ._core.partition import (
+        Partition,
+        contiguous_robots,
+        metis_robots,
+        partition,
+        partition_stats,
+        random_robots,
+        split_robots,
+    )
+    from ._core.pose_graph import (
+        PoseGraph,
+        Poses,
+        connected_components,
+        cost,
+        data_matrix,
+        edge_costs,
+        euclidean_gradient,
+        matrix_to_poses,
+        objective,
+        poses_to_matrix,
+        riemannian_gradient,
+        riemannian_gradient_norm,
+    )
+    from ._core.precision import default_float_dtype, enable_float64, float64_enabled
+    from ._experiments.certificate import OptimalityCertificate, certificate_matrix, certify
+    from ._experiments.metrics import (
+        RelativePoseError,
+        TrajectoryAccuracy,
+        absolute_trajectory_error,
+        align_poses,
+        relative_pose_error,
+        rigid_alignment,
+        trajectory_accuracy,
+    )
+    from ._experiments.sweep import SweepResult, reference_optimum, sweep
+    from ._experiments.synthetic import SyntheticDataset, cube_dataset, grid_2d_dataset
+    from ._init.chordal import (
+        chordal_initialization,
+        initialize,
+        load_poses,
+        odometry_initialization,
+    )
+    from ._init.distributed_chordal import distributed_chordal_initialization
+    from ._io.datasets import (
+        BENCHMARKS,
+        DatasetNotFoundError,
+        FStarReference,
+        available_benchmarks,
+        benchmark_info,
+        data_dir,
+        find_benchmark,
+    )
+    from ._io.g2o import (
+        G2OFile,
+        G2OFormatError,
+        G2OPoses,
+        G2OWarning,
+        read_g2o,
+        read_g2o_poses,
+        read_toro,
+        write_g2o,
+        write_toro,
+        write_tum,
+    )
+    from ._io.multi_robot import (
+        read_robot_folder,
+        read_robot_labels,
+        robots_from_symbols,
+        symbol_keys,
+        write_robot_folder,
+        write_robot_tum,
+    )
+    from ._mm.driver import RESULTS, Monitor, Termination
+    from ._mm.outer import MMConfig, MMProblem, MMState, init_state, run, step
+    from ._mm.robust import LOSSES, GNCConfig, RobustLoss, chi2_scale
+    from ._mm.solve import (
+        History,
+        NonFiniteError,
+        SolveResult,
+        centralized_optimum,
+        output_frame,
+        solve,
+    )
+    from ._mm.subproblem import SubproblemConfig
+
+_LAZY = {  # public name -> the private module that defines it (imported on first use)
+    "enable_compilation_cache": "._core.compilation_cache",
+    "FixedPoses": "._core.gauge",
+    "express_in_frame": "._core.gauge",
+    "project_to_so": "._core.geometry",
+    "quaternion_to_rotation": "._core.geometry",
+    "rotation_2d": "._core.geometry",
+    "Partition": "._core.partition",
+    "contiguous_robots": "._core.partition",
+    "metis_robots": "._core.partition",
+    "partition": "._core.partition",
+    "partition_stats": "._core.partition",
+    "random_robots": "._core.partition",
+    "split_robots": "._core.partition",
+    "PoseGraph": "._core.pose_graph",
+    "Poses": "._core.pose_graph",
+    "connected_components": "._core.pose_graph",
+    "cost": "._core.pose_graph",
+    "data_matrix": "._core.pose_graph",
+    "edge_costs": "._core.pose_graph",
+    "euclidean_gradient": "._core.pose_graph",
+    "matrix_to_poses": "._core.pose_graph",
+    "objective": "._core.pose_graph",
+    "poses_to_matrix": "._core.pose_graph",
+    "riemannian_gradient": "._core.pose_graph",
+    "riemannian_gradient_norm": "._core.pose_graph",
+    "default_float_dtype": "._core.precision",
+    "enable_float64": "._core.precision",
+    "float64_enabled": "._core.precision",
+    "OptimalityCertificate": "._experiments.certificate",
+    "certificate_matrix": "._experiments.certificate",
+    "certify": "._experiments.certificate",
+    "RelativePoseError": "._experiments.metrics",
+    "TrajectoryAccuracy": "._experiments.metrics",
+    "absolute_trajectory_error": "._experiments.metrics",
+    "align_poses": "._experiments.metrics",
+    "relative_pose_error": "._experiments.metrics",
+    "rigid_alignment": "._experiments.metrics",
+    "trajectory_accuracy": "._experiments.metrics",
+    "SweepResult": "._experiments.sweep",
+    "reference_optimum": "._experiments.sweep",
+    "sweep": "._experiments.sweep",
+    "SyntheticDataset": "._experiments.synthetic",
+    "cube_dataset": "._experiments.synthetic",
+    "grid_2d_dataset": "._experiments.synthetic",
+    "chordal_initialization": "._init.chordal",
+    "initialize": "._init.chordal",
+    "load_poses": "._init.chordal",
+    "odometry_initialization": "._init.chordal",
+    "distributed_chordal_initialization": "._init.distributed_chordal",
+    "BENCHMARKS": "._io.datasets",
+    "DatasetNotFoundError": "._io.datasets",
+    "FStarReference": "._io.datasets",
+    "available_benchmarks": "._io.datasets",
+    "benchmark_info": "._io.datasets",
+    "data_dir": "._io.datasets",
+    "find_benchmark": "._io.datasets",
+    "G2OFile": "._io.g2o",
+    "G2OFormatError": "._io.g2o",
+    "G2OPoses": "._io.g2o",
+    "G2OWarning": "._io.g2o",
+    "read_g2o": "._io.g2o",
+    "read_g2o_poses": "._io.g2o",
+    "read_toro": "._io.g2o",
+    "write_g2o": "._io.g2o",
+    "write_toro": "._io.g2o",
+    "write_tum": "._io.g2o",
+    "read_robot_folder": "._io.multi_robot",
+    "read_robot_labels": "._io.multi_robot",
+    "robots_from_symbols": "._io.multi_robot",
+    "symbol_keys": "._io.multi_robot",
+    "write_robot_folder": "._io.multi_robot",
+    "write_robot_tum": "._io.multi_robot",
+    "Monitor": "._mm.driver",
+    "RESULTS": "._mm.driver",
+    "Termination": "._mm.driver",
+    "MMConfig": "._mm.outer",
+    "MMProblem": "._mm.outer",
+    "MMState": "._mm.outer",
+    "init_state": "._mm.outer",
+    "run": "._mm.outer",
+    "step": "._mm.outer",
+    "GNCConfig": "._mm.robust",
+    "LOSSES": "._mm.robust",
+    "RobustLoss": "._mm.robust",
+    "chi2_scale": "._mm.robust",
+    "History": "._mm.solve",
+    "NonFiniteError": "._mm.solve",
+    "SolveResult": "._mm.solve",
+    "centralized_optimum": "._mm.solve",
+    "output_frame": "._mm.solve",
+    "solve": "._mm.solve",
+    "SubproblemConfig": "._mm.subproblem",
+}
+
+
+def __getattr__(name: str):
+    """The public names are imported on first use: ``import mmpgo_jax`` loads no module of the package
+    (and hence neither JAX nor SciPy) until one is asked for, so that a program, e.g. ``mmpgo solve``,
+    pays only for the modules it uses."""
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(module, __name__), name)
+    globals()[name] = value  # the next look-up is an ordinary attribute
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_LAZY))
+
 
 __version__ = "0.1.0"
 

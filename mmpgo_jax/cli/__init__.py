@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import gc
 import math
 import os
 import re
@@ -31,8 +32,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-
-from .progress import progress_bar, write_line
 
 
 class CLIError(Exception):
@@ -86,6 +85,8 @@ def cli_warnings():
 
         def show(message, category, filename, lineno, file=None, line=None):
             if _is_mmpgo_warning(category, filename):
+                from .progress import write_line
+
                 write_line(f"mmpgo: warning: {one_line(message)}", sys.stderr)
             else:
                 original(message, category, filename, lineno, file, line)
@@ -338,18 +339,39 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     """``mmpgo`` with ``argv`` (default ``sys.argv[1:]``); returns the exit status (0, 2 for bad
-    input or options, 130 when interrupted)."""
+    input or options, 130 when interrupted).
+
+    ``argv=None`` (the ``mmpgo`` program itself, and ``python -m mmpgo_jax.cli``): the process ends
+    after the command, so the garbage collector is kept off while JAX, SciPy and the solver are
+    imported (about 300 000 long-lived objects, which full collections would traverse again and
+    again) and those objects are then frozen (:func:`gc.freeze`), as everything is again at the end
+    so that the interpreter's shutdown does not traverse them (measured: benchmarks/end_to_end.md).
+    A call with ``argv`` (tests, other programs) leaves the collector alone."""
+    program = argv is None
+    if program:
+        gc.disable()
     try:
-        args = build_parser().parse_args(argv)
-    except SystemExit as exc:  # --help, or a bad option (reported in one line by _Parser.error)
-        return _exit_status(exc)
-    # numpy's floating-point warnings would add lines to the one-line errors: non-finite values are
-    # checked explicitly (the reader's representability rules, the solvers' NonFiniteError)
-    with cli_warnings(), np.errstate(all="ignore"):
-        return _run(args, argv)
+        try:
+            args = build_parser().parse_args(argv)
+        except SystemExit as exc:  # --help, or a bad option (reported in one line by _Parser.error)
+            return _exit_status(exc)
+        # numpy's floating-point warnings would add lines to the one-line errors: non-finite values are
+        # checked explicitly (the reader's representability rules, the solvers' NonFiniteError)
+        with cli_warnings(), np.errstate(all="ignore"):
+            return _run(args, argv, program=program)
+    finally:
+        if program:
+            gc.freeze()
+            gc.enable()
 
 
-def _run(args, argv) -> int:
+# The modules a command needs beyond the parser's: imported up front by the program (with the
+# collector off, see main); each command imports them again where it uses them.
+_COMMAND_MODULES = {"solve": ("mmpgo_jax._mm.solve", "mmpgo_jax._io.g2o", "mmpgo_jax.cli.robots",
+                              "mmpgo_jax.cli.progress")}
+
+
+def _run(args, argv, *, program: bool = False) -> int:
     if args.command in ("solve", "bench"):
         from .sharded import configure_cpu_devices
 
@@ -359,6 +381,13 @@ def _run(args, argv) -> int:
 
         enable_float64()
     _use_compilation_cache(args)
+    if program:
+        import importlib
+
+        for module in _COMMAND_MODULES.get(args.command, ()):
+            importlib.import_module(module)
+        gc.freeze()  # what is loaded now lives until the end
+        gc.enable()
     return run_reported(lambda: _dispatch(args, argv))
 
 
@@ -620,6 +649,8 @@ def _load_for_solve(args, *, announce: bool = True) -> LoadedInput:
     fixed = None if g2o.fixed_poses is None else g2o.fixed_poses.restrict(keep)
     frame = fixed or FixedPoses([0], g2o.vertex_R[keep[:1]], g2o.vertex_t[keep[:1]])
     if announce:
+        from .progress import write_line
+
         write_line(f"note: solving the largest component only ({graph.num_poses} of {g2o.graph.num_poses} poses)")
     robots = robot_split(args, g2o, graph, keep) if splits else (None, None, "")
     return LoadedInput(path, g2o, keep, graph, g2o.vertex_ids[keep], information, initial, fixed, frame, comps,
@@ -631,8 +662,8 @@ _OPTIMUM_STARTS = ("chordal", "vertices", "odometry")
 
 
 def _cmd_solve(args) -> int:
-    from .._distributed.solve import solve_sharded
     from .._mm.solve import solve
+    from .progress import progress_bar
     from .sharded import thread_devices
 
     args.file = str(_resolve_file(args.file, args.data))
@@ -655,6 +686,8 @@ def _cmd_solve(args) -> int:
         if devices is None:
             result = solve(data.graph, data.robot_of_pose, monitor=progress, ground_truth=ground_truth, **options)
         else:
+            from .._distributed.solve import solve_sharded
+
             result = solve_sharded(data.graph, data.robot_of_pose, devices=devices, monitor=progress,
                                    ground_truth=ground_truth, **options)
     fstar = reference_fstar(data)
@@ -764,6 +797,7 @@ def _cmd_optimum(args) -> int:
     from .._io.atomic import atomic_group
     from .._io.datasets import benchmark_info
     from .._mm.solve import centralized_optimum
+    from .progress import progress_bar
 
     args.file = str(_resolve_file(args.file, args.data))
     check_outputs(args)

@@ -8,11 +8,9 @@ import sys
 import time
 from collections.abc import Sequence
 
-import jax
-
-from .._distributed.launcher import initialize_distributed, run_multiprocess
-from .._distributed.solve import solve_sharded
-from .progress import progress_bar
+# JAX and the sharded solver are imported where they are used: ``mmpgo solve`` adds this module's
+# options to its parser and asks thread_devices, but an unsharded solve never loads
+# mmpgo_jax._distributed (tests/test_architecture.py checks its import set).
 
 # ------------------------------------------------------------------------------------------------
 # Command line: options for `mmpgo solve` and the sharded solve command
@@ -72,6 +70,8 @@ def configure_cpu_devices(args) -> None:
         return  # the launcher gives each process its CPU devices
     n = max(getattr(args, "threads", None) or cpu_cores(), getattr(args, "devices", None) or 1)
     if n > 1:
+        import jax
+
         # RuntimeError: backends already started (e.g. main() called twice in one process)
         with contextlib.suppress(RuntimeError):
             jax.config.update("jax_num_cpu_devices", n)
@@ -81,6 +81,8 @@ def thread_devices(args, num_poses: int, num_robots: int) -> list | None:
     """The CPU devices an (unsharded) ``solve`` splits its robots over, or None for one device: on
     a CPU backend, ``--threads`` (default: every core from ``AUTO_THREAD_POSES`` poses on), at most
     one device per robot."""
+    import jax
+
     if jax.default_backend() != "cpu":
         return None
     n = args.threads or (cpu_cores() if num_poses >= AUTO_THREAD_POSES else 1)
@@ -101,6 +103,9 @@ def cli_solve(args, argv: Sequence[str] | None = None) -> int:
     status; ``--coordinator/--num-processes/--process-id`` joins a multi-process run; ``--devices``
     alone shards over this process's devices. ``argv``: the full command line (default sys.argv).
     """
+    import jax
+
+    from .._distributed.launcher import initialize_distributed, run_multiprocess
     from . import CLIError, _resolve_file, check_outputs
 
     if args.process_id in (None, 0):  # the process that writes (or launches the one that does)
@@ -134,7 +139,11 @@ def cli_solve(args, argv: Sequence[str] | None = None) -> int:
 
 def _cli_solve_sharded(args) -> int:
     """Mirror of ``mmpgo solve`` (cli._cmd_solve) with :func:`solve_sharded`; process 0 writes."""
+    import jax
+
     from .. import cli
+    from .._distributed.solve import solve_sharded
+    from .progress import progress_bar
 
     writer = jax.process_index() == 0
     args.file = str(cli._resolve_file(args.file, args.data, announce=writer))
@@ -191,6 +200,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     except SystemExit as exc:  # --help, or a bad option (reported in one line)
         return _exit_status(exc)
     if args.precision == "float64":
+        import jax
+
         jax.config.update("jax_enable_x64", True)
     with cli_warnings():
         return run_reported(lambda: cli_solve(args, argv))
