@@ -384,7 +384,10 @@ def outliers() -> nbformat.NotebookNode:
             "outliers, ATE is against the ground truth after rigid alignment. Least squares runs here as "
             "`RobustLoss(\"l2\")`: the same objective through the weighted program (every weight 1), so that "
             "the four runs share one compilation; its \"rejected\" edges are those whose final residual "
-            "lies beyond the scale. The clean graph's ATE is the 0 % row of the sweep below."),
+            "lies beyond the scale. The clean graph's ATE is the 0 % row of the sweep below. GNC-TLS needs "
+            "the budget for its stages (up to `GNCConfig.stage_iterations` = 100 iterations each, about ten "
+            "stages here): with a small `MMPGO_NOTEBOOK_ITERATIONS` it stops mid-way and its weights are "
+            "still fractional."),
         new_code_cell(
             'runs = {}\n'
             'for kernel in ["l2", *KERNELS]:\n'

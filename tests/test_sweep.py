@@ -301,7 +301,7 @@ def test_losses_and_outlier_rates_share_one_compilation(outlier_graphs):
         res.history("cube@0.5", 3, "mm")
 
 
-@pytest.mark.slow  # about 90 s on 2 cores
+@pytest.mark.slow  # about 2-3 minutes on 2 cores
 def test_losses_and_outlier_rates_both_methods_match_solve(outlier_graphs):
     ds, graphs = outlier_graphs
     _check_losses_sweep(ds, graphs, ("amm", "mm"), check_graphs=list(graphs))
