@@ -2,8 +2,8 @@
 
     python notebooks/make_notebooks.py
 
-Writes ``01_quickstart.ipynb``, ``02_reproduce_tables.ipynb`` and ``03_robot_sweeps.ipynb`` next to
-this file. Every notebook reads the data folder from ``MMPGO_DATA`` (through
+Writes ``01_quickstart.ipynb``, ``02_reproduce_tables.ipynb``, ``03_robot_sweeps.ipynb`` and
+``04_outliers.ipynb`` next to this file. Every notebook reads the data folder from ``MMPGO_DATA`` (through
 ``mmpgo_jax.find_benchmark`` / ``available_benchmarks``) and its iteration budget from
 ``MMPGO_NOTEBOOK_ITERATIONS`` (small by default, so that each runs in well under two minutes on a
 2-core machine; ``tests/test_notebooks.py`` runs them with an even smaller value).
@@ -310,6 +310,149 @@ def robot_sweeps() -> nbformat.NotebookNode:
     return _notebook(cells)
 
 
+def outliers() -> nbformat.NotebookNode:
+    cells = [
+        new_markdown_cell(
+            "# Outlier loop closures and robust losses\n\n"
+            "Wrong loop closures (perceptual aliasing) bend a least-squares estimate. Here: a Cube "
+            "dataset with seeded outlier loop closures (`mmpgo_jax._experiments.outliers.add_outliers`), "
+            "the least-squares solve bent by them, the robust kernels huber, cauchy and tls (truncated "
+            "least squares through graduated non-convexity, GNC) with `mm.solve(..., loss=...)`, the "
+            "trajectories with the rejected edges in red, and ATE against the outlier rate from one "
+            "`mm.sweep` over rates × kernels (one compilation per method).\n\n"
+            "Budget: `MMPGO_NOTEBOOK_ITERATIONS` (default 1500); Cube size `MMPGO_NOTEBOOK_OUTLIER_POSES` "
+            "(default 200); outlier rates in percent `MMPGO_NOTEBOOK_OUTLIER_RATES` (default `0,20,40,60`)."),
+        setup_cell(1500,
+                   third_party="from IPython.display import Markdown, display",
+                   first_party="from mmpgo_jax._experiments.outliers import add_outliers, outlier_scores\n"
+                               "from mmpgo_jax._experiments.sweep import TRACE_COUNTS  # counts compilations\n"
+                               "from mmpgo_jax._mm.robust import LOSSES, rho, weight\n"
+                               "from mmpgo_jax.plotting import plot_trajectory",
+                   after='POSES = int(os.environ.get("MMPGO_NOTEBOOK_OUTLIER_POSES", "200"))\n'
+                         'RATES = [float(p) for p in os.environ.get("MMPGO_NOTEBOOK_OUTLIER_RATES", "0,20,40,60")'
+                         '.split(",")]\n'
+                         'ROBOTS = 4\n'
+                         'KERNELS = ["huber", "cauchy", "tls"]'),
+        new_markdown_cell(
+            "## Kernels and their scale\n"
+            "Per edge the squared residual is s = κ‖R_i R̃_ij − R_j‖² + τ‖R_i t̃_ij + t_i − t_j‖² (one term of "
+            "f = 2F) and the robust objective is F_ρ = ½ Σ ρ_c(s); reported objectives are f = 2F_ρ. Every "
+            "kernel is normalised to ρ(s) ≈ s for s ≪ c², so an edge well within the scale costs what it costs "
+            "in least squares. The scale c is in residual units (r = √s): an edge starts to be discounted "
+            "around r = c. Its default is √χ²_{d(d+1)/2}(0.99), the residual a correct edge exceeds with "
+            "probability 1 % under SE-Sync's noise model (`mm.chi2_scale`). Each kernel is concave in s, so "
+            "the paper's majorizer with every edge's κ, τ multiplied by the weight w = ρ'(s) at the current "
+            "iterate majorizes F_ρ: MM keeps F_ρ non-increasing. `tls` runs through GNC (Yang et al., "
+            "RA-L 2020): a sequence of surrogate kernels from least squares to TLS, the weights set in "
+            "closed form after each stage. Odometry edges (consecutive poses) keep weight 1. "
+            "Details: `docs/conventions.md` §10."),
+        new_code_cell(
+            'c = mm.chi2_scale(3)\n'
+            'print(f"default scale: c = {mm.chi2_scale(2):.3f} (2D), {c:.3f} (3D)")\n'
+            'r = np.linspace(0.0, 4.0 * c, 400)\n'
+            'fig, axes = plt.subplots(1, 2, figsize=(12, 4))\n'
+            'for name in LOSSES:\n'
+            '    code = LOSSES.index(name)\n'
+            '    axes[0].plot(r / c, np.asarray(rho(code, r**2, c * c)) / c**2, label=name)\n'
+            '    axes[1].plot(r / c, np.asarray(weight(code, r**2, c * c)), label=name)\n'
+            'axes[0].set_ylim(0, 4)\n'
+            'axes[0].set_ylabel("ρ(s) / c²")\n'
+            'axes[1].set_ylabel("weight ρ\'(s)")\n'
+            'for ax in axes:\n'
+            '    ax.set_xlabel("residual r / c")\n'
+            '    ax.grid(alpha=0.4)\n'
+            'axes[1].legend()\n'
+            'plt.tight_layout()\n'
+            'plt.show()'),
+        new_markdown_cell(
+            "## A graph with outliers\n"
+            "`add_outliers(graph, rate, reference=..., seed=...)` appends wrong loop closures: uniform "
+            "random pose pairs not already joined, a Haar-random rotation, a translation uniform within the "
+            "map's extent, the median information of the graph's loop closures. The rate is the fraction "
+            "of outliers among all loop closures after the addition; `bad.outlier` marks them."),
+        new_code_cell(
+            'data = mm.cube_dataset(0, grid=4, num_poses=POSES)\n'
+            'truth = data.ground_truth\n'
+            'bad = add_outliers(data.graph, 0.3, reference=truth, seed=1)\n'
+            'robots = mm.contiguous_robots(data.num_poses, ROBOTS)\n'
+            'print(f"{data.name}: n={data.num_poses}, m={data.num_edges} -> {bad.graph.num_edges} edges "\n'
+            '      f"({bad.num_outliers} outlier loop closures, 30 % of the loop closures)")'),
+        new_markdown_cell(
+            "## Least squares and robust kernels\n`loss=` picks the kernel (default scale; `loss_scale=` sets "
+            "c, `gnc=` a `GNCConfig`). The result holds the final edge `weights` and the `inliers` (final "
+            "residual within the scale); precision / recall score the rejected edges against the true "
+            "outliers, ATE is against the ground truth after rigid alignment. Least squares runs here as "
+            "`RobustLoss(\"l2\")`: the same objective through the weighted program (every weight 1), so that "
+            "the four runs share one compilation; its \"rejected\" edges are those whose final residual "
+            "lies beyond the scale. The clean graph's ATE is the 0 % row of the sweep below. GNC-TLS needs "
+            "the budget for its stages (up to `GNCConfig.stage_iterations` = 100 iterations each, about ten "
+            "stages here): with a small `MMPGO_NOTEBOOK_ITERATIONS` it stops mid-way and its weights are "
+            "still fractional."),
+        new_code_cell(
+            'runs = {}\n'
+            'for kernel in ["l2", *KERNELS]:\n'
+            '    loss = mm.RobustLoss("l2") if kernel == "l2" else kernel\n'
+            '    runs[kernel] = mm.solve(bad.graph, robots, iterations=ITERATIONS, loss=loss, ground_truth=truth)\n'
+            'lines = ["| kernel | ATE [m] | rejected | precision | recall | GNC stages |",\n'
+            '         "|---|---|---|---|---|---|"]\n'
+            'for kernel, r in runs.items():\n'
+            '    sc = outlier_scores(r.inliers, bad.outlier)\n'
+            '    lines.append(f"| {kernel} | {r.accuracy.ate:.4f} | {sc.rejected} | {sc.precision:.3f} | "\n'
+            '                 f"{sc.recall:.3f} | {r.stats.get(\'gnc_stages\', 0)} |")\n'
+            'display(Markdown("\\n".join(lines)))'),
+        new_markdown_cell(
+            "## Trajectories\nTop view, one colour per robot; in red the edges each run rejected. Least "
+            "squares is bent by the outliers; the robust runs keep the cube's shape."),
+        new_code_cell(
+            'fig, axes = plt.subplots(1, len(runs), figsize=(4.5 * len(runs), 4.5))\n'
+            'for ax, (kernel, r) in zip(axes, runs.items(), strict=True):\n'
+            '    plot_trajectory(ax, bad.graph, r.poses, robots, inter_robot_edges=False, legend=False,\n'
+            '                    outliers=r.outliers)\n'
+            '    ax.set_title(f"{kernel}: ATE {r.accuracy.ate:.3f} m", fontsize=10)\n'
+            '    ax.set_aspect("equal")\n'
+            'plt.tight_layout()\n'
+            'plt.show()'),
+        new_markdown_cell(
+            "## ATE against the outlier rate, one sweep\n`mm.sweep(graphs, ..., loss=[...])`: the kernel "
+            "is a traced number of the problem and graphs with different edge counts (the rates) are padded "
+            "to one shape, so every (rate, kernel) configuration of a method runs in one compiled "
+            "`jit(vmap(run))` chunk. A `CorruptedGraph` brings its outlier mask: the configurations report "
+            "precision and recall. From the command line: `mmpgo sweep FILE --losses huber cauchy tls "
+            "--outlier-rates 0 20 40`."),
+        new_code_cell(
+            'graphs = {f"{p:g}%": add_outliers(data.graph, p / 100.0, reference=truth, seed=1) for p in RATES}\n'
+            'before = TRACE_COUNTS["amm"]\n'
+            'res = mm.sweep(graphs, [ROBOTS], "amm", ITERATIONS, loss=["l2", *KERNELS],\n'
+            '               ground_truth={name: truth for name in graphs})\n'
+            'traces = TRACE_COUNTS["amm"] - before\n'
+            'print(f"{len(res.configs)} configurations, traces of the batched chunk: {traces}")\n'
+            'ate = {(row["graph"], row["loss"]): row for row in res.configs}\n'
+            'lines = ["| outlier rate | " + " | ".join(res.losses) + " |", "|---" * (len(res.losses) + 1) + "|"]\n'
+            'for name in graphs:\n'
+            '    cells = []\n'
+            '    for loss in res.losses:\n'
+            '        row = ate[(name, loss)]\n'
+            '        cells.append(f"{row[\'ate\']:.4f} (P {row[\'precision\']:.2f}, R {row[\'recall\']:.2f})")\n'
+            '    lines.append(f"| {name} | " + " | ".join(cells) + " |")\n'
+            'display(Markdown("ATE [m] (precision, recall of the rejected edges)\\n\\n" + "\\n".join(lines)))'),
+        new_code_cell(
+            'fig, ax = plt.subplots(figsize=(6, 4))\n'
+            'for loss in res.losses:\n'
+            '    ax.plot(RATES, [ate[(name, loss)]["ate"] for name in graphs], "o-", label=loss)\n'
+            'ax.set_yscale("log")\n'
+            'ax.set_xlabel("outlier loop closures [%]")\n'
+            'ax.set_ylabel("ATE [m]")\n'
+            'ax.grid(alpha=0.4)\n'
+            'ax.legend()\n'
+            'plt.tight_layout()\n'
+            'plt.show()'),
+        new_markdown_cell(
+            "The full study (more rates, all kernels, benchmark files, GNC from other starts) is "
+            "`benchmarks/robust.py` (results in `benchmarks/robust.md`)."),
+    ]
+    return _notebook(cells)
+
+
 def _notebook(cells) -> nbformat.NotebookNode:
     nb = new_notebook(cells=cells)
     nb.metadata["kernelspec"] = {"display_name": "Python 3", "language": "python", "name": "python3"}
@@ -322,6 +465,7 @@ NOTEBOOKS = {
     "01_quickstart.ipynb": quickstart,
     "02_reproduce_tables.ipynb": reproduce_tables,
     "03_robot_sweeps.ipynb": robot_sweeps,
+    "04_outliers.ipynb": outliers,
 }
 
 

@@ -449,3 +449,40 @@ def test_sweep_command_matches_solve(tmp_path):
         assert f"| {method.upper()} | {robots} |" in proc.stdout
     assert all(float(r["relative_gap"]) >= -1e-9 for r in rows)
     _no_temp_files(tmp_path)
+
+
+@pytest.mark.slow  # about 70 s on 2 cores (a child process compiles the robust sweep, then two solves)
+def test_sweep_command_losses_and_outlier_rates(tmp_path):
+    """``mmpgo sweep --losses ... --outlier-rates ...``: every (kernel, rate) in the tables, with
+    precision / recall equal to those of solve on the graph add_outliers makes with the same seed."""
+    import mmpgo_jax as mg
+    from mmpgo_jax._experiments.outliers import add_outliers, outlier_scores
+
+    cube = mg.cube_dataset(0, num_poses=40, grid=3)
+    g2o = tmp_path / "cube40.g2o"
+    mg.write_g2o(g2o, cube.graph, cube.ground_truth)
+    out, configs = tmp_path / "sweep.csv", tmp_path / "configs.csv"
+    proc = mmpgo("sweep", g2o, "-A", "2", "-n", "6", "--methods", "mm", "--losses", "huber", "tls",
+                 "--outlier-rates", "0", "40", "--outlier-seed", "3", "--out", out, "--configs", configs)
+    _ok(proc)
+    assert "| loss | outlier rate % |" in proc.stdout and "| cube40@40% | MM | 2 | tls | 40 |" in proc.stdout
+    with open(out, newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert len(rows) == 2 * 2 * 7 and {r["loss"] for r in rows} == {"huber", "tls"}
+    with open(configs, newline="") as fh:
+        table = {(r["graph"], r["loss"]): r for r in csv.DictReader(fh)}
+    assert set(table) == {(f"cube40@{p}%", k) for p in (0, 40) for k in ("huber", "tls")}
+    graph = mg.read_g2o(g2o).graph
+    bad = add_outliers(graph, 0.4, reference=mg.chordal_initialization(graph), seed=3)
+    assert bad.num_outliers > 0
+    for kernel in ("huber", "tls"):
+        row = table[("cube40@40%", kernel)]
+        assert float(row["outlier_rate"]) == 0.4 and int(row["outliers"]) == bad.num_outliers
+        ref = mg.solve(bad.graph, 2, method="mm", iterations=6, loss=kernel)
+        sc = outlier_scores(ref.inliers, bad.outlier)
+        assert float(row["precision"]) == pytest.approx(sc.precision) and float(row["recall"]) == pytest.approx(sc.recall)
+        # the default (inexact) inner solver rounds differently on the sweep's padded shape (see
+        # tests/test_sweep.py): measured 3e-6 relative here, while a wrong graph or kernel is O(1)
+        assert abs(float(row["f"]) - float(ref.history.f[-1])) <= 1e-4 * abs(float(row["f"]))
+        assert table[("cube40@0%", kernel)]["recall"] == "1.0"  # nothing to find
+    _no_temp_files(tmp_path)

@@ -269,6 +269,10 @@ BAD_OPTIONS = [
     (["sweep", _F, "--robots", "2", "0"], "--robots/-A", ">= 1"),
     (["sweep", _F, "--iterations", "0"], "--iterations/-n", "between 1 and"),
     (["sweep", _F, "--seed", "-1"], "--seed", ">= 0"),
+    (["sweep", _F, "--outlier-rates", "10", "100"], "--outlier-rates", ">= 0 and < 100"),
+    (["sweep", _F, "--outlier-rates", "-5"], "--outlier-rates", ">= 0 and < 100"),
+    (["sweep", _F, "--outlier-rates", "nan"], "--outlier-rates", ">= 0 and < 100"),
+    (["sweep", _F, "--outlier-seed", "-1"], "--outlier-seed", ">= 0"),
 ]
 
 
@@ -314,7 +318,7 @@ def _numeric_actions():
 def test_every_numeric_option_is_validated_and_swept():
     """No option parses with a bare int/float, and the sweep above covers every typed option."""
     swept = {(a[0], opt.split("/")[0]) for a, opt, _ in BAD_OPTIONS}
-    assert len(swept) == 27  # info 1, solve 14, optimum 2, demo 4, bench 3, sweep 3
+    assert len(swept) == 29  # info 1, solve 14, optimum 2, demo 4, bench 3, sweep 5
     for name, action in _numeric_actions():
         assert action.type not in (int, float), f"{name} {action.option_strings}: unchecked {action.type}"
         assert action.type.__name__ in ("integer", "number", "host_port"), (name, action.option_strings)

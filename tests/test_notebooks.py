@@ -19,7 +19,7 @@ pytest.importorskip("ipykernel")
 
 REPO = Path(__file__).resolve().parents[1]
 NOTEBOOK_DIR = REPO / "notebooks"
-NAMES = ["01_quickstart.ipynb", "02_reproduce_tables.ipynb", "03_robot_sweeps.ipynb"]
+NAMES = ["01_quickstart.ipynb", "02_reproduce_tables.ipynb", "03_robot_sweeps.ipynb", "04_outliers.ipynb"]
 ITERATIONS = "5"  # MMPGO_NOTEBOOK_ITERATIONS for the test run
 
 
@@ -56,6 +56,8 @@ def test_notebook_runs(name, monkeypatch):
     monkeypatch.setenv("MMPGO_NOTEBOOK_DATASETS", "MITb")  # 02: one file (when present) keeps CI short
     monkeypatch.setenv("MMPGO_NOTEBOOK_ROBOTS", "5,10")  # 03: two robot counts, two Cube datasets
     monkeypatch.setenv("MMPGO_NOTEBOOK_CUBES", "2")
+    monkeypatch.setenv("MMPGO_NOTEBOOK_OUTLIER_POSES", "60")  # 04: a small Cube at two outlier rates
+    monkeypatch.setenv("MMPGO_NOTEBOOK_OUTLIER_RATES", "0,40")
     nb = nbformat.read(NOTEBOOK_DIR / name, as_version=4)
     client = nbclient.NotebookClient(nb, timeout=300, kernel_name="python3",
                                      resources={"metadata": {"path": str(NOTEBOOK_DIR)}})

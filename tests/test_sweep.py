@@ -232,3 +232,99 @@ def test_padding_an_unpadded_partition_equals_partitioning_padded(cube):
         for x, y in zip(jax.tree.leaves(got), jax.tree.leaves(ref), strict=True):
             assert x.dtype == y.dtype and x.shape == y.shape
             np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
+# ----------------------------------------------------------------------------------------------
+# robust losses and outlier rates as sweep axes
+# ----------------------------------------------------------------------------------------------
+
+KERNELS = ["huber", "cauchy", "tls"]
+RATES = (0.2, 0.5)
+# GNC stages of a fixed length (stage_tolerance 0): a stage's end does not hinge on a rounding-level
+# change of the weighted objective, so the sweep and solve take the same GNC steps
+FIXED_STAGES = mm.GNCConfig(stage_iterations=5, stage_tolerance=0.0)
+
+
+@pytest.fixture(scope="module")
+def outlier_graphs():
+    from mmpgo_jax._experiments.outliers import add_outliers
+
+    ds = mm.cube_dataset(0, grid=3, num_poses=60)
+    return ds, {f"cube@{r:g}": add_outliers(ds.graph, r, reference=ds.ground_truth, seed=1) for r in RATES}
+
+
+def _check_losses_sweep(ds, graphs, methods, check_graphs, iterations=30):
+    res, traces, compiles = _sweep_logging_compiles(
+        graphs, [3], methods=methods, iterations=iterations, chunk_size=10, subproblem=STABLE, loss=KERNELS,
+        gnc=FIXED_STAGES, ground_truth={k: ds.ground_truth for k in graphs})
+    # both outlier rates (different edge counts) and all three kernels: one compilation per method
+    assert res.axes == ("loss",) and res.losses == KERNELS
+    assert len(res.groups) == len(methods) and all(g["configs"] == len(RATES) * len(KERNELS) for g in res.groups)
+    # (0 traces: jax's trace cache already held this method's program from an earlier test)
+    assert all(g["traces"] <= 1 for g in res.groups)
+    assert traces == 1 and len(compiles) == sum(g["traces"] for g in res.groups), compiles
+    edges = {name: g.graph.num_edges for name, g in graphs.items()}
+    assert len(set(edges.values())) == len(RATES)  # the rates really give different shapes
+    for method in methods:
+        for name in check_graphs:
+            bad = graphs[name]
+            for kernel in KERNELS:
+                ref = mm.solve(bad.graph, 3, method=method, iterations=iterations, chunk_size=10, subproblem=STABLE,
+                               loss=kernel, gnc=FIXED_STAGES if kernel == "tls" else None)
+                key = res.key(name, 3, method, loss=kernel)
+                msg = f"{method} {name} {kernel}"
+                np.testing.assert_allclose(res.histories[key], ref.history.f, rtol=1e-9, atol=0, err_msg=msg)
+                np.testing.assert_allclose(res.weights[key], ref.weights, rtol=1e-9, atol=1e-12, err_msg=msg)
+                np.testing.assert_array_equal(res.inliers[key], ref.inliers, err_msg=msg)
+                np.testing.assert_allclose(np.asarray(res.poses[key].t), np.asarray(ref.poses.t), atol=1e-8)
+    # the kernels give different weights (the axis means something); per-configuration scores
+    name = check_graphs[0]
+    w = [res.weights[res.key(name, 3, methods[0], loss=k)] for k in KERNELS]
+    assert not np.allclose(w[0], w[1]) and not np.allclose(w[1], w[2])
+    assert set(res.configs[0]) >= {"loss", "outlier_rate", "precision", "recall", "rejected", "ate"}
+    for row in res.configs:
+        key = res.key(row["graph"], row["robots"], row["method"], loss=row["loss"])
+        inl, truth = res.inliers[key], graphs[row["graph"]].outlier
+        assert row["rejected"] == int((~inl).sum())
+        assert row["recall"] == (1.0 if not truth.any() else float((~inl & truth).sum() / truth.sum()))
+        assert row["outlier_rate"] == graphs[row["graph"]].rate
+    return res
+
+
+def test_losses_and_outlier_rates_share_one_compilation(outlier_graphs):
+    """2 outlier rates x 3 kernels (MM): one compilation; the configurations of one rate equal solve()."""
+    ds, graphs = outlier_graphs
+    res = _check_losses_sweep(ds, graphs, ("mm",), check_graphs=["cube@0.5"])
+    rows = res.rows
+    assert list(rows[0])[:5] == ["graph", "robots", "method", "loss", "iteration"]
+    with pytest.raises(ValueError, match="several losses"):
+        res.history("cube@0.5", 3, "mm")
+
+
+@pytest.mark.slow  # about 2-3 minutes on 2 cores
+def test_losses_and_outlier_rates_both_methods_match_solve(outlier_graphs):
+    ds, graphs = outlier_graphs
+    _check_losses_sweep(ds, graphs, ("amm", "mm"), check_graphs=list(graphs))
+
+
+def test_loss_sweep_inputs(outlier_graphs, tmp_path):
+    """A single robust loss keeps (graph, robots, method) keys with a loss column; l2 among robust
+    losses runs the weighted program (weights 1); labels; bad losses are one-line errors."""
+    ds, graphs = outlier_graphs
+    g = graphs["cube@0.2"]
+    res = sweep({"g": g}, [2], methods="mm", iterations=0, loss={"plain": "l2", "c1": mm.RobustLoss("cauchy", 1.0)})
+    assert res.axes == ("loss",) and res.losses == ["plain", "c1"]
+    assert np.all(res.weights[("g", 2, "mm", "plain")] == 1.0)
+    s = np.asarray(mm.edge_costs(g.graph, mm.chordal_initialization(g.graph)))
+    odo = np.abs(np.asarray(g.graph.i) - np.asarray(g.graph.j)) == 1
+    np.testing.assert_allclose(res.weights[("g", 2, "mm", "c1")], np.where(odo, 1.0, 1.0 / (1.0 + s)), rtol=1e-9)
+    np.testing.assert_allclose(res.history("g", 2, "mm", loss="c1"),
+                               [np.sum(np.where(odo, s, np.log1p(s)))], rtol=1e-9)
+    one = sweep({"g": g}, [2], methods="mm", iterations=0, loss="huber")
+    assert one.axes == () and set(one.histories) == {("g", 2, "mm")} and one.configs[0]["loss"] == "huber"
+    res.to_csv(tmp_path / "h.csv")
+    assert (tmp_path / "h.csv").read_text().splitlines()[0] == "graph,robots,method,loss,iteration,f,gap,relative_gap"
+    with pytest.raises(ValueError, match="unknown loss"):
+        sweep({"g": g}, [2], methods="mm", iterations=0, loss=["huber", "bogus"])
+    with pytest.raises(ValueError, match="given twice"):
+        sweep({"g": g}, [2], methods="mm", iterations=0, loss=["huber", "huber"])

@@ -13,6 +13,18 @@ xi) is one configuration. xi lives in the problems' arrays (Gamma^alpha and its 
 contain it; ``MMProblem.xi`` is an ordinary leaf), so the configurations with different xi stack
 and share the method's one compilation as well.
 
+A sequence of robust losses (``loss=["huber", "cauchy", "tls"]``, kernel names or
+:class:`~mmpgo_jax.RobustLoss` values, or a mapping label -> loss) adds another axis: the kernel is
+an integer code, a traced leaf of the problem like its scale and GNC options, so every kernel runs
+in the method's one compilation. With robust losses every configuration runs the weighted program
+(``"l2"`` among them as ``RobustLoss("l2")``: least squares through the weighted machinery, equal to
+the plain program to rounding), and the results hold each configuration's final edge weights and
+inlier mask, as :func:`~mmpgo_jax.solve`'s. Graphs with different numbers of edges (one graph at
+several outlier rates, :func:`~mmpgo_jax._experiments.outliers.add_outliers`) are padded to the
+group's common shape like graphs of different sizes; a
+:class:`~mmpgo_jax._experiments.outliers.CorruptedGraph` given as a graph brings its true outlier
+mask and rate, and the configurations then report ``outlier_rate``, ``precision`` and ``recall``.
+
 Every partition and Gamma^alpha is built once: the unpadded partition of each (graph, robot count)
 gives the group's common shape and is then padded to it (no second partitioning), and Gamma^alpha
 of each configuration is built once, on the padded partition. Sweeps never stop early, so the
@@ -63,9 +75,11 @@ from .._mm.driver import NonFiniteError, Termination, compile_once, drive
 from .._mm.majorization import gamma_couplings, stack, unstack
 from .._mm.outer import MMConfig, MMProblem, evaluate, init_state, run
 from .._mm.preconditioner import aggregate_size
+from .._mm.robust import GNC_LOSSES, GNCConfig, RobustLoss, as_loss, loss_code, robust_outcome
 from .._mm.solve import output_frame
 from .._mm.subproblem import SubproblemConfig
 from .metrics import absolute_trajectory_error, relative_pose_error
+from .outliers import outlier_scores
 
 __all__ = ["TRACE_COUNTS", "SweepResult", "default_max_batch_bytes", "reference_optimum", "sweep"]
 
@@ -127,7 +141,8 @@ def reference_optimum(graph: PoseGraph, *, grad_tol: float = 1e-5, max_iteration
 
 def _tree_bytes(tree) -> int:
     """Bytes of the array leaves of a pytree (arrays or ShapeDtypeStructs)."""
-    return int(sum(math.prod(x.shape) * np.dtype(x.dtype).itemsize for x in jax.tree.leaves(tree)))
+    return int(sum(math.prod(np.shape(x)) * np.dtype(getattr(x, "dtype", None) or np.asarray(x).dtype).itemsize
+                   for x in jax.tree.leaves(tree)))  # (Python scalars: a RobustLoss's numbers)
 
 
 def _stack(trees):
@@ -139,58 +154,98 @@ def _stack(trees):
 # ----------------------------------------------------------------------------------------------
 
 _HISTORY_COLUMNS = ("graph", "robots", "method", "iteration", "f", "gap", "relative_gap")
+_AXES = ("xi", "loss")  # optional key components after (graph, robots, method), in this order
 
 
 @dataclass
 class SweepResult:
     """Tidy results of a sweep.
 
-    ``rows``: one dict per (graph, robots, method, iteration) with f = 2F and, when f* is known,
-    ``gap`` = f - f* and ``relative_gap`` = (f - f*)/f* (else None). A sweep over several xi
-    (``xi=[...]``) keys everything by (graph, robots, method, xi) instead and adds an ``xi``
-    column to ``rows`` and ``configs`` (and to the CSV files); with one xi (a number, the default),
-    keys and columns are (graph, robots, method) as before. ``configs``: one dict per
-    configuration (final f and gap, ``bytes`` of its problem + state pytrees as run (padded),
-    ``seconds`` (its share of the batch's run time, compilation excluded), batch index, and, with a
-    ground truth, ``ate`` / ``rpe_translation`` / ``rpe_rotation_deg``). ``groups``: one dict per
-    compiled group (shape, compile seconds, batches).
+    ``rows``: one dict per (graph, robots, method, iteration) with f = 2F (2F_rho for a robust
+    loss) and, when f* is known, ``gap`` = f - f* and ``relative_gap`` = (f - f*)/f* (else None).
+    A sweep over several xi (``xi=[...]``) keys everything by (graph, robots, method, xi) instead
+    and adds an ``xi`` column to ``rows`` and ``configs`` (and to the CSV files); a sweep over
+    several losses appends the loss label the same way: (graph, robots, method[, xi], loss).
+    ``axes`` names the optional components the keys have (``()``, ``("xi",)``, ``("loss",)`` or
+    ``("xi", "loss")``); with one xi and one loss, keys and columns are (graph, robots, method).
+    ``configs``: one dict per configuration (final f and gap, ``bytes`` of its problem + state
+    pytrees as run (padded), ``seconds`` (its share of the batch's run time, compilation excluded),
+    batch index, and, with a ground truth, ``ate`` / ``rpe_translation`` / ``rpe_rotation_deg``;
+    with a robust loss ``loss``, ``rejected`` (edges outside the inlier mask), ``weight_updates``,
+    ``gnc_stages``, and for a graph with a known outlier mask ``outlier_rate``, ``precision`` and
+    ``recall`` (:func:`~mmpgo_jax._experiments.outliers.outlier_scores`)). ``groups``: one dict per
+    compiled group (shape, compile seconds, batches). ``weights`` / ``inliers``: per key, the final
+    (m,) edge weights and inlier mask in the graph's edge order (robust losses only, as
+    :class:`~mmpgo_jax.SolveResult`'s).
     """
 
-    histories: dict[tuple, np.ndarray]  # (graph, robots, method[, xi]) -> f (K+1,)
+    histories: dict[tuple, np.ndarray]  # (graph, robots, method[, xi][, loss]) -> f (K+1,)
     fstar: dict[str, float | None]
     configs: list[dict]
     groups: list[dict]
     poses: dict[tuple, Poses] = field(repr=False, default_factory=dict)
     iterations: int = 0
     xi_values: list[float] = field(default_factory=list)  # the sweep's xi, in the given order
+    axes: tuple[str, ...] | None = None  # optional key components; None: inferred (xi when keys have 4)
+    loss_values: dict[str, object] = field(default_factory=dict)  # label -> RobustLoss (None: least squares)
+    weights: dict[tuple, np.ndarray] = field(repr=False, default_factory=dict)
+    inliers: dict[tuple, np.ndarray] = field(repr=False, default_factory=dict)
+
+    def __post_init__(self):
+        if self.axes is None:
+            self.axes = ("xi",) if any(len(k) == 4 for k in self.histories) else ()
+        self.axes = tuple(self.axes)
 
     @property
     def keyed_by_xi(self) -> bool:
-        """True when several xi were swept: keys are (graph, robots, method, xi)."""
-        return any(len(k) == 4 for k in self.histories)
+        """True when several xi were swept: keys are (graph, robots, method, xi[, loss])."""
+        return "xi" in self.axes
 
-    def key(self, graph: str, robots: int, method: str, xi: float | None = None) -> tuple:
-        """The key of one configuration in ``histories`` / ``poses`` (``xi`` needed when several were swept)."""
+    @property
+    def keyed_by_loss(self) -> bool:
+        """True when several losses were swept: keys end with the loss label."""
+        return "loss" in self.axes
+
+    def key(self, graph: str, robots: int, method: str, xi: float | None = None, loss: str | None = None) -> tuple:
+        """The key of one configuration in ``histories`` / ``poses`` / ``weights`` / ``inliers``
+        (``xi`` / ``loss`` needed when several were swept)."""
+        key = [graph, int(robots), method]
         if not self.keyed_by_xi:
             if xi is not None and self.xi_values and float(xi) != self.xi_values[0]:
                 raise KeyError(f"this sweep ran xi = {self.xi_values[0]:g} only, not {xi!r}")
-            return (graph, int(robots), method)
-        if xi is None:
+        elif xi is None:
             raise ValueError(f"this sweep ran several xi {self.xi_values}: give xi=")
-        return (graph, int(robots), method, float(xi))
+        else:
+            key.append(float(xi))
+        labels = list(self.loss_values)
+        if not self.keyed_by_loss:
+            if loss is not None and labels and loss != labels[0]:
+                raise KeyError(f"this sweep ran loss {labels[0]!r} only, not {loss!r}")
+        elif loss is None:
+            raise ValueError(f"this sweep ran several losses {labels}: give loss=")
+        else:
+            key.append(str(loss))
+        return tuple(key)
 
     @property
     def xis(self) -> list[float]:
         return list(self.xi_values)
 
-    def history(self, graph: str, robots: int, method: str, xi: float | None = None) -> np.ndarray:
-        return self.histories[self.key(graph, robots, method, xi)]
+    @property
+    def losses(self) -> list[str]:
+        """The loss labels, in the given order."""
+        return list(self.loss_values)
 
-    def relative_gap(self, graph: str, robots: int, method: str, xi: float | None = None) -> np.ndarray:
+    def history(self, graph: str, robots: int, method: str, xi: float | None = None,
+                loss: str | None = None) -> np.ndarray:
+        return self.histories[self.key(graph, robots, method, xi, loss)]
+
+    def relative_gap(self, graph: str, robots: int, method: str, xi: float | None = None,
+                     loss: str | None = None) -> np.ndarray:
         fs = self.fstar.get(graph)
         if fs is None:
             raise ValueError(f"no f* for graph {graph!r}")
-        return (self.history(graph, robots, method, xi) - fs) / fs
+        return (self.history(graph, robots, method, xi, loss) - fs) / fs
 
     @property
     def graphs(self) -> list[str]:
@@ -209,7 +264,7 @@ class SweepResult:
         out = []
         for key, f in self.histories.items():
             g, a, m = key[:3]
-            extra = {"xi": key[3]} if len(key) == 4 else {}
+            extra = dict(zip(self.axes, key[3:], strict=True))
             fs = self.fstar.get(g)
             for k, v in enumerate(f):
                 v = float(v)
@@ -219,8 +274,8 @@ class SweepResult:
         return out
 
     def to_csv(self, path) -> None:
-        """The per-iteration table (columns: graph, robots, method[, xi], iteration, f, gap, relative_gap)."""
-        cols = _HISTORY_COLUMNS if not self.keyed_by_xi else (*_HISTORY_COLUMNS[:3], "xi", *_HISTORY_COLUMNS[3:])
+        """The per-iteration table (columns: graph, robots, method[, xi][, loss], iteration, f, gap, relative_gap)."""
+        cols = (*_HISTORY_COLUMNS[:3], *self.axes, *_HISTORY_COLUMNS[3:])
         _write_csv(path, cols, self.rows)
 
     def configs_to_csv(self, path) -> None:
@@ -229,12 +284,13 @@ class SweepResult:
         _write_csv(path, cols, self.configs)
 
     def stack(self, method: str, robots: int, graphs: Sequence[str] | None = None, relative: bool = True,
-              xi: float | None = None):
-        """(graphs, K+1) array of relative gaps (or f when ``relative=False``) for one (method, robots[, xi])."""
+              xi: float | None = None, loss: str | None = None):
+        """(graphs, K+1) array of relative gaps (or f when ``relative=False``) for one
+        (method, robots[, xi][, loss])."""
         graphs = self.graphs if graphs is None else list(graphs)
         if relative:
-            return np.stack([self.relative_gap(g, robots, method, xi) for g in graphs])
-        return np.stack([self.history(g, robots, method, xi) for g in graphs])
+            return np.stack([self.relative_gap(g, robots, method, xi, loss) for g in graphs])
+        return np.stack([self.history(g, robots, method, xi, loss) for g in graphs])
 
 
 def _write_csv(path, columns, rows) -> None:
@@ -250,8 +306,10 @@ def _write_csv(path, columns, rows) -> None:
 # ----------------------------------------------------------------------------------------------
 
 
-def _normalize_graphs(graphs) -> tuple[list[str], list[PoseGraph], dict[str, Poses], dict[str, FixedPoses | None]]:
-    """-> names, graphs, ground truths and fixed poses found on dataset-like inputs."""
+def _normalize_graphs(graphs) -> tuple[list[str], list[PoseGraph], dict[str, Poses], dict[str, FixedPoses | None],
+                                       dict[str, tuple[np.ndarray, float | None]]]:
+    """-> names, graphs, ground truths, fixed poses and (true outlier mask, rate) found on
+    dataset-like inputs (a CorruptedGraph's ``outlier`` / ``rate``)."""
     if isinstance(graphs, Mapping):
         items = list(graphs.items())
     else:
@@ -260,7 +318,7 @@ def _normalize_graphs(graphs) -> tuple[list[str], list[PoseGraph], dict[str, Pos
         items = []
         for k, g in enumerate(graphs):
             items.append((getattr(g, "name", None) or f"graph{k}", g))
-    names, out, gts, fixed = [], [], {}, {}
+    names, out, gts, fixed, corrupt = [], [], {}, {}, {}
     for name, g in items:
         name = str(name)
         if name in names:
@@ -270,6 +328,13 @@ def _normalize_graphs(graphs) -> tuple[list[str], list[PoseGraph], dict[str, Pos
             if getattr(g, "ground_truth", None) is not None:
                 gts[name] = g.ground_truth
             fixed[name] = getattr(g, "fixed_poses", None)
+            if getattr(g, "outlier", None) is not None:
+                mask = np.asarray(g.outlier, bool)
+                if mask.shape != (g.graph.num_edges,):
+                    raise ValueError(f"graph {name!r}: outlier mask of shape {mask.shape}, expected "
+                                     f"({g.graph.num_edges},)")
+                rate = getattr(g, "rate", None)
+                corrupt[name] = (mask, None if rate is None else float(rate))
             g = g.graph
         if not isinstance(g, PoseGraph):
             raise TypeError(f"graph {name!r}: expected a PoseGraph (or a dataset with .graph), got {type(g).__name__}")
@@ -280,7 +345,7 @@ def _normalize_graphs(graphs) -> tuple[list[str], list[PoseGraph], dict[str, Pos
     dims = {g.dim for g in out}
     if len(dims) > 1:
         raise ValueError(f"all graphs of a sweep must have the same dimension d, got {sorted(dims)}")
-    return names, out, gts, fixed
+    return names, out, gts, fixed, corrupt
 
 
 def _per_graph(value, names, what):
@@ -338,6 +403,9 @@ def sweep(
     fixed: Mapping[str, FixedPoses] | Sequence[FixedPoses] | FixedPoses | None = None,
     split="blocks",
     seed: int = 0,
+    loss=None,
+    loss_scale: float | None = None,
+    gnc: GNCConfig | None = None,
 ) -> SweepResult:
     """Run every (graph, robot count) configuration of each method as one batched computation.
 
@@ -370,14 +438,27 @@ def sweep(
     it under several names (``{"M3500 blocks": g, "M3500 metis": g}``) with a split per name: the
     configurations then share the compilations.
 
+    ``loss``: the robust kernel (a name of :data:`~mmpgo_jax._mm.robust.LOSSES` or a
+    :class:`~mmpgo_jax.RobustLoss`; default least squares), or a sequence of them (labels: the
+    kernel names) or a mapping label -> loss: each is one more configuration per (graph, robot
+    count[, xi]), run in the same compilation; results are then keyed by (graph, robots, method[,
+    xi], loss label) and get a ``loss`` column. ``loss_scale`` and ``gnc`` apply to the losses given
+    by name as :func:`~mmpgo_jax.solve`'s do (``gnc`` to the kernels that take one: tls,
+    geman-mcclure). Robust configurations report their final ``weights`` and ``inliers``.
+
     Equivalent, configuration by configuration, to ``solve(graph, robots, method=..., iterations,
-    init, xi, restart, subproblem, fixed)``.
+    init, xi, restart, subproblem, fixed, loss, loss_scale, gnc)`` (for ``"l2"`` swept among robust
+    losses: ``loss=RobustLoss("l2", loss_scale)``).
     """
     if iterations < 0:
         raise ValueError(f"iterations must be >= 0, got {iterations}")
     if group_by not in ("method", "robots"):
         raise ValueError(f"group_by must be 'method' or 'robots', got {group_by!r}")
-    names, glist, gts, fixed_of = _normalize_graphs(graphs)
+    names, glist, gts, fixed_of, corrupt = _normalize_graphs(graphs)
+    loss_of = _loss_values(loss, loss_scale, gnc)
+    labels = list(loss_of)
+    robust = any(v is not None for v in loss_of.values())
+    by_loss = len(labels) > 1
     if fixed is not None:
         fixed_of = _per_graph(fixed, names, "fixed")
     for name, g in zip(names, glist, strict=False):
@@ -426,8 +507,10 @@ def sweep(
     sub = subproblem or SubproblemConfig()
     say = progress or (lambda msg: None)
 
-    def key_of(name: str, a: int, method: str, x: float) -> tuple:
-        return (name, a, method, x) if by_xi else (name, a, method)
+    axes = (("xi",) if by_xi else ()) + (("loss",) if by_loss else ())
+
+    def key_of(name: str, a: int, method: str, x: float, label: str) -> tuple:
+        return (name, a, method) + ((x,) if by_xi else ()) + ((label,) if by_loss else ())
 
     # Every (graph, robots) is partitioned once: the unpadded partition gives the shape needs
     # (n_max, e_max, loop-closure couplings) and is kept on the host, to be padded to its group's
@@ -455,13 +538,16 @@ def sweep(
 
     histories: dict[tuple, np.ndarray] = {}
     final_poses: dict[tuple, Poses] = {}
+    final_weights: dict[tuple, np.ndarray] = {}
+    final_inliers: dict[tuple, np.ndarray] = {}
     config_rows: list[dict] = []
     group_rows: list[dict] = []
 
     for method in methods:
         # xi=None: each problem carries its own xi (an array leaf), so one config serves them all
         config = MMConfig(method=method, restart=restart, xi=None, subproblem=sub)
-        keys = [(gi, a, x) for a in all_robots for gi in range(len(glist)) if a in robots_of[gi] for x in xis]
+        keys = [(gi, a, x, li) for a in all_robots for gi in range(len(glist)) if a in robots_of[gi] for x in xis
+                for li in range(len(labels))]
         groups = [keys] if group_by == "method" else [[k for k in keys if k[1] == a] for a in all_robots]
         for gkeys in groups:
             n_max = max(needs[k[:2]][0] for k in gkeys)
@@ -471,14 +557,15 @@ def sweep(
             agg = sub.aggregate or max(needs[k[:2]][3] for k in gkeys)
             A = max(k[1] for k in gkeys)
 
-            def build(gi: int, a: int, x: float, n_max=n_max, e_max=e_max, A=A, kc=kc, agg=agg, config=config):
+            def build(gi: int, a: int, x: float, li: int, n_max=n_max, e_max=e_max, A=A, kc=kc, agg=agg,
+                      config=config):
                 g = glist[gi]
                 part = _pad_partition(unpadded[(gi, a)], n_max, e_max, A)
                 fix = fixed_of[names[gi]]
                 if fix is None and any_fixed:  # one pytree structure per batch: an all-free mask
                     fix = np.zeros(g.num_poses, dtype=bool)
                 problem = MMProblem.build(part, x, config=config, min_couplings=kc, fixed=fix, aggregate=agg,
-                                          poses=part.scatter(start_of(gi, a)))
+                                          poses=part.scatter(start_of(gi, a)), loss=loss_of[labels[li]])
                 return part, problem
 
             def batchable(problem: MMProblem, n_common: int) -> MMProblem:
@@ -495,7 +582,7 @@ def sweep(
                     num_poses=n_common,
                 )
                 return MMProblem(partition=common, gamma_soa=problem.gamma_soa, newton=problem.newton,
-                                 free=problem.free, xi=problem.xi)
+                                 free=problem.free, xi=problem.xi, robust=problem.robust)
 
             n_common = max(glist[k[0]].num_poses for k in gkeys)
             # bytes of one configuration (all have the same padded shape)
@@ -511,21 +598,23 @@ def sweep(
             num_batches = math.ceil(C / per_batch)
             per_batch = math.ceil(C / num_batches)
             group = dict(method=method, robots=sorted({k[1] for k in gkeys}), **({"xi": xis} if by_xi else {}),
+                         **({"losses": labels} if by_loss else {}),
                          configs=C, A=A, n_max=n_max, aggregate=agg,
                          e_max=e_max, couplings=kc, bytes_per_config=per_config, batches=num_batches,
                          configs_per_batch=per_batch, compile_seconds=0.0, run_seconds=0.0,
                          setup_seconds=0.0,
-                         padding_factor=float(A * n_max * C / sum(glist[gi].num_poses for gi, _, _ in gkeys)))
+                         padding_factor=float(A * n_max * C / sum(glist[k[0]].num_poses for k in gkeys)))
             setup = time.perf_counter() - t_build
             for b in range(num_batches):
                 t0 = time.perf_counter()
                 bkeys = gkeys[b * per_batch:(b + 1) * per_batch]
                 real = len(bkeys)
                 bkeys = bkeys + [bkeys[-1]] * (per_batch - real)  # same compiled shape
-                parts, probs, X0s = [], [], []
-                for (gi, a, x) in bkeys[:real]:
-                    part, prob = built.pop((gi, a, x), None) or build(gi, a, x)
+                parts, probs, X0s, blosses = [], [], [], []
+                for (gi, a, x, li) in bkeys[:real]:
+                    part, prob = built.pop((gi, a, x, li), None) or build(gi, a, x, li)
                     parts.append(part)
+                    blosses.append(None if prob.robust is None else jax.device_get(prob.robust.loss))
                     probs.append(batchable(prob, n_common))
                     X0s.append(stack(part.scatter(start_of(gi, a))))
                 probs += [probs[-1]] * (per_batch - real)
@@ -545,18 +634,21 @@ def sweep(
                     out = drive(compile_chunk, state, (rec0.f, rec0.grad_norm, rec0.restarted),
                                 Termination(iterations, chunk_size), fetch=None)
                 except NonFiniteError as err:
-                    which = ", ".join(f"{names[gi]!r} ({a} robots{f', xi={x:g}' if by_xi else ''})"
-                                      for gi, a, x in bkeys[:real])
+                    which = ", ".join(f"{names[gi]!r} ({a} robots{f', xi={x:g}' if by_xi else ''}"
+                                      f"{f', loss {labels[li]}' if robust else ''})"
+                                      for gi, a, x, li in bkeys[:real])
                     raise NonFiniteError(f"sweep ({method}), in a batch of {which}: {err}") from None
                 if b == 0:
                     group["compile_seconds"] = out.compile_seconds
                     group["traces"] = TRACE_COUNTS[method] - traces  # 1 (0: jax's trace cache hit)
                 f_all, run_s, state = out.history.f, out.solve_seconds, out.state
                 X_final = np.asarray(state.X)
+                if robust:
+                    W_final, sched = jax.device_get((state.weights, state.schedule))
                 del problem, state
-                for c, (gi, a, x) in enumerate(bkeys[:real]):
+                for c, (gi, a, x, li) in enumerate(bkeys[:real]):
                     name = names[gi]
-                    key = key_of(name, a, method, x)
+                    key = key_of(name, a, method, x, labels[li])
                     f = f_all[c]
                     histories[key] = f
                     Xc = unstack(jnp.asarray(X_final[c]))
@@ -564,6 +656,7 @@ def sweep(
                     final_poses[key] = poses
                     fs_ = fstars.get(name)
                     row = dict(graph=name, robots=a, method=method, **({"xi": x} if by_xi else {}),
+                               **({"loss": labels[li]} if robust else {}),
                                iterations=iterations,
                                f_start=float(f[0]), f=float(f[-1]),
                                gap=None if fs_ is None else float(f[-1] - fs_),
@@ -576,6 +669,16 @@ def sweep(
                         rpe = relative_pose_error(poses, gts[name])
                         row["rpe_translation"] = rpe.translation
                         row["rpe_rotation_deg"] = rpe.rotation_deg
+                    if name in corrupt:
+                        row.update(outlier_rate=corrupt[name][1], outliers=int(corrupt[name][0].sum()))
+                    if robust:
+                        w, inl = robust_outcome(blosses[c], glist[gi], parts[c], W_final[c], poses)
+                        final_weights[key], final_inliers[key] = w, inl
+                        row.update(rejected=int((~inl).sum()), weight_updates=int(sched.updates[c]),
+                                   gnc_stages=int(sched.stage[c]))
+                        if name in corrupt:
+                            scores = outlier_scores(inl, corrupt[name][0])
+                            row.update(precision=scores.precision, recall=scores.recall)
                     config_rows.append(row)
                 group["run_seconds"] += run_s
                 say(f"{method} robots={group['robots']} batch {b + 1}/{num_batches}: {real} configs, "
@@ -583,13 +686,56 @@ def sweep(
             group["setup_seconds"] = setup
             group_rows.append(group)
 
-    # order histories as graph-major, then robots, then method (then xi)
-    order = {k: (names.index(k[0]), all_robots.index(k[1]), methods.index(k[2]), *(xis.index(v) for v in k[3:]))
+    # order histories as graph-major, then robots, then method (then xi, then loss)
+    index_of = {"xi": xis.index, "loss": labels.index}
+    order = {k: (names.index(k[0]), all_robots.index(k[1]), methods.index(k[2]),
+                 *(index_of[ax](v) for ax, v in zip(axes, k[3:], strict=True)))
              for k in histories}
     histories = dict(sorted(histories.items(), key=lambda kv: order[kv[0]]))
-    config_rows.sort(key=lambda r: order[key_of(r["graph"], r["robots"], r["method"], r.get("xi"))])
+    config_rows.sort(key=lambda r: order[key_of(r["graph"], r["robots"], r["method"], r.get("xi"), r.get("loss"))])
     return SweepResult(histories=histories, fstar=fstars, configs=config_rows, groups=group_rows,
-                       poses=final_poses, iterations=iterations, xi_values=list(xis))
+                       poses=final_poses, iterations=iterations, xi_values=list(xis), axes=axes,
+                       loss_values=dict(loss_of), weights=final_weights, inliers=final_inliers)
+
+
+def _loss_values(loss, scale, gnc) -> dict[str, RobustLoss | None]:
+    """label -> RobustLoss (None: the plain least-squares program) of ``sweep``'s ``loss``.
+
+    A name goes through :func:`~mmpgo_jax._mm.robust.as_loss` with ``scale`` and (for the kernels
+    that take one) ``gnc``; with any robust loss in the sweep, "l2" becomes ``RobustLoss("l2",
+    scale)`` so that every configuration shares the weighted program's pytree structure."""
+    if loss is None or isinstance(loss, (str, RobustLoss)):
+        items = [(None, loss if loss is not None else "l2")]
+    elif isinstance(loss, Mapping):
+        items = [(str(k), v) for k, v in loss.items()]
+    elif isinstance(loss, Sequence):
+        items = [(None, v) for v in loss]
+    else:
+        raise TypeError(f"loss: expected a kernel name, a RobustLoss, a sequence or a mapping of them, got "
+                        f"{type(loss).__name__}")
+    if not items:
+        raise ValueError("loss: give at least one loss")
+    out: dict[str, RobustLoss | None] = {}
+    for label, v in items:
+        if isinstance(v, RobustLoss):
+            if scale is not None or gnc is not None:
+                raise ValueError("loss_scale / gnc apply to losses given by name; give them inside a RobustLoss")
+            value, name = v, v.name
+        elif isinstance(v, str):
+            loss_code(v)  # unknown names: one-line ValueError
+            value, name = as_loss(v, scale, gnc if v in GNC_LOSSES else None), v
+        else:
+            raise TypeError(f"loss: expected a kernel name or a RobustLoss, got {type(v).__name__}")
+        label = name if label is None else label
+        if label in out:
+            raise ValueError(f"loss {label!r} given twice (label the losses with a mapping label -> loss)")
+        out[label] = value
+    if any(v is not None for v in out.values()):
+        out = {k: (RobustLoss("l2", scale) if v is None else v) for k, v in out.items()}
+        trust = {v.trust_odometry for v in out.values()}
+        if len(trust) > 1:
+            raise ValueError("the losses of one sweep must agree on trust_odometry (a static setting)")
+    return out
 
 
 def _xi_values(xi) -> list[float]:

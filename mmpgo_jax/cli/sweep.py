@@ -1,13 +1,30 @@
 """``mmpgo sweep``: MM / AMM over several robot counts (and files) in one compiled computation per
 shape, with the split of ``--robots-from`` (blocks, metis, random); the command-line face of
-:func:`mmpgo_jax.sweep`."""
+:func:`mmpgo_jax.sweep`. ``--losses`` adds robust kernels as an axis and ``--outlier-rates`` runs
+each file again with seeded wrong loop closures added
+(:func:`mmpgo_jax._experiments.outliers.add_outliers`), scored by precision and recall."""
 
 from __future__ import annotations
 
 import argparse
+import math
 import time
 
 from . import CLIError, int_in
+
+
+def percent(text: str) -> float:
+    """argparse ``type``: an outlier rate in percent, 0 <= value < 100."""
+    try:
+        value = float(text)
+    except (TypeError, ValueError):
+        value = math.nan
+    if not math.isfinite(value) or not 0.0 <= value < 100.0:
+        raise argparse.ArgumentTypeError(f"must be a finite number >= 0 and < 100, got {text!r}")
+    return value
+
+
+percent.__name__ = "number"
 
 
 def add_sweep_parser(sub, *, add_common, robots_type, iterations_type) -> None:
@@ -28,6 +45,17 @@ def add_sweep_parser(sub, *, add_common, robots_type, iterations_type) -> None:
                         "benchmark, else the centralized optimum (registry, default); always the centralized "
                         "optimum (centralized); no gaps (none)")
     p.add_argument("--seed", type=int_in(0), default=0, help="seed of --robots-from random (default 0)")
+    from .._mm.robust import LOSSES
+
+    p.add_argument("--losses", nargs="+", choices=LOSSES, metavar="KERNEL", default=None,
+                   help=f"robust kernels to sweep ({', '.join(LOSSES)}; default: least squares only), all in the "
+                        "same compilation; tls runs through GNC; odometry edges keep weight 1")
+    p.add_argument("--outlier-rates", nargs="+", type=percent, metavar="PCT", default=None,
+                   help="run each file at these outlier rates: wrong loop closures added (uniform random pose pairs, "
+                        "random rotation, translation within the map's extent), PCT %% of all loop closures "
+                        "after the addition; 0 keeps the file as it is. Reports precision and recall of the "
+                        "rejected edges; gaps to f* are then left out")
+    p.add_argument("--outlier-seed", type=int_in(0), default=1, help="seed of the added outliers (default 1)")
     p.add_argument("--out", help="write the per-iteration table as CSV (graph, robots, method, iteration, f, gaps)")
     p.add_argument("--configs", help="write the per-configuration table as CSV (time, memory, final f and gap)")
     p.add_argument("--no-progress", action="store_true", help="do not print a line per compiled batch")
@@ -40,6 +68,11 @@ def run_sweep(args: argparse.Namespace, resolve_file) -> int:
     from .._io.datasets import benchmark_info
     from .robots import read_input
 
+    rates = None if args.outlier_rates is None else list(dict.fromkeys(args.outlier_rates))
+    robust = args.losses is not None and any(k != "l2" for k in args.losses)
+    gaps = args.fstar != "none" and not robust and not any(rates or [])
+    if args.fstar != "none" and not gaps:
+        print("robust losses / outliers: f is 2 F_rho or has outlier edges, no gaps to the least-squares f*")
     graphs, fstar = {}, {}
     for name in args.files:
         path = resolve_file(name, args.data)
@@ -48,21 +81,25 @@ def run_sweep(args: argparse.Namespace, resolve_file) -> int:
         too_many = [a for a in args.robots if a > graph.num_poses]
         if too_many:
             raise CLIError(f"{path}: --robots {too_many[0]} exceeds its {graph.num_poses} poses")
+        if rates is not None:
+            graphs.update(_with_outliers(key, graph, rates, args.outlier_seed))
+            continue
         graphs[key] = graph
         info = benchmark_info(path.name)
         known = info is not None and info.num_poses == graph.num_poses and info.fstar_reference is not None
-        if args.fstar == "registry" and known:
+        if args.fstar == "registry" and known and gaps:
             fstar[key] = info.fstar_reference.value
-        elif args.fstar != "none":
+        elif gaps:
             print(f"{key}: computing the centralized optimum f* for the gaps ...", flush=True)
             fstar[key] = reference_optimum(graph)
     say = None if args.no_progress else (lambda line: print(line, flush=True))
     t = time.perf_counter()
     res = sweep(graphs, sorted(set(args.robots)), tuple(args.methods), args.iterations, restart=args.restart,
-                fstar=fstar or None, split=args.robots_from or "blocks", seed=args.seed, progress=say)
+                fstar=fstar or None, split=args.robots_from or "blocks", seed=args.seed, progress=say,
+                loss=list(dict.fromkeys(args.losses)) if args.losses else None)
     print(f"{len(res.configs)} configurations in {time.perf_counter() - t:.1f} s "
           f"({args.robots_from or 'blocks'} split)")
-    _print_table(res.configs)
+    _print_table(res.configs, robust=args.losses is not None or rates is not None)
     with atomic_group():  # every output, or none
         if args.out:
             res.to_csv(args.out)
@@ -71,10 +108,31 @@ def run_sweep(args: argparse.Namespace, resolve_file) -> int:
     return 0
 
 
-def _print_table(configs) -> None:
-    print("| file | method | robots | f final | (f - f*)/f* | ms/iteration |")
-    print("|---|---|---|---|---|---|")
+def _with_outliers(key: str, graph, rates, seed: int) -> dict:
+    """name -> CorruptedGraph of ``graph`` at each rate (percent); the map's extent is read from the
+    chordal initialization of the clean graph (no ground truth in a g2o file)."""
+    from .._experiments.outliers import add_outliers
+    from .._init.chordal import initialize
+
+    reference = initialize(graph, "chordal")
+    return {f"{key}@{rate:g}%": add_outliers(graph, rate / 100.0, reference=reference, seed=seed) for rate in rates}
+
+
+def _print_table(configs, *, robust: bool = False) -> None:
+    if not robust:
+        print("| file | method | robots | f final | (f - f*)/f* | ms/iteration |")
+        print("|---|---|---|---|---|---|")
+    else:
+        print("| file | method | robots | loss | outlier rate % | f final | (f - f*)/f* | precision | recall | "
+              "ms/iteration |")
+        print("|---|---|---|---|---|---|---|---|---|---|")
     for row in configs:
         gap = "" if row.get("relative_gap") is None else f"{row['relative_gap']:.3e}"
-        print(f"| {row['graph']} | {row['method'].upper()} | {row['robots']} | {row['f']:.10g} | {gap} | "
-              f"{row['ms_per_iteration']:.2f} |")
+        if not robust:
+            print(f"| {row['graph']} | {row['method'].upper()} | {row['robots']} | {row['f']:.10g} | {gap} | "
+                  f"{row['ms_per_iteration']:.2f} |")
+            continue
+        rate = "" if row.get("outlier_rate") is None else f"{100 * row['outlier_rate']:g}"
+        prec, rec = ("" if row.get(k) is None else f"{row[k]:.3f}" for k in ("precision", "recall"))
+        print(f"| {row['graph']} | {row['method'].upper()} | {row['robots']} | {row.get('loss', 'l2')} | {rate} | "
+              f"{row['f']:.10g} | {gap} | {prec} | {rec} | {row['ms_per_iteration']:.2f} |")
