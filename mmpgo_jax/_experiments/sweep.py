@@ -76,7 +76,7 @@ from .._mm.majorization import gamma_couplings, stack, unstack
 from .._mm.outer import MMConfig, MMProblem, evaluate, init_state, run
 from .._mm.preconditioner import aggregate_size
 from .._mm.robust import GNC_LOSSES, GNCConfig, RobustLoss, as_loss, loss_code, robust_outcome
-from .._mm.solve import output_frame
+from .._mm.solve import output_frame, start_for
 from .._mm.subproblem import SubproblemConfig
 from .metrics import absolute_trajectory_error, relative_pose_error
 from .outliers import outlier_scores
@@ -389,7 +389,7 @@ def sweep(
     methods: Sequence[str] | str = ("mm", "amm"),
     iterations: int = 1000,
     *,
-    init="chordal",
+    init=None,
     xi: float | Sequence[float] = 1e-3,
     restart: Literal["paper", "adaptive", "average"] = "adaptive",
     fstar: Mapping[str, float] | Sequence[float] | float | str | None = None,
@@ -412,14 +412,14 @@ def sweep(
     ``graphs``: a PoseGraph, a dataset with ``.graph`` (and ``.ground_truth``, used for ATE/RPE
     unless ``ground_truth`` is given), or a sequence / name-keyed mapping of them (same d; n may
     differ). ``robots``: robot counts (contiguous blocks, as :func:`~mmpgo_jax.solve`).
-    ``init``: the start (any :func:`~mmpgo_jax.initialize` method; "chordal" is computed once per
-    graph). ``fstar``: per-graph optimum (mapping or sequence), or ``"centralized"`` to compute it
-    with :func:`reference_optimum`; relative gaps need it. ``max_batch_bytes``: see the module
-    docstring; ``max_batch_configs`` caps the configurations per batch as well (on a CPU, small
-    batches are faster: cache-sized working sets). ``group_by``: "method" (one compilation per
-    method, robot axis padded to the largest count) or "robots" (one per (method, robot count)).
-    ``progress(message)`` is called with a
-    line of text after each batch.
+    ``init``: the start (any :func:`~mmpgo_jax.initialize` method; by default, as in
+    :func:`~mmpgo_jax.solve`, "chordal" for least squares and "gnc-chordal" at the loss's scale for a
+    robust kernel; each start is computed once per graph). ``fstar``: per-graph optimum (mapping or
+    sequence), or ``"centralized"`` to compute it with :func:`reference_optimum`; relative gaps need it.
+    ``max_batch_bytes``: see the module docstring; ``max_batch_configs`` caps the configurations per
+    batch as well (on a CPU, small batches are faster: cache-sized working sets). ``group_by``: "method"
+    (one compilation per method, robot axis padded to the largest count) or "robots" (one per (method,
+    robot count)). ``progress(message)`` is called with a line of text after each batch.
 
     ``fixed``: per-graph :class:`~mmpgo_jax.FixedPoses` held by the start and every iteration
     (default: a dataset's own ``fixed_poses``, e.g. a :class:`~mmpgo_jax.G2OFile`'s FIX lines).
@@ -528,12 +528,15 @@ def sweep(
 
     starts: dict = {}
 
-    def start_of(gi: int, a: int) -> Poses:
+    def start_of(gi: int, a: int, li: int) -> Poses:
         fix = fixed_of[names[gi]]
-        key = (gi, a) if isinstance(init, str) and init == "distributed-chordal" else gi
+        method, options = start_for(init, loss_of[labels[li]])
+        per_robots = isinstance(method, str) and method == "distributed-chordal"
+        key = (gi, a) if per_robots else (gi, str(method) if isinstance(method, str) else id(method),
+                                          tuple(sorted(options.items())))
         if key not in starts:
-            robots_kw = {"robots": rops[(gi, a)]} if key != gi else {}
-            starts[key] = initialize(glist[gi], init, fixed=fix, **robots_kw)
+            robots_kw = {"robots": rops[(gi, a)]} if per_robots else {}
+            starts[key] = initialize(glist[gi], method, fixed=fix, **robots_kw, **options)
         return starts[key]
 
     histories: dict[tuple, np.ndarray] = {}
@@ -565,7 +568,7 @@ def sweep(
                 if fix is None and any_fixed:  # one pytree structure per batch: an all-free mask
                     fix = np.zeros(g.num_poses, dtype=bool)
                 problem = MMProblem.build(part, x, config=config, min_couplings=kc, fixed=fix, aggregate=agg,
-                                          poses=part.scatter(start_of(gi, a)), loss=loss_of[labels[li]])
+                                          poses=part.scatter(start_of(gi, a, li)), loss=loss_of[labels[li]])
                 return part, problem
 
             def batchable(problem: MMProblem, n_common: int) -> MMProblem:
@@ -616,7 +619,7 @@ def sweep(
                     parts.append(part)
                     blosses.append(None if prob.robust is None else jax.device_get(prob.robust.loss))
                     probs.append(batchable(prob, n_common))
-                    X0s.append(stack(part.scatter(start_of(gi, a))))
+                    X0s.append(stack(part.scatter(start_of(gi, a, li))))
                 probs += [probs[-1]] * (per_batch - real)
                 X0s += [X0s[-1]] * (per_batch - real)
                 problem = _stack(probs)
