@@ -477,3 +477,18 @@ def test_odometry_matches_edge_by_edge_composition(seed):
     np.testing.assert_allclose(np.asarray(out.R), R, atol=1e-12)
     np.testing.assert_allclose(np.asarray(out.t), t, atol=1e-11)
     np.testing.assert_array_equal(np.asarray(out.R)[[3, 20]], fixed.R)
+
+
+def test_odometry_tree_with_many_duplicate_edges():
+    """256 copies of an odometry edge and 300 of a loop closure: every pose is reached, through the
+    lowest-index copy."""
+    rng = np.random.default_rng(0)
+    i = np.array([0] * 256 + [1, 3, 4] + [0] * 300)
+    j = np.array([1] * 256 + [2, 4, 5] + [5] * 300)
+    m = len(i)
+    g = PoseGraph.from_arrays(i, j, random_rotations(rng, (m,), 3), rng.standard_normal((m, 3)), np.ones(m),
+                              np.ones(m), num_poses=6, dtype=np.float64)
+    p = odometry_initialization(g)
+    Rm, tm = np.asarray(g.R), np.asarray(g.t)
+    np.testing.assert_allclose(np.asarray(p.R[1]), Rm[0], atol=1e-12)  # the lowest-index copy
+    np.testing.assert_allclose(np.asarray(p.t[5]), tm[259], atol=1e-12)  # 0 -> 5: the first loop closure

@@ -228,7 +228,7 @@ def _bfs_predecessors(num_nodes: int, a: np.ndarray, b: np.ndarray, source: int)
     (a, b) (scipy.sparse.csgraph; -9999 for the source and unreachable nodes)."""
     from scipy.sparse.csgraph import breadth_first_order
 
-    A = sp.coo_matrix((np.ones(a.shape[0], dtype=np.int8), (a, b)), shape=(num_nodes, num_nodes)).tocsr()
+    A = sp.coo_matrix((np.ones(a.shape[0]), (a, b)), shape=(num_nodes, num_nodes)).tocsr()
     return breadth_first_order(A, source, directed=False, return_predecessors=True)[1]
 
 
@@ -253,7 +253,7 @@ def _spanning_tree(graph: PoseGraph, roots: np.ndarray) -> tuple[np.ndarray, np.
     roots = np.asarray(roots, dtype=np.int64)
     odo = np.abs(I_ - J_) == 1
     oi, oj = I_[odo], J_[odo]
-    A = sp.coo_matrix((np.ones(oi.shape[0], dtype=np.int8), (oi, oj)), shape=(n, n))
+    A = sp.coo_matrix((np.ones(oi.shape[0]), (oi, oj)), shape=(n, n))
     nc, lab = _components(A, directed=False)
 
     # components: BFS from a virtual node (nc) linked to every component that holds a root
