@@ -379,3 +379,116 @@ def test_same_chordal_start_as_minimum_degree_small(benchmark_file, name):
                                   "parking-garage.g2o", "manhattan.g2o", "kitti_00.g2o"])
 def test_same_chordal_start_as_minimum_degree_all(benchmark_file, name):
     _check_same_chordal_start(benchmark_file(name))
+
+
+def _broken_chain_graph(seed, n=60, d=3):
+    """Odometry edges (k, k+1) with gaps, random loop closures (some duplicated, both orientations),
+    random measurements, and a separate component of poses n-5 .. n-1."""
+    rng = np.random.default_rng(seed)
+    k = np.flatnonzero(rng.random(n - 6) < 0.7)
+    i, j = list(k), list(k + 1)
+    for _ in range(n // 2):
+        a, b = rng.choice(n - 5, 2, replace=False)
+        i.append(int(a)), j.append(int(b))
+    i += [n - 5, n - 3, n - 3, n - 1, int(i[-1])]  # the last component, and a duplicate edge
+    j += [n - 4, n - 4, n - 2, n - 2, int(j[-1])]
+    i, j = np.array(i), np.array(j)
+    m = len(i)
+    g = PoseGraph.from_arrays(i, j, random_rotations(rng, (m,), d), rng.standard_normal((m, d)),
+                              np.ones(m), np.ones(m), num_poses=n, dtype=np.float64)
+    return g, rng
+
+
+def _reference_01_bfs(g, roots):
+    """Fewest loop closures (edges with |i - j| != 1) from any root to each pose (pose by pose)."""
+    from collections import deque
+
+    n = g.num_poses
+    adj = [[] for _ in range(n)]
+    for a, b in zip(np.asarray(g.i).tolist(), np.asarray(g.j).tolist(), strict=True):
+        w = 0 if abs(a - b) == 1 else 1
+        adj[a].append((b, w))
+        adj[b].append((a, w))
+    dist = [None] * n
+    dq = deque((int(r), 0) for r in roots)
+    while dq:
+        u, du = dq.popleft()
+        if dist[u] is not None and dist[u] <= du:
+            continue
+        dist[u] = du
+        for v, w in adj[u]:
+            (dq.appendleft if w == 0 else dq.append)((v, du + w))
+    return np.array(dist)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_odometry_tree_uses_fewest_loop_closures(seed):
+    from mmpgo_jax._core.gauge import FixedPoses, anchor_set
+    from mmpgo_jax._init.chordal import _spanning_tree
+
+    g, rng = _broken_chain_graph(seed)
+    n = g.num_poses
+    fixed = None if seed % 2 == 0 else FixedPoses.identity(np.sort(rng.choice(n - 5, 3, replace=False)), 3)
+    roots = anchor_set(g, fixed).index
+    parent, parent_edge = _spanning_tree(g, roots)
+    I_, J_ = np.asarray(g.i), np.asarray(g.j)
+    assert set(np.flatnonzero(parent < 0)) == set(roots.tolist())
+    child = np.flatnonzero(parent >= 0)
+    e = parent_edge[child]
+    assert np.all(((I_[e] == child) & (J_[e] == parent[child])) | ((J_[e] == child) & (I_[e] == parent[child])))
+    # loop closures on the tree path to the root (walked pose by pose here) = the 0-1 BFS distance
+    loops = np.zeros(n, dtype=np.int64)
+    for p in range(n):
+        q, steps = p, 0
+        while parent[q] >= 0:
+            loops[p] += abs(I_[parent_edge[q]] - J_[parent_edge[q]]) != 1
+            q, steps = parent[q], steps + 1
+            assert steps <= n  # no cycle
+        assert q in roots
+    np.testing.assert_array_equal(loops, _reference_01_bfs(g, roots))
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_odometry_matches_edge_by_edge_composition(seed):
+    """The pointer-doubling composition equals the pose-by-pose fold along the same tree (to round-off)."""
+    from mmpgo_jax._core.gauge import FixedPoses, anchor_set
+    from mmpgo_jax._init.chordal import _spanning_tree
+
+    g, rng = _broken_chain_graph(seed)
+    n, d = g.num_poses, g.dim
+    fixed = FixedPoses(np.array([3, 20]), random_rotations(rng, (2,), d), rng.standard_normal((2, d)))
+    anchor = anchor_set(g, fixed)
+    parent, parent_edge = _spanning_tree(g, anchor.index)
+    J_ = np.asarray(g.j)
+    Rm, tm = np.asarray(g.R), np.asarray(g.t)
+    R, t = np.zeros((n, d, d)), np.zeros((n, d))
+    R[anchor.index], t[anchor.index] = anchor.R, anchor.t
+    done = parent < 0
+    while not done.all():  # one pose at a time, parents first
+        p = int(np.flatnonzero(~done & done[np.maximum(parent, 0)])[0])
+        q, e = parent[p], parent_edge[p]
+        if J_[e] == p:
+            R[p], t[p] = R[q] @ Rm[e], t[q] + R[q] @ tm[e]
+        else:
+            R[p] = R[q] @ Rm[e].T
+            t[p] = t[q] - R[p] @ tm[e]
+        done[p] = True
+    out = odometry_initialization(g, fixed)
+    np.testing.assert_allclose(np.asarray(out.R), R, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(out.t), t, atol=1e-11)
+    np.testing.assert_array_equal(np.asarray(out.R)[[3, 20]], fixed.R)
+
+
+def test_odometry_tree_with_many_duplicate_edges():
+    """256 copies of an odometry edge and 300 of a loop closure: every pose is reached, through the
+    lowest-index copy."""
+    rng = np.random.default_rng(0)
+    i = np.array([0] * 256 + [1, 3, 4] + [0] * 300)
+    j = np.array([1] * 256 + [2, 4, 5] + [5] * 300)
+    m = len(i)
+    g = PoseGraph.from_arrays(i, j, random_rotations(rng, (m,), 3), rng.standard_normal((m, 3)), np.ones(m),
+                              np.ones(m), num_poses=6, dtype=np.float64)
+    p = odometry_initialization(g)
+    Rm, tm = np.asarray(g.R), np.asarray(g.t)
+    np.testing.assert_allclose(np.asarray(p.R[1]), Rm[0], atol=1e-12)  # the lowest-index copy
+    np.testing.assert_allclose(np.asarray(p.t[5]), tm[259], atol=1e-12)  # 0 -> 5: the first loop closure

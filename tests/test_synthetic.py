@@ -239,3 +239,47 @@ def test_dtype_and_small_lattice():
     assert set(map(tuple, t.astype(int))) <= {(0, 0), (0, 1), (1, 0), (1, 1)}
     with pytest.raises(ValueError):
         lattice_dataset(0, dim=4, grid=3, num_poses=10)
+
+
+# --------------------------------------------------------------------------------------------
+# the walk and the heading frames against pose-by-pose references
+# --------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(("dim", "grid", "n"), [(3, 12, 3000), (3, 1, 200), (2, 1, 300), (2, 3, 2000)])
+def test_lattice_walk_is_the_per_step_walk(dim, grid, n):
+    """The batched-draw walk equals one rng.integers call per step, and leaves the generator where
+    those calls leave it (grid 1 in 2D has one-option steps, which draw nothing)."""
+    from mmpgo_jax._experiments.synthetic import _lattice_walk, _walk_reference
+
+    for seed in range(3):
+        r1, r2 = np.random.default_rng(seed), np.random.default_rng(seed)
+        np.testing.assert_array_equal(_lattice_walk(r1, dim, grid, n), _walk_reference(r2, dim, grid, n))
+        assert r1.bit_generator.state == r2.bit_generator.state
+        np.testing.assert_array_equal(r1.integers(0, 7, 5), r2.integers(0, 7, 5))  # 32-bit buffer too
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_heading_frames_are_the_pose_by_pose_products(dim):
+    from mmpgo_jax._experiments.synthetic import _heading_frames, _lattice_walk
+
+    pos = _lattice_walk(np.random.default_rng(4), dim, 3, 700)
+    pos = np.concatenate([pos, pos[-2:-1]])  # end with a reversal (the pi rotation)
+    R = _heading_frames(pos)
+    heads = np.diff(pos, axis=0).astype(np.float64)
+    heads = np.concatenate([heads, heads[-1:]])
+
+    def plane(a, b):  # the rotation taking a to b, fixing the rest, one pair at a time
+        if a @ b < -0.5:
+            c = np.eye(dim)[int(np.argmax(np.abs(a) < 0.5))]
+            return np.eye(dim) - 2.0 * np.outer(a, a) - 2.0 * np.outer(c, c)
+        if a @ b > 0.5:
+            return np.eye(dim)
+        return np.eye(dim) - np.outer(a, a) - np.outer(b, b) + np.outer(b, a) - np.outer(a, b)
+
+    ref = [plane(np.eye(dim)[0], heads[0])]
+    for k in range(1, len(pos)):
+        ref.append(plane(heads[k - 1], heads[k]) @ ref[-1])
+    np.testing.assert_array_equal(R, np.array(ref))
+    assert np.all(np.abs(R).sum(axis=1) == 1) and np.all(np.linalg.det(R).round() == 1)
+    np.testing.assert_array_equal(np.einsum("kab,b->ka", R, np.eye(dim)[0])[:-1], heads[:-1])

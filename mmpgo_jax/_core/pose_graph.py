@@ -296,6 +296,8 @@ def connected_components(num_poses: int, i, j) -> list[np.ndarray]:
     j = np.asarray(j)
     A = sp.coo_matrix((np.ones(len(i)), (i, j)), shape=(num_poses, num_poses))
     k, labels = _cc(A, directed=False)
-    comps = [np.flatnonzero(labels == c) for c in range(k)]
-    comps.sort(key=lambda c: (-len(c), c[0]))
-    return comps
+    members = np.argsort(labels, kind="stable")  # poses grouped by component, ascending within each
+    sizes = np.bincount(labels, minlength=k)
+    firsts = members[np.cumsum(sizes) - sizes]
+    comps = np.split(members, np.cumsum(sizes)[:-1])  # O(n), not one scan of the labels per component
+    return [comps[c] for c in np.lexsort((firsts, -sizes)).tolist()]

@@ -47,22 +47,25 @@ def _loop_closures(graph: PoseGraph) -> np.ndarray:
     return np.abs(np.asarray(graph.i, np.int64) - np.asarray(graph.j, np.int64)) > 1
 
 
-def _draw_pairs(rng, n: int, count: int, taken: set, robot_of_pose) -> np.ndarray:
-    """``count`` distinct unordered pairs (i < j, j > i + 1) not in ``taken`` (rejection, in batches)."""
+def _draw_pairs(rng, n: int, count: int, taken: np.ndarray, robot_of_pose) -> np.ndarray:
+    """``count`` distinct unordered pairs (i < j, j > i + 1) whose codes i n + j are not in ``taken``
+    (rejection, in batches; each batch is filtered with array operations: the first draw of each new
+    pair is kept, in draw order)."""
     out = np.zeros((0, 2), np.int64)
-    keys = set(taken)
-    while len(out) < count:
+    keys = np.unique(np.asarray(taken, np.int64))
+    while len(out) < count:  # rejection rounds, not pairs
         need = count - len(out)
         pairs = np.sort(rng.integers(0, n, size=(2 * need + 16, 2)), axis=1)
         ok = pairs[:, 1] > pairs[:, 0] + 1
         if robot_of_pose is not None:
             ok &= robot_of_pose[pairs[:, 0]] != robot_of_pose[pairs[:, 1]]
-        fresh = []
-        for a, b in pairs[ok].tolist():  # host set-up of a benchmark, not a hot path
-            if (a, b) not in keys:
-                keys.add((a, b))
-                fresh.append((a, b))
-        out = np.concatenate([out, np.asarray(fresh, np.int64).reshape(-1, 2)[:need]])
+        cand = pairs[ok]
+        code = cand[:, 0] * n + cand[:, 1]
+        first = np.zeros(code.shape[0], dtype=bool)
+        first[np.unique(code, return_index=True)[1]] = True
+        fresh = np.flatnonzero(first & ~np.isin(code, keys))
+        keys = np.union1d(keys, code[fresh])
+        out = np.concatenate([out, cand[fresh][:need]])
     return out
 
 
@@ -85,7 +88,7 @@ def add_outliers(graph: PoseGraph, rate: float, *, reference: Poses, seed: int =
             raise ValueError("inter_robot_only needs at least two robots")
     rng = np.random.default_rng(seed)
     gi, gj = np.asarray(graph.i, np.int64), np.asarray(graph.j, np.int64)
-    taken = set(zip(np.minimum(gi, gj).tolist(), np.maximum(gi, gj).tolist(), strict=True))
+    taken = np.minimum(gi, gj) * n + np.maximum(gi, gj)
     pairs = _draw_pairs(rng, n, count, taken, rop)
     flip = rng.random(count) < 0.5  # either orientation
     I, J = np.where(flip, pairs[:, 1], pairs[:, 0]), np.where(flip, pairs[:, 0], pairs[:, 1])

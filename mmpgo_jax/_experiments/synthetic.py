@@ -347,38 +347,37 @@ class SyntheticDataset:
         return float(self.num_edges * per_edge)
 
 
-def _plane_rotation(h_from: np.ndarray, h_to: np.ndarray) -> np.ndarray:
-    """The rotation taking unit vector h_from to h_to (orthogonal or opposite), fixing the rest.
+def _plane_rotations(h_from: np.ndarray, h_to: np.ndarray) -> np.ndarray:
+    """The rotations (k, d, d) taking unit vectors h_from[k] to h_to[k] (orthogonal, equal or
+    opposite), fixing the rest.
 
     Orthogonal: the 90-degree rotation in span{h_from, h_to}:
         Q = I - a a' - b b' + b a' - a b'.
     Opposite: a pi rotation in the plane of h_from and the first coordinate axis orthogonal to it.
     """
-    d = h_from.shape[0]
-    a, b = h_from, h_to
-    if np.dot(a, b) < -0.5:
-        k = int(np.argmax(np.abs(a) < 0.5))
-        c = np.zeros(d)
-        c[k] = 1.0
-        return np.eye(d) - 2.0 * np.outer(a, a) - 2.0 * np.outer(c, c)
-    if np.dot(a, b) > 0.5:
-        return np.eye(d)
-    return np.eye(d) - np.outer(a, a) - np.outer(b, b) + np.outer(b, a) - np.outer(a, b)
+    k, d = h_from.shape
+    a, b = h_from[:, :, None], h_to[:, :, None]
+    at, bt = h_from[:, None, :], h_to[:, None, :]
+    eye = np.eye(d)
+    turn = eye - a * at - b * bt + b * at - a * bt
+    c = np.zeros((k, d))
+    c[np.arange(k), np.argmax(np.abs(h_from) < 0.5, axis=1)] = 1.0
+    flip = eye - 2.0 * (a * at) - 2.0 * (c[:, :, None] * c[:, None, :])
+    dot = np.einsum("ka,ka->k", h_from, h_to)[:, None, None]
+    return np.where(dot < -0.5, flip, np.where(dot > 0.5, eye, turn))
 
 
-def _lattice_walk(rng: np.random.Generator, dim: int, grid: int, num_poses: int) -> np.ndarray:
-    """Integer vertex coordinates (num_poses, dim) of the non-reversing random walk."""
+def _walk_reference(rng: np.random.Generator, dim: int, grid: int, num_poses: int) -> np.ndarray:
+    """The walk one ``rng.integers`` call per step (the definition :func:`_lattice_walk` reproduces)."""
     steps = np.concatenate([np.eye(dim, dtype=np.int64), -np.eye(dim, dtype=np.int64)])
     pos = np.zeros((num_poses, dim), dtype=np.int64)
     prev = -1  # index into steps of the previous move
     for k in range(1, num_poses):
-        cur = pos[k - 1]
-        nxt = cur + steps
+        nxt = pos[k - 1] + steps
         ok = np.all((nxt >= 0) & (nxt <= grid), axis=1)
         if prev >= 0:
-            rev = (prev + dim) % (2 * dim)
             ok_nr = ok.copy()
-            ok_nr[rev] = False
+            ok_nr[(prev + dim) % (2 * dim)] = False
             if ok_nr.any():
                 ok = ok_nr
         choices = np.flatnonzero(ok)
@@ -387,20 +386,76 @@ def _lattice_walk(rng: np.random.Generator, dim: int, grid: int, num_poses: int)
     return pos
 
 
+def _lattice_walk(rng: np.random.Generator, dim: int, grid: int, num_poses: int) -> np.ndarray:
+    """Integer vertex coordinates (num_poses, dim) of the non-reversing random walk.
+
+    Bit for bit :func:`_walk_reference`: a step with k > 1 options takes ``rng.integers(k)``, which
+    numpy computes from one 32-bit draw u as (u k) >> 32 (Lemire's method; it draws again only
+    when the low 32 bits of u k are below (2^32 - k) mod k, probability < 2e-9 per step), and a step
+    with one option draws nothing. The 32-bit draws are made at once (``rng.integers(0, 2**32,
+    dtype=uint32)`` returns the same stream) and the generator is then left exactly where the
+    per-step calls would leave it. The walk itself is a Markov chain on (vertex, last move): each
+    step's options depend on where the previous one ended, so the scan over the steps is sequential;
+    it is a tight loop on Python integers (no numpy call per step); the positions are a cumulative
+    sum of the moves.
+    """
+    if num_poses < 2:
+        return np.zeros((num_poses, dim), dtype=np.int64)
+    bitgen = rng.bit_generator
+    saved = bitgen.state
+    u = rng.integers(0, 2**32, size=num_poses + 15, dtype=np.uint32).tolist()
+    moves = [0] * (num_poses - 1)
+    pos = [0] * dim
+    prev = -1
+    used = 0
+    two_d = 2 * dim
+    for k in range(num_poses - 1):  # sequential by nature (see above)
+        options = [s for s in range(two_d) if 0 <= pos[s % dim] + (1 if s < dim else -1) <= grid]
+        if prev >= 0:
+            rev = (prev + dim) % two_d
+            if len(options) > 1 and rev in options:
+                options.remove(rev)
+        n_opt = len(options)
+        if n_opt > 1:
+            if used >= len(u):
+                break
+            prod = u[used] * n_opt
+            used += 1
+            if (prod & 0xFFFFFFFF) < (2**32 - n_opt) % n_opt:  # numpy would draw again: rare
+                break
+            prev = options[prod >> 32]
+        else:
+            prev = options[0]
+        moves[k] = prev
+        pos[prev % dim] += 1 if prev < dim else -1
+    else:
+        bitgen.state = saved
+        rng.integers(0, 2**32, size=used, dtype=np.uint32)  # consume exactly the draws used
+        steps = np.concatenate([np.eye(dim, dtype=np.int64), -np.eye(dim, dtype=np.int64)])
+        return np.concatenate([np.zeros((1, dim), np.int64), np.cumsum(steps[moves], axis=0)])
+    bitgen.state = saved  # a rejection (or draws ran out): the per-step definition
+    return _walk_reference(rng, dim, grid, num_poses)
+
+
 def _heading_frames(pos: np.ndarray) -> np.ndarray:
-    """Rotations whose first axis is the heading of travel, carried by parallel transport."""
+    """Rotations whose first axis is the heading of travel, carried by parallel transport.
+
+    R_0 = Q(e_1, h_0) and R_k = Q(h_{k-1}, h_k) R_{k-1}: the prefix products are formed by
+    doubling (ceil(log2 n) batched matmuls). All factors are signed permutation matrices, so every
+    product is exact and the association order does not change a bit.
+    """
     n, d = pos.shape
-    R = np.empty((n, d, d))
     if n == 1:
-        R[0] = np.eye(d)
-        return R
+        return np.eye(d)[None].copy()
     heads = np.diff(pos, axis=0).astype(np.float64)  # (n-1, d) unit axis vectors
     heads = np.concatenate([heads, heads[-1:]], 0)  # last pose keeps its arrival heading
-    e1 = np.zeros(d)
-    e1[0] = 1.0
-    R[0] = _plane_rotation(e1, heads[0])
-    for k in range(1, n):
-        R[k] = _plane_rotation(heads[k - 1], heads[k]) @ R[k - 1]
+    e1 = np.zeros((1, d))
+    e1[0, 0] = 1.0
+    R = _plane_rotations(np.concatenate([e1, heads[:-1]]), heads)  # R[k] = Q_k; Q_0 = Q(e1, h_0)
+    span = 1
+    while span < n:  # R[k] <- R[k] R[k - span]: after the pass, R[k] = Q_k ... Q_{max(0, k-2 span+1)}
+        R[span:] = R[span:] @ R[:-span]
+        span *= 2
     return R
 
 

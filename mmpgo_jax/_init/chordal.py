@@ -24,7 +24,6 @@ convention of the paper's tables); ``relaxed_rotation_cost`` = 2 F_R of Eq. (23)
 from __future__ import annotations
 
 import os
-from collections import deque
 from pathlib import Path
 
 import jax
@@ -224,59 +223,77 @@ def chordal_initialization(graph: PoseGraph, fixed: FixedPoses | None = None) ->
 # --------------------------------------------------------------------------------------------
 
 
-def _spanning_tree(graph: PoseGraph, roots: np.ndarray):
-    """Parent edge of every pose in a spanning forest rooted at ``roots`` (the anchor poses).
+def _bfs_predecessors(num_nodes: int, a: np.ndarray, b: np.ndarray, source: int) -> np.ndarray:
+    """Predecessor of every node in a breadth-first tree from ``source`` over the undirected edges
+    (a, b) (scipy.sparse.csgraph; -9999 for the source and unreachable nodes)."""
+    from scipy.sparse.csgraph import breadth_first_order
 
-    0-1 BFS where odometry edges (|i - j| = 1) cost 0 and loop closures cost 1: poses reachable
-    from a root along the odometry chain are reached through it, the rest through as few loop
-    closures as possible (all roots start together, so each pose hangs from its nearest root).
-    Returns (order, parent_edge) with ``order`` a topological order of the poses (roots first) and
-    ``parent_edge[p]`` the index of the edge linking p to its parent (-1 for roots).
+    A = sp.coo_matrix((np.ones(a.shape[0]), (a, b)), shape=(num_nodes, num_nodes)).tocsr()
+    return breadth_first_order(A, source, directed=False, return_predecessors=True)[1]
+
+
+def _spanning_tree(graph: PoseGraph, roots: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Parent pose and parent edge of every pose in a spanning forest rooted at ``roots`` (the anchor
+    poses); -1 for the roots.
+
+    Odometry edges (|i - j| = 1) are preferred and loop closures used as few times as possible:
+    the odometry edges split the poses into chains (components); a breadth-first search over the
+    components, linked by loop closures and started from the components holding a root, gives each
+    component the fewest loop closures to a root, and it is entered through the lowest-index loop
+    closure from its predecessor component. Inside the components a second breadth-first search over
+    the odometry edges, started from all roots and entry poses at once, hangs every pose from the
+    nearest of them (so poses reachable from a root along the odometry chain are reached through it).
+    Two scipy.sparse.csgraph searches and array operations; no Python loop over poses or edges.
     """
+    from scipy.sparse.csgraph import connected_components as _components
+
     I_ = np.asarray(graph.i, dtype=np.int64)
     J_ = np.asarray(graph.j, dtype=np.int64)
     n = graph.num_poses
-    m = len(I_)
-    # adjacency lists (CSR)
-    ends = np.concatenate([I_, J_])
-    other = np.concatenate([J_, I_])
-    eid = np.concatenate([np.arange(m), np.arange(m)])
-    order_adj = np.argsort(ends, kind="stable")
-    ptr = np.concatenate([[0], np.cumsum(np.bincount(ends, minlength=n))])
-    nbr = other[order_adj].tolist()
-    nbe = eid[order_adj].tolist()
-    odo = (np.abs(I_ - J_) == 1).tolist()
-    ptr = ptr.tolist()
+    roots = np.asarray(roots, dtype=np.int64)
+    odo = np.abs(I_ - J_) == 1
+    oi, oj = I_[odo], J_[odo]
+    A = sp.coo_matrix((np.ones(oi.shape[0]), (oi, oj)), shape=(n, n))
+    nc, lab = _components(A, directed=False)
 
-    INF = 1 << 60
-    dist = [INF] * n
-    parent_edge = [-1] * n
-    done = [False] * n
-    order: list[int] = []
-    roots = np.asarray(roots, dtype=np.int64).tolist()
-    for root in roots:
-        dist[root] = 0
-    dq = deque(roots)
-    while dq:
-        u = dq.popleft()
-        if done[u]:
-            continue
-        done[u] = True
-        order.append(u)
-        du = dist[u]
-        for k in range(ptr[u], ptr[u + 1]):
-            v, e = nbr[k], nbe[k]
-            if done[v]:
-                continue
-            w = 0 if odo[e] else 1
-            if du + w < dist[v]:
-                dist[v] = du + w
-                parent_edge[v] = e
-                if w == 0:
-                    dq.appendleft(v)
-                else:
-                    dq.append(v)
-    return np.asarray(order, dtype=np.int64), np.asarray(parent_edge, dtype=np.int64)
+    # components: BFS from a virtual node (nc) linked to every component that holds a root
+    loop = ~odo & (lab[I_] != lab[J_])
+    li, lj = lab[I_[loop]], lab[J_[loop]]
+    pred_c = _bfs_predecessors(nc + 1, np.concatenate([li, np.full(roots.shape[0], nc)]),
+                               np.concatenate([lj, lab[roots]]), nc)
+    # the entering loop closure of every other component: the lowest-index one from its predecessor
+    e_loop = np.flatnonzero(loop)
+    into_j = pred_c[lj] == li  # enters lab[j] from lab[i]
+    into_i = pred_c[li] == lj  # enters lab[i] from lab[j]
+    comp = np.concatenate([lj[into_j], li[into_i]])
+    edge = np.concatenate([e_loop[into_j], e_loop[into_i]])
+    entry = np.concatenate([J_[e_loop[into_j]], I_[e_loop[into_i]]])
+    source = np.concatenate([I_[e_loop[into_j]], J_[e_loop[into_i]]])
+    order = np.lexsort((edge, comp))
+    _, first = np.unique(comp[order], return_index=True)
+    pick = order[first]
+    entry, edge, source = entry[pick], edge[pick], source[pick]
+
+    # poses: BFS over the odometry edges from a virtual node (n) linked to the roots and entry poses
+    starts = np.concatenate([roots, entry])
+    pred = _bfs_predecessors(n + 1, np.concatenate([oi, np.full(starts.shape[0], n)]),
+                             np.concatenate([oj, starts]), n)[:n]
+    parent = pred.copy()
+    parent_edge = np.full(n, -1, dtype=np.int64)
+    parent[roots] = -1
+    parent[entry] = source
+    parent_edge[entry] = edge
+    inner = np.flatnonzero((pred >= 0) & (pred < n))  # reached along an odometry edge
+    # that edge: the lowest-index odometry edge joining the pair
+    e_odo = np.flatnonzero(odo)
+    key = np.minimum(oi, oj) * n + np.maximum(oi, oj)
+    korder = np.lexsort((e_odo, key))
+    q = pred[inner]
+    pos = np.searchsorted(key[korder], np.minimum(inner, q) * n + np.maximum(inner, q))
+    parent_edge[inner] = e_odo[korder[pos]]
+    if np.any(parent[np.setdiff1d(np.arange(n), roots)] < 0):  # anchor_set gives every component a root
+        raise AssertionError("spanning tree does not reach every pose")
+    return parent, parent_edge
 
 
 def odometry_initialization(graph: PoseGraph, fixed: FixedPoses | None = None) -> Poses:
@@ -285,28 +302,41 @@ def odometry_initialization(graph: PoseGraph, fixed: FixedPoses | None = None) -
     The anchors (:func:`anchor_set`) are the ``fixed`` poses at their values, else pose 0 at
     identity; each component of a disconnected graph without a fixed pose starts from its first
     pose at identity. When every consecutive pair (i, i+1) is measured the tree is the odometry
-    chain; otherwise it prefers odometry edges and uses as few loop closures as possible (0-1 BFS).
+    chain; otherwise it prefers odometry edges and uses as few loop closures as possible
+    (:func:`_spanning_tree`). The relative poses are composed by pointer doubling: each pose holds
+    its transform from an ancestor, and every pass composes it with its ancestor's and jumps to that
+    ancestor's ancestor, so ceil(log2(depth)) vectorised passes reach the roots (no Python loop over
+    poses; the products are associated differently from a pose-by-pose fold, so values agree with it
+    to round-off).
     """
-    I_, J_, Rm, tm, _, _ = _edges_np(graph)
+    _, J_, Rm, tm, _, _ = _edges_np(graph)
     n, d = graph.num_poses, graph.dim
     anchor = anchor_set(graph, fixed)
-    order, parent_edge = _spanning_tree(graph, anchor.index)
+    parent, parent_edge = _spanning_tree(graph, anchor.index)
+    # transform (A, b) from the ancestor anc[p] to p: g_p = g_anc * (A, b)
+    A = np.broadcast_to(np.eye(d), (n, d, d)).copy()
+    b = np.zeros((n, d))
+    anc = np.arange(n)
+    child = np.flatnonzero(parent >= 0)
+    e = parent_edge[child]
+    fwd = J_[e] == child  # parent is the tail: g_j = g_i * (Rm, tm)
+    A[child] = np.where(fwd[:, None, None], Rm[e], np.swapaxes(Rm[e], 1, 2))
+    b[child] = np.where(fwd[:, None], tm[e], -np.einsum("kba,kb->ka", Rm[e], tm[e]))  # (Rm, tm)^-1
+    anc[child] = parent[child]
+    active = child
+    while active.size:  # one pass per doubling of the depth reached
+        q = anc[active]
+        b[active] = b[q] + np.einsum("kab,kb->ka", A[q], b[active])
+        A[active] = A[q] @ A[active]
+        anc[active] = anc[q]
+        active = active[anc[active] != anc[anc[active]]]
     R = np.zeros((n, d, d))
     t = np.zeros((n, d))
     R[anchor.index] = anchor.R
     t[anchor.index] = anchor.t
-    for p in order.tolist():
-        e = parent_edge[p]
-        if e < 0:
-            continue
-        if J_[e] == p:  # parent is the tail: g_j = g_i * (Rt, tt)
-            q = I_[e]
-            R[p] = R[q] @ Rm[e]
-            t[p] = t[q] + R[q] @ tm[e]
-        else:  # parent is the head: g_i = g_j * (Rt, tt)^{-1}
-            q = J_[e]
-            R[p] = R[q] @ Rm[e].T
-            t[p] = t[q] - R[p] @ tm[e]
+    R0, t0 = R[anc], t[anc]
+    R = R0 @ A
+    t = t0 + np.einsum("kab,kb->ka", R0, b)
     R = _project_np(R)  # remove round-off drift along long chains
     if fixed is not None:
         R[fixed.index] = fixed.R  # exactly, not their projection

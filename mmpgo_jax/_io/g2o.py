@@ -73,10 +73,12 @@ Values
   ``read_g2o(path, strict_information=True)`` every such matrix is refused instead ("information
   matrix is not positive definite").
 
-Parsing tokenises each line once in Python and converts and checks the numbers with vectorised
-numpy operations (one C-level character-set check per group of lines and ``float``/``int``
-conversions; the regular expressions are only used on the slow path that locates the offending
-field); per-line work is only done to locate the offending line when a check fails. Every
+Parsing is vectorised over the bytes of the file (no Python loop over lines): token boundaries
+from an ASCII-whitespace mask, the line of each token by a search among the newlines, tags compared
+as byte windows, and the id / value fields of each tag's lines joined into one byte string that is
+checked (one C-level character-set check) and converted (one ``int`` / ``float`` pass) at once;
+the regular expressions are only used on the slow path that locates the offending field, and
+per-line work is only done to locate the offending line when a check fails. Every
 malformed input raises :class:`G2OFormatError` with the file, the 1-based line number and a
 specific description of the problem: the earliest line with a problem, and on that line the
 first failing check (in the order: field syntax, finite values, self-loop, quaternion, |t|^2,
@@ -472,15 +474,39 @@ def _parse_id(tok: bytes) -> int | str:
     return f"is out of range: {_show(tok)} (vertex ids must fit in a signed 64-bit integer)"
 
 
-class _Group:
-    """The lines of one tag: line numbers and token lists (tag excluded), then the checked arrays."""
+class _Rows:
+    """The fields (tag excluded) of a group's lines as lists of bytes, built on demand from the token
+    positions (only for messages and the slow path of :func:`_convert`)."""
 
-    __slots__ = ("fmt", "ids", "info", "kappa", "lines", "ok", "pd", "quat", "rows", "tau", "tn2", "vals")
+    __slots__ = ("data", "ends", "first", "nf", "starts")
+
+    def __init__(self, data: bytes, starts: np.ndarray, ends: np.ndarray, first: np.ndarray, nf: int):
+        self.data, self.starts, self.ends, self.first, self.nf = data, starts, ends, first, nf
+
+    def __len__(self) -> int:
+        return int(self.first.shape[0])
+
+    def __getitem__(self, r: int) -> list[bytes]:
+        i = int(self.first[r])
+        sl = slice(i, i + self.nf)
+        return [self.data[a:b] for a, b in zip(self.starts[sl].tolist(), self.ends[sl].tolist(), strict=True)]
+
+    def __iter__(self):
+        return (self[r] for r in range(len(self)))
+
+
+class _Group:
+    """The lines of one tag: line numbers, fields (tag excluded) and the id / value fields joined
+    by spaces (``id_blob``, ``val_blob``), then the checked arrays."""
+
+    __slots__ = ("fmt", "id_blob", "ids", "info", "kappa", "lines", "ok", "pd", "quat", "rows", "tau", "tn2",
+                 "val_blob", "vals")
 
     def __init__(self, fmt: _Format):
         self.fmt = fmt
         self.lines: list[int] = []
-        self.rows: list[list[bytes]] = []
+        self.rows: _Rows | list = []
+        self.id_blob = self.val_blob = b""
 
 
 def _convert(group: _Group, problems: list) -> None:
@@ -493,11 +519,8 @@ def _convert(group: _Group, problems: list) -> None:
     k = len(group.rows)
     nid, nval = fmt.num_ids, len(fmt.fields) - fmt.num_ids
     group.ok = np.ones(k, dtype=bool)
-    id_toks = [t for r in group.rows for t in r[:nid]]
-    val_toks = [t for r in group.rows for t in r[nid:]]
-    if not b" ".join(id_toks).translate(None, _INTEGER_CHARS) and not b" ".join(val_toks).translate(
-        None, _NUMBER_CHARS
-    ):
+    if not group.id_blob.translate(None, _INTEGER_CHARS) and not group.val_blob.translate(None, _NUMBER_CHARS):
+        id_toks, val_toks = group.id_blob.split(), group.val_blob.split()
         try:
             group.ids = np.fromiter(map(int, id_toks), np.int64, k * nid).reshape(k, nid)
             group.vals = np.fromiter(map(float, val_toks), np.float64, k * nval).reshape(k, nval)
@@ -759,50 +782,113 @@ def _read_bytes(spath: str) -> bytes:
         raise G2OFormatError(spath, None, f"cannot read file: {exc.strerror or exc}") from None
 
 
+# ASCII whitespace (the separators of bytes.split()): space, \t, \n, \v, \f, \r
+_WS = np.zeros(256, dtype=bool)
+_WS[[9, 10, 11, 12, 13, 32]] = True
+
+
+_TO_SPACE = bytes.maketrans(b"\t\n\x0b\x0c\r", b"     ")
+
+
+def _joined(buf: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> bytes:
+    """The byte ranges ``buf[lo[r]:hi[r] + 1]`` (ascending, disjoint, each ending in whitespace)
+    concatenated, with ASCII whitespace turned into spaces: fields separated by spaces.
+
+    A boolean run-length mask (``np.repeat``) and one gather; no per-line work.
+    """
+    if lo.size == 0:
+        return b""
+    bounds = np.stack([lo, hi + 1], 1).ravel()
+    runs = np.diff(bounds, prepend=0, append=buf.shape[0])
+    keep = np.repeat(np.arange(runs.shape[0]) % 2 == 1, runs)
+    return buf[keep].tobytes().translate(_TO_SPACE)
+
+
 def _tokenise(spath: str, data: bytes, family: _Family = _G2O):
     """Split into lines and ASCII-whitespace fields; check tags, field counts and mixed dimensions.
 
+    Vectorised over the bytes of the file: token boundaries from a whitespace table, the line of
+    each token by a search among the newlines, tags compared as byte windows; no Python loop over
+    lines (only over the few FIX lines). The first problem (in line order) is raised.
     Returns ``(groups, fix_lines, dim)`` (``dim`` None when there are no VERTEX / EDGE lines).
     """
     if data.startswith(b"\xef\xbb\xbf"):
         data = data[3:]
     groups = {tag.encode("ascii"): _Group(fmt) for tag, fmt in family.formats.items()}
-    fix_lines: list[tuple[int, list[bytes]]] = []
-    dim = None
-    dim_first: tuple[int, str] | None = None  # (line, tag) of the first pose line
-    for lineno, raw in enumerate(data.split(b"\n"), 1):
-        toks = raw.split()
-        if not toks:
-            continue
-        tag = toks[0]
-        if tag[0] == 0x23:  # '#'
-            continue
-        group = groups.get(tag)
-        if group is None:
-            if tag == b"FIX" and family.fix:
-                if len(toks) < 2:
-                    raise G2OFormatError(spath, lineno, "FIX line names no vertex id")
-                fix_lines.append((lineno, toks[1:]))
-                continue
-            raise G2OFormatError(spath, lineno, f"unknown tag {_show(tag)} (expected {family.known})")
-        fmt = group.fmt
-        if len(toks) - 1 != len(fmt.fields):
+    buf = np.frombuffer(data + b"\n", dtype=np.uint8)
+    tok = (buf != 32) & ((buf < 9) | (buf > 13))  # not ASCII whitespace (_WS)
+    starts = np.flatnonzero(tok[1:] & ~tok[:-1]) + 1
+    if tok[0]:
+        starts = np.concatenate([[0], starts])
+    ends = np.flatnonzero(~tok[1:] & tok[:-1]) + 1  # one past each token (buf ends with whitespace)
+    if starts.size == 0:
+        return groups, [], None
+    tline = np.searchsorted(np.flatnonzero(buf == 10), starts)  # 0-based line of each token
+    first = np.flatnonzero(np.concatenate([[True], tline[1:] != tline[:-1]]))  # first token of each line
+    ntok = np.diff(np.append(first, starts.size))
+    lineno = tline[first] + 1
+    s0, len0 = starts[first], ends[first] - starts[first]
+
+    tags = list(family.formats)
+    width = max(len(t) for t in [*tags, "FIX"])
+    win = buf[np.minimum(s0[:, None] + np.arange(width), buf.shape[0] - 1)]
+
+    def is_tag(tag: str) -> np.ndarray:
+        tb = np.frombuffer(tag.encode("ascii"), dtype=np.uint8)
+        return (len0 == tb.shape[0]) & (win[:, : tb.shape[0]] == tb).all(axis=1)
+
+    code = np.full(first.shape[0], -1, dtype=np.int64)
+    for c, tag in enumerate(tags):  # a loop over the few tags
+        code[is_tag(tag)] = c
+    comment = buf[s0] == 0x23  # '#'
+    fix = is_tag("FIX") & family.fix
+    nfields = np.array([len(family.formats[t].fields) for t in tags])
+    dims = np.array([family.formats[t].dim for t in tags])
+
+    known = code >= 0
+    unknown = ~known & ~comment & ~fix
+    fix_empty = fix & (ntok < 2)
+    count_bad = known & (ntok - 1 != nfields[np.maximum(code, 0)])
+    pose = np.flatnonzero(known)
+    dim = None if pose.size == 0 else int(dims[code[pose[0]]])
+    mixed = known & ~count_bad & (dims[np.maximum(code, 0)] != dim)
+    bad = _first(unknown | fix_empty | count_bad | mixed)
+    if bad is not None:
+        line = int(lineno[bad])
+        if unknown[bad]:
+            tag = data[int(s0[bad]) : int(s0[bad] + len0[bad])]
+            raise G2OFormatError(spath, line, f"unknown tag {_show(tag)} (expected {family.known})")
+        if fix_empty[bad]:
+            raise G2OFormatError(spath, line, "FIX line names no vertex id")
+        fmt = family.formats[tags[code[bad]]]
+        if count_bad[bad]:
             raise G2OFormatError(
                 spath,
-                lineno,
-                f"wrong number of fields for {fmt.tag}: expected {len(fmt.fields)} after the tag, got {len(toks) - 1}",
+                line,
+                f"wrong number of fields for {fmt.tag}: expected {len(fmt.fields)} after the tag, "
+                f"got {int(ntok[bad]) - 1}",
             )
-        if dim != fmt.dim:
-            if dim is None:
-                dim, dim_first = fmt.dim, (lineno, fmt.tag)
-            else:
-                raise G2OFormatError(
-                    spath,
-                    lineno,
-                    f"mixed 2D and 3D tags: {fmt.tag} here, but {dim_first[1]} on line {dim_first[0]}",
-                )
-        group.lines.append(lineno)
-        group.rows.append(toks[1:])
+        first_tag = family.formats[tags[code[pose[0]]]].tag
+        raise G2OFormatError(
+            spath,
+            line,
+            f"mixed 2D and 3D tags: {fmt.tag} here, but {first_tag} on line {int(lineno[pose[0]])}",
+        )
+
+    for c, tag in enumerate(tags):
+        rows = np.flatnonzero(code == c)
+        if rows.size == 0:
+            continue
+        group = groups[tag.encode("ascii")]
+        fmt = group.fmt
+        nid, nf = fmt.num_ids, len(fmt.fields)
+        f1 = first[rows] + 1  # token index of each line's first field
+        group.lines = lineno[rows].tolist()
+        group.rows = _Rows(data, starts, ends, f1, nf)
+        group.id_blob = _joined(buf, starts[f1], ends[f1 + nid - 1])  # the id fields of each line
+        group.val_blob = _joined(buf, starts[f1 + nid], ends[f1 + nf - 1])  # the value fields
+    fix_lines = [(int(lineno[r]), _Rows(data, starts, ends, first[r : r + 1] + 1, int(ntok[r]) - 1)[0])
+                 for r in np.flatnonzero(fix).tolist()]  # the few FIX lines
     return groups, fix_lines, dim
 
 
@@ -837,17 +923,14 @@ def _parse(spath: str, *, need: str, strict: bool, limits: _Limits, family: _Fam
         _check_values(g, problems, strict, limits)
     if vg.rows:
         vid = vg.ids[:, 0]
-        if np.unique(vid).shape[0] < vid.shape[0]:
-            seen: dict[int, int] = {}
-            for r, v in enumerate(vid.tolist()):
-                if not vg.ok[r]:
-                    continue
-                if v in seen:
-                    problems.append(
-                        (vg.lines[r], f"duplicate {vg.fmt.tag} id {v} (already defined on line {vg.lines[seen[v]]})")
-                    )
-                    break
-                seen[v] = r
+        okr = np.flatnonzero(vg.ok)
+        _, first_row, inv = np.unique(vid[okr], return_index=True, return_inverse=True)
+        dup = _first(first_row[inv] != np.arange(okr.shape[0]))  # the first repeat among the checked rows
+        if dup is not None:
+            r, r0 = int(okr[dup]), int(okr[first_row[inv[dup]]])
+            problems.append(
+                (vg.lines[r], f"duplicate {vg.fmt.tag} id {int(vid[r])} (already defined on line {vg.lines[r0]})")
+            )
     if eg.rows and vg.rows:
         _check_vertex_residuals(eg, vg, problems, limits)
     fix_ids: list[tuple[int, list[int]]] = []
@@ -868,12 +951,15 @@ def _parse(spath: str, *, need: str, strict: bool, limits: _Limits, family: _Fam
     vertex_ids = np.unique(np.concatenate([eg.ids.ravel(), vg.ids[:, 0]]))
     n = vertex_ids.shape[0]
     fixed = np.zeros(n, dtype=bool)
-    for lineno, ids in fix_ids:
-        for v in ids:
-            k = int(np.searchsorted(vertex_ids, v))
-            if k >= n or vertex_ids[k] != v:
-                raise G2OFormatError(spath, lineno, f"FIX names vertex id {v}, which has no VERTEX or EDGE line")
-            fixed[k] = True
+    if fix_ids:
+        fid = np.array([v for _, ids in fix_ids for v in ids], dtype=np.int64)  # the few FIX lines' ids
+        fline = np.repeat([line for line, _ in fix_ids], [len(ids) for _, ids in fix_ids])
+        k = np.minimum(np.searchsorted(vertex_ids, fid), n - 1)
+        missing = _first(vertex_ids[k] != fid)
+        if missing is not None:
+            raise G2OFormatError(spath, int(fline[missing]),
+                                 f"FIX names vertex id {int(fid[missing])}, which has no VERTEX or EDGE line")
+        fixed[k] = True
     return _Parsed(dim, eg, vg, vertex_ids.astype(np.int64), fixed)
 
 
