@@ -342,10 +342,12 @@ def outliers() -> nbformat.NotebookNode:
             "around r = c. Its default is √χ²_{d(d+1)/2}(0.99), the residual a correct edge exceeds with "
             "probability 1 % under SE-Sync's noise model (`mm.chi2_scale`). Each kernel is concave in s, so "
             "the paper's majorizer with every edge's κ, τ multiplied by the weight w = ρ'(s) at the current "
-            "iterate majorizes F_ρ: MM keeps F_ρ non-increasing. `tls` runs through GNC (Yang et al., "
-            "RA-L 2020): a sequence of surrogate kernels from least squares to TLS, the weights set in "
-            "closed form after each stage. Odometry edges (consecutive poses) keep weight 1. "
-            "Details: `docs/conventions.md` §10."),
+            "iterate majorizes F_ρ: MM keeps F_ρ non-increasing. Least squares (and so the chordal "
+            "start) is bent by the outliers, so every robust kernel starts by default from "
+            "`init=\"gnc-chordal\"`: graduated non-convexity with TLS (Yang et al., RA-L 2020), a sequence "
+            "of surrogate kernels from least squares to TLS with the weights set in closed form after each "
+            "stage, every stage solved from scratch (chordal relaxation of the weighted graph, then Newton). "
+            "Odometry edges (consecutive poses) keep weight 1. Details: `docs/conventions.md` §10."),
         new_code_cell(
             'c = mm.chi2_scale(3)\n'
             'print(f"default scale: c = {mm.chi2_scale(2):.3f} (2D), {c:.3f} (3D)")\n'
@@ -384,10 +386,10 @@ def outliers() -> nbformat.NotebookNode:
             "outliers, ATE is against the ground truth after rigid alignment. Least squares runs here as "
             "`RobustLoss(\"l2\")`: the same objective through the weighted program (every weight 1), so that "
             "the four runs share one compilation; its \"rejected\" edges are those whose final residual "
-            "lies beyond the scale. The clean graph's ATE is the 0 % row of the sweep below. GNC-TLS needs "
-            "the budget for its stages (up to `GNCConfig.stage_iterations` = 100 iterations each, about ten "
-            "stages here): with a small `MMPGO_NOTEBOOK_ITERATIONS` it stops mid-way and its weights are "
-            "still fractional."),
+            "lies beyond the scale (it starts from the chordal start, the robust kernels from the GNC "
+            "start). The clean graph's ATE is the 0 % row of the sweep below. `gnc=mm.GNCConfig()` would "
+            "run GNC's stages inside the distributed solver instead (fully distributed, from the chordal "
+            "start; less reliable, see `benchmarks/robust.md`)."),
         new_code_cell(
             'runs = {}\n'
             'for kernel in ["l2", *KERNELS]:\n'
