@@ -70,11 +70,11 @@ if TYPE_CHECKING:  # the same names, eagerly, for type checkers and IDEs
     from ._experiments.synthetic import SyntheticDataset, cube_dataset, grid_2d_dataset
     from ._init.chordal import (
         chordal_initialization,
-        initialize,
         load_poses,
         odometry_initialization,
     )
     from ._init.distributed_chordal import distributed_chordal_initialization
+    from ._init.start import initialize
     from ._io.datasets import (
         BENCHMARKS,
         DatasetNotFoundError,
@@ -163,7 +163,7 @@ _LAZY = {  # public name -> the private module that defines it (imported on firs
     "cube_dataset": "._experiments.synthetic",
     "grid_2d_dataset": "._experiments.synthetic",
     "chordal_initialization": "._init.chordal",
-    "initialize": "._init.chordal",
+    "initialize": "._init.start",
     "load_poses": "._init.chordal",
     "odometry_initialization": "._init.chordal",
     "distributed_chordal_initialization": "._init.distributed_chordal",

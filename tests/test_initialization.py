@@ -14,12 +14,12 @@ from mmpgo_jax._init.chordal import (
     anchor_poses,
     chordal_initialization,
     chordal_relaxed_rotations,
-    initialize,
     odometry_initialization,
     relaxed_rotation_cost,
     relaxed_translation_cost,
     translations_given_rotations,
 )
+from mmpgo_jax._init.start import initialize
 
 # f = 2F at the centralized chordal initialization, docs/conventions.md §5.
 CHORDAL_F = {

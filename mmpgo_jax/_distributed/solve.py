@@ -295,7 +295,7 @@ def _agree(reason: RESULTS | None) -> RESULTS | None:
 
 
 def _initial_poses(graph, init, options, initial, robots, multiprocess: bool, fixed=None) -> Poses:
-    from .._init.chordal import initialize
+    from .._init.start import initialize
 
     X0 = initialize(graph, init, initial=initial, robots=robots, fixed=fixed, **options)
     if not multiprocess:

@@ -69,7 +69,7 @@ import numpy as np
 from .._core.gauge import FixedPoses
 from .._core.partition import SPLITS, Partition, RobotEdges, partition, split_robots
 from .._core.pose_graph import PoseGraph, Poses
-from .._init.chordal import initialize
+from .._init.start import initialize
 from .._io.atomic import atomic_write
 from .._mm.driver import NonFiniteError, Termination, compile_once, drive
 from .._mm.majorization import gamma_couplings, stack, unstack

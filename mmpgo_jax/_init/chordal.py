@@ -6,7 +6,6 @@
   fixed), then solve the translation least-squares problem (Eq. (25)) with t_0 = 0.
 * :func:`odometry_initialization` -- compose the measurements along a spanning tree (the
   odometry chain (i, i+1) when it exists).
-* :func:`initialize` -- one entry point for every kind of start (method name, ``Poses``, file).
 
 Everything here except the distributed variant runs on the host (numpy / scipy.sparse) in
 float64; the returned :class:`Poses` use the graph's float dtype.
@@ -23,7 +22,6 @@ convention of the paper's tables); ``relaxed_rotation_cost`` = 2 F_R of Eq. (23)
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import jax
@@ -36,12 +34,10 @@ from .._core.pose_graph import PoseGraph, Poses, assemble_edge_blocks, edge_bloc
 from .._core.sparse import block_order, pose_order, solve_spd
 
 __all__ = [
-    "INITIALIZATION_METHODS",
     "anchor_poses",
     "anchor_set",
     "chordal_initialization",
     "chordal_relaxed_rotations",
-    "initialize",
     "load_poses",
     "odometry_initialization",
     "poses_from_arrays",
@@ -52,9 +48,6 @@ __all__ = [
     "translation_rhs",
     "translations_given_rotations",
 ]
-
-INITIALIZATION_METHODS = ("chordal", "distributed-chordal", "gnc-chordal", "odometry", "vertices")
-
 
 # --------------------------------------------------------------------------------------------
 # host-side helpers
@@ -437,78 +430,3 @@ def load_poses(graph: PoseGraph, path, *, vertex_ids=None, what: str = "initial-
         rows = match_vertex_ids(f.vertex_ids, graph_ids, where=where)
         return poses_from_arrays(graph, f.R[rows], f.t[rows], what=where)
     raise ValueError(f"{where}: expected a .g2o or .npz file")
-
-
-def initialize(
-    graph: PoseGraph,
-    method="chordal",
-    *,
-    initial: Poses | None = None,
-    robots=None,
-    fixed: FixedPoses | None = None,
-    **options,
-) -> Poses:
-    """Initial poses for ``graph``; the ``fixed`` poses (if any) are at their values in every case.
-
-    ``method`` is one of
-
-    * ``"chordal"`` -- :func:`chordal_initialization` (the paper's start, docs/conventions.md §5);
-    * ``"distributed-chordal"`` -- :func:`~mmpgo_jax._init.distributed_chordal.distributed_chordal_initialization`
-      with ``robots`` (a count, an (n,) robot-of-pose array or a ``Partition``; default
-      min(10, n) contiguous robots) and ``options`` passed through;
-    * ``"gnc-chordal"`` -- :func:`~mmpgo_jax._init.robust_start.gnc_chordal_initialization`: a start
-      that outlier loop closures do not bend (GNC-TLS whose stages are chordal solves refined by
-      Newton), the default start of robust losses; ``options``: ``scale``, ``trust_odometry``;
-    * ``"odometry"`` -- :func:`odometry_initialization`;
-    * ``"vertices"`` -- the file's VERTEX estimates, given as ``initial``;
-    * a :class:`Poses` -- used as given (shapes checked, rotations projected to SO(d));
-    * a path (``str`` or ``os.PathLike``) to a ``.g2o`` file (its VERTEX lines) or an ``.npz``
-      file with arrays ``R`` (n, d, d) and ``t`` (n, d), matched by vertex id (:func:`load_poses`;
-      the graph's poses are taken to carry ids 0..n-1: pass ``Poses`` from :func:`load_poses` with
-      ``vertex_ids`` otherwise).
-
-    The chordal, odometry and distributed-chordal starts hold the fixed poses during their solves;
-    the others get them set afterwards.
-    """
-    if fixed is not None:
-        fixed.check(graph.num_poses, graph.dim)
-    poses = _initial_poses(graph, method, initial, robots, fixed, options)
-    return poses if fixed is None else fixed.apply(poses)
-
-
-def _initial_poses(graph, method, initial, robots, fixed, options) -> Poses:
-    if isinstance(method, Poses):
-        return poses_from_arrays(graph, method.R, method.t)
-    if isinstance(method, str) and method in INITIALIZATION_METHODS:
-        if options and method not in ("distributed-chordal", "gnc-chordal"):
-            raise ValueError(f"options {sorted(options)} only apply to 'distributed-chordal' and 'gnc-chordal'")
-        if method == "gnc-chordal":
-            from .robust_start import gnc_chordal_initialization
-
-            start = gnc_chordal_initialization(graph, fixed=fixed, **options)
-            return poses_from_arrays(graph, start.poses.R, start.poses.t)
-        if method == "chordal":
-            return chordal_initialization(graph, fixed)
-        if method == "odometry":
-            return odometry_initialization(graph, fixed)
-        if method == "vertices":
-            if initial is None:
-                raise ValueError(
-                    "method 'vertices' needs the file's VERTEX estimates (initial=...), but none were given"
-                )
-            return poses_from_arrays(graph, initial.R, initial.t, what="VERTEX estimates")
-        from .distributed_chordal import distributed_chordal_initialization
-
-        if robots is None:
-            robots = min(10, graph.num_poses)
-        poses, _ = distributed_chordal_initialization(graph, robots, fixed=fixed, **options)
-        return poses
-    if isinstance(method, (str, os.PathLike)):
-        p = Path(method)
-        if p.suffix.lower() in (".g2o", ".npz") or p.exists():
-            return load_poses(graph, p)
-        raise ValueError(
-            f"unknown initialization {method!r}: expected one of {', '.join(INITIALIZATION_METHODS)}, "
-            "a Poses, or a path to a .g2o / .npz file"
-        )
-    raise ValueError(f"initialization must be a method name, a Poses or a path, got {type(method).__name__}")

@@ -21,7 +21,7 @@ from .._core.partition import Partition, partition
 from .._core.pose_graph import PoseGraph, Poses
 from .._core.precision import float64_enabled
 from .._experiments.metrics import TrajectoryAccuracy, trajectory_accuracy
-from .._init.chordal import initialize
+from .._init.start import initialize
 from .centralized import NewtonConfig, newton_optimum
 from .driver import RESULTS, History, Monitor, NonFiniteError, Termination, compile_once, drive
 from .majorization import unstack

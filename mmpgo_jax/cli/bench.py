@@ -310,7 +310,7 @@ def _bench_one(job: _Job, args, iterations: int, no_progress: bool) -> _Result:
     from .._core.precision import float64_enabled
     from .._distributed.solve import solve_sharded
     from .._experiments.certificate import certify
-    from .._init.chordal import initialize
+    from .._init.start import initialize
     from .._io.g2o import read_g2o
     from .._mm.solve import centralized_optimum, solve
     from .sharded import thread_devices

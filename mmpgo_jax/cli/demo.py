@@ -56,7 +56,7 @@ def run_demo(args) -> int:
     from .._experiments.metrics import align_poses, trajectory_accuracy
     from .._experiments.plots import save_convergence_figure, save_solve_figure
     from .._experiments.synthetic import cube_dataset
-    from .._init.chordal import initialize
+    from .._init.start import initialize
     from .._io.atomic import atomic_write
     from .._io.datasets import FStarReference
     from .._io.g2o import write_g2o

@@ -112,7 +112,7 @@ def _with_outliers(key: str, graph, rates, seed: int) -> dict:
     """name -> CorruptedGraph of ``graph`` at each rate (percent); the map's extent is read from the
     chordal initialization of the clean graph (no ground truth in a g2o file)."""
     from .._experiments.outliers import add_outliers
-    from .._init.chordal import initialize
+    from .._init.start import initialize
 
     reference = initialize(graph, "chordal")
     return {f"{key}@{rate:g}%": add_outliers(graph, rate / 100.0, reference=reference, seed=seed) for rate in rates}

@@ -1,0 +1,94 @@
+"""One entry point for every kind of start: :func:`initialize` (a method name, ``Poses`` or a file).
+
+The methods live in :mod:`~mmpgo_jax._init.chordal` (chordal, odometry, pose files),
+:mod:`~mmpgo_jax._init.distributed_chordal` (Algorithm 3) and :mod:`~mmpgo_jax._init.robust_start`
+(the GNC-chordal start of robust losses).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from .._core.gauge import FixedPoses
+from .._core.pose_graph import PoseGraph, Poses
+from .chordal import chordal_initialization, load_poses, odometry_initialization, poses_from_arrays
+
+__all__ = ["INITIALIZATION_METHODS", "initialize"]
+
+INITIALIZATION_METHODS = ("chordal", "distributed-chordal", "gnc-chordal", "odometry", "vertices")
+
+
+def initialize(
+    graph: PoseGraph,
+    method="chordal",
+    *,
+    initial: Poses | None = None,
+    robots=None,
+    fixed: FixedPoses | None = None,
+    **options,
+) -> Poses:
+    """Initial poses for ``graph``; the ``fixed`` poses (if any) are at their values in every case.
+
+    ``method`` is one of
+
+    * ``"chordal"`` -- :func:`chordal_initialization` (the paper's start, docs/conventions.md §5);
+    * ``"distributed-chordal"`` -- :func:`~mmpgo_jax._init.distributed_chordal.distributed_chordal_initialization`
+      with ``robots`` (a count, an (n,) robot-of-pose array or a ``Partition``; default
+      min(10, n) contiguous robots) and ``options`` passed through;
+    * ``"gnc-chordal"`` -- :func:`~mmpgo_jax._init.robust_start.gnc_chordal_initialization`: a start
+      that outlier loop closures do not bend (GNC-TLS whose stages are chordal solves refined by
+      Newton), the default start of robust losses; ``options``: ``scale``, ``trust_odometry``;
+    * ``"odometry"`` -- :func:`odometry_initialization`;
+    * ``"vertices"`` -- the file's VERTEX estimates, given as ``initial``;
+    * a :class:`Poses` -- used as given (shapes checked, rotations projected to SO(d));
+    * a path (``str`` or ``os.PathLike``) to a ``.g2o`` file (its VERTEX lines) or an ``.npz``
+      file with arrays ``R`` (n, d, d) and ``t`` (n, d), matched by vertex id (:func:`load_poses`;
+      the graph's poses are taken to carry ids 0..n-1: pass ``Poses`` from :func:`load_poses` with
+      ``vertex_ids`` otherwise).
+
+    The chordal, odometry and distributed-chordal starts hold the fixed poses during their solves;
+    the others get them set afterwards.
+    """
+    if fixed is not None:
+        fixed.check(graph.num_poses, graph.dim)
+    poses = _initial_poses(graph, method, initial, robots, fixed, options)
+    return poses if fixed is None else fixed.apply(poses)
+
+
+def _initial_poses(graph, method, initial, robots, fixed, options) -> Poses:
+    if isinstance(method, Poses):
+        return poses_from_arrays(graph, method.R, method.t)
+    if isinstance(method, str) and method in INITIALIZATION_METHODS:
+        if options and method not in ("distributed-chordal", "gnc-chordal"):
+            raise ValueError(f"options {sorted(options)} only apply to 'distributed-chordal' and 'gnc-chordal'")
+        if method == "gnc-chordal":
+            from .robust_start import gnc_chordal_initialization
+
+            start = gnc_chordal_initialization(graph, fixed=fixed, **options)
+            return poses_from_arrays(graph, start.poses.R, start.poses.t)
+        if method == "chordal":
+            return chordal_initialization(graph, fixed)
+        if method == "odometry":
+            return odometry_initialization(graph, fixed)
+        if method == "vertices":
+            if initial is None:
+                raise ValueError(
+                    "method 'vertices' needs the file's VERTEX estimates (initial=...), but none were given"
+                )
+            return poses_from_arrays(graph, initial.R, initial.t, what="VERTEX estimates")
+        from .distributed_chordal import distributed_chordal_initialization
+
+        if robots is None:
+            robots = min(10, graph.num_poses)
+        poses, _ = distributed_chordal_initialization(graph, robots, fixed=fixed, **options)
+        return poses
+    if isinstance(method, (str, os.PathLike)):
+        p = Path(method)
+        if p.suffix.lower() in (".g2o", ".npz") or p.exists():
+            return load_poses(graph, p)
+        raise ValueError(
+            f"unknown initialization {method!r}: expected one of {', '.join(INITIALIZATION_METHODS)}, "
+            "a Poses, or a path to a .g2o / .npz file"
+        )
+    raise ValueError(f"initialization must be a method name, a Poses or a path, got {type(method).__name__}")
