@@ -85,6 +85,10 @@ def _program_key(name: str, args, static) -> str:
         h.update(b"\0")
     for x in leaves:
         h.update(f"{np.shape(x)}|{getattr(x, 'dtype', type(x))}|{getattr(x, 'weak_type', None)};".encode())
+        sharding = getattr(x, "sharding", None)
+        if len(getattr(sharding, "device_set", ())) > 1:  # a program over several devices: its layout too
+            ids = sorted(d.id for d in sharding.device_set)
+            h.update(f"{sharding!r}|{ids};".encode())
     return h.hexdigest()
 
 
@@ -93,12 +97,14 @@ def compile_exported(fn, args: tuple, static_argnums: tuple[int, ...], out_struc
     values) compiled for ``args``, with its traced program kept in the persistent cache: the first
     call traces and serializes it (``jax.export``), later processes deserialize it instead of
     tracing. ``out_structure`` is a pytree with the structure of ``fn``'s result (rebuilt from the
-    flat outputs). Returns a callable of the non-static arguments, or None when the persistent cache
-    is off or ``args`` live on more than one device (the caller compiles as usual then)."""
+    flat outputs). Arguments sharded over several devices of this process (``shard_map``
+    programs) keep their layout: it is part of the key, and the deserialized program takes and
+    returns the same shardings. Returns a callable of the non-static arguments, or None when the
+    persistent cache is off or the program spans several processes (the caller compiles as usual)."""
     folder = compilation_cache_dir()
     dynamic = tuple(a for i, a in enumerate(args) if i not in static_argnums)
     leaves, in_tree = jax.tree.flatten(dynamic)
-    if folder is None or any(len(getattr(getattr(x, "sharding", None), "device_set", ())) > 1 for x in leaves):
+    if folder is None or jax.process_count() > 1:
         return None
     static = tuple(args[i] for i in static_argnums)
     path = folder / "exported" / f"{_program_key(getattr(fn, '__name__', 'fn'), dynamic, static)}.bin"

@@ -234,7 +234,16 @@ def solve_sharded(
 
     def compile_chunk(state, length, limit):
         runner = _sharded_runner(mesh, specs, length)
-        compiled = compile_once(runner, problem, config, state, comm, limit)
+
+        def sharded_chunk(problem, config, state, comm, limit):
+            return runner(problem, config, state, comm, limit)
+
+        # the program kept in the persistent cache (a warm process does not trace it again); its key
+        # holds the argument shapes and shardings, and the chunk length through the name
+        sharded_chunk.__name__ = f"sharded_chunk_{length}"
+        settled = None if problem.robust is None else 0.0
+        out = (state, IterationRecord(f=0.0, grad_norm=0.0, restarted=0.0, settled=settled))
+        compiled = compile_once(runner, problem, config, state, comm, limit, exported=(sharded_chunk, (), out))
         return lambda st, lim: compiled(problem, config, st, comm, lim)
 
     def fetch(rec):
