@@ -291,6 +291,7 @@ def _check_losses_sweep(ds, graphs, methods, check_graphs, iterations=30):
     return res
 
 
+@pytest.mark.slow  # 30-50 s on 2 cores; test_loss_sweep_inputs keeps the loss axis in the default run
 def test_losses_and_outlier_rates_share_one_compilation(outlier_graphs):
     """2 outlier rates x 3 kernels (MM): one compilation; the configurations of one rate equal solve()."""
     ds, graphs = outlier_graphs
