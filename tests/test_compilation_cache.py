@@ -99,3 +99,43 @@ def test_traced_program_is_kept_and_reused(tmp_path, monkeypatch):
     assert traces == [2.0, 3.0] and len(list((tmp_path / "exported").glob("*.bin"))) == 2
     monkeypatch.setattr(cc, "compilation_cache_dir", lambda: None)
     assert cc.compile_exported(fn, (x, 2.0, y), (1,), out) is None  # cache off: the caller compiles
+
+
+def test_sharded_program_is_kept_and_reused(tmp_path):
+    """A shard_map program over two CPU devices (a child process with its own XLA flags) is kept
+    too: the second call deserializes it (no trace), takes and returns the same shardings, and gives
+    the same numbers; the same shapes laid out otherwise (replicated) are another program."""
+    import textwrap
+
+    child = textwrap.dedent(f"""
+        import jax, jax.numpy as jnp, numpy as np
+        from pathlib import Path
+        from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
+        from mmpgo_jax._core import compilation_cache as cc
+        cc.compilation_cache_dir = lambda: Path({str(tmp_path)!r})
+        mesh = Mesh(np.array(jax.devices()), ("r",))
+        traces = []
+        def chunk(x, y):
+            traces.append(1)
+            return x * 2 + jax.lax.psum(jnp.sum(x), "r"), y + 1
+        fn = jax.jit(jax.shard_map(chunk, mesh=mesh, in_specs=(P("r"), P()), out_specs=(P("r"), P()),
+                                   check_vma=False))
+        x = jax.device_put(jnp.arange(8.0), NamedSharding(mesh, P("r")))
+        y = jax.device_put(jnp.ones(()), NamedSharding(mesh, P()))
+        first = cc.compile_exported(fn, (x, y), (), (0, 0))
+        again = cc.compile_exported(fn, (x, y), (), (0, 0))
+        assert len(traces) == 1, traces
+        a, b = first(x, y), again(x, y)
+        np.testing.assert_array_equal(a[0], b[0])
+        np.testing.assert_array_equal(b[0], np.arange(8.0) * 2 + 28.0)
+        assert b[0].sharding.spec == P("r") and b[1].sharding.spec == P()
+        c = again(*b)  # outputs feed the next call, as a driven chunk's state does
+        np.testing.assert_array_equal(c[0], b[0] * 2 + float(np.sum(b[0])))
+        replicated = jax.device_put(jnp.arange(8.0), NamedSharding(mesh, P()))
+        other = cc.compile_exported(fn, (replicated, y), (), (0, 0))
+        assert len(list(Path({str(tmp_path)!r}, "exported").glob("*.bin"))) == 2
+        np.testing.assert_array_equal(other(replicated, y)[0], b[0])
+    """)
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2", JAX_PLATFORMS="cpu")
+    proc = subprocess.run([sys.executable, "-c", child], env=env, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
