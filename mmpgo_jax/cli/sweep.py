@@ -49,7 +49,7 @@ def add_sweep_parser(sub, *, add_common, robots_type, iterations_type) -> None:
 
     p.add_argument("--losses", nargs="+", choices=LOSSES, metavar="KERNEL", default=None,
                    help=f"robust kernels to sweep ({', '.join(LOSSES)}; default: least squares only), all in the "
-                        "same compilation; tls runs through GNC; odometry edges keep weight 1")
+                        "same compilation, each from the GNC start (gnc-chordal); odometry edges keep weight 1")
     p.add_argument("--outlier-rates", nargs="+", type=percent, metavar="PCT", default=None,
                    help="run each file at these outlier rates: wrong loop closures added (uniform random pose pairs, "
                         "random rotation, translation within the map's extent), PCT %% of all loop closures "
