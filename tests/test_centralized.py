@@ -57,3 +57,58 @@ def test_gtsam_reference_reaches_our_optimum(benchmark_file):
     f_lm = float(cost(g, Poses(lm.poses.R, lm.poses.t)))
     assert ours.stop_reason == "grad_tol" and lm.iterations >= 1
     assert ours.f <= f_lm <= ours.f * (1 + 1e-3), (ours.f, f_lm)
+
+
+def test_block_pattern_with_several_anchors_matches_finite_differences():
+    """The Hessian's pattern is built per pose block: with three held poses (rows and columns of the
+    identity) the free part still equals the finite-difference Hessian."""
+    from mmpgo_jax._core.gauge import FixedPoses
+
+    g, R, t = _graph(3, seed=7, n=7, extra=6)
+    fixed = FixedPoses.identity([0, 2, 5], 3)
+    pb = _Problem(g, fixed)
+    grad, data = pb.linearize(R, t)
+    H = pb.matrix(data)
+    assert H.has_sorted_indices and pb.held_rows.sum() == 3 * pb.b
+    free = ~pb.held_rows
+    N = free.size
+
+    def F(s):
+        Rs, ts = pb.retract(R, t, s)
+        return 0.5 * float(cost(pb.graph, Poses(Rs, ts)))
+
+    h, eye = 1e-4, np.eye(N)
+    H_fd = np.array([[(F(h * (a + b)) - F(h * (a - b)) - F(h * (b - a)) + F(-h * (a + b))) / (4 * h * h)
+                      for b in eye] for a in eye])
+    Hd = H.toarray()
+    np.testing.assert_allclose(Hd[np.ix_(free, free)], H_fd[np.ix_(free, free)], atol=1e-5 * np.abs(H_fd).max())
+    np.testing.assert_array_equal(Hd[~free][:, ~free], np.eye((~free).sum()))
+    assert np.all(Hd[np.ix_(free, ~free)] == 0) and np.all(grad[~free] == 0)
+    diag = np.zeros(H.nnz)
+    diag[pb.free_diagonal] = 1.0
+    np.testing.assert_array_equal(pb.matrix(diag).toarray(), np.diag(free.astype(float)))
+
+
+def test_gauss_newton_start_and_factor_reuse_reach_the_same_optimum(benchmark_file):
+    """The default (a Gauss–Newton first step, chord steps reusing a factorization near the
+    optimum) and plain damped Newton (neither) stop at the same certified point; the default
+    factors fewer matrices."""
+    import mmpgo_jax as mm
+    from mmpgo_jax._mm.centralized import NewtonConfig, newton_optimum
+    from mmpgo_jax._mm.driver import Termination
+
+    g = mm.read_g2o(benchmark_file("smallGrid3D.g2o")).graph
+    X0 = mm.chordal_initialization(g)
+    R0, t0 = np.asarray(X0.R, np.float64), np.asarray(X0.t, np.float64)
+    term = Termination(200, 1, 1e-8)
+    runs = [newton_optimum(g, R0, t0, term, config=cfg)
+            for cfg in (NewtonConfig(), NewtonConfig(initial_damping=1e-6, gauss_newton_steps=0, reuse_contraction=0))]
+    (R, t, hist, res, stats), (R1, t1, hist1, res1, stats1) = runs
+    assert hist.grad_norm[-1] <= 1e-8 and hist1.grad_norm[-1] <= 1e-8
+    np.testing.assert_allclose(hist.f[-1], hist1.f[-1], rtol=1e-12)
+    assert mm.certify(g, Poses(R, t)).certified
+    assert stats["factorizations"] < stats1["factorizations"], (stats, stats1)
+    with pytest.raises(ValueError, match="reuse_contraction"):
+        NewtonConfig(reuse_contraction=1.0)
+    with pytest.raises(ValueError, match="gauss_newton_steps"):
+        NewtonConfig(gauss_newton_steps=-1)

@@ -289,7 +289,7 @@ def centralized_optimum(
     initial: Poses | None = None,
     grad_tol: float = 1e-6,
     max_iterations: int = 5000,
-    xi: float = 1e-6,
+    xi: float | None = None,
     subproblem: SubproblemConfig | None = None,
     fixed: FixedPoses | None = None,
     frame: FixedPoses | Literal["raw"] | None = None,
@@ -302,15 +302,16 @@ def centralized_optimum(
 
     ``method="newton"`` (default): Riemannian Newton steps with Levenberg–Marquardt damping and a
     sparse direct solve per step, on the host in float64 (:mod:`~mmpgo_jax._mm.centralized`);
-    ``xi`` is the initial damping. It converges quadratically near the optimum: 5–30 iterations
+    ``xi`` is the initial damping (default 0: the first step is Gauss–Newton, whose matrix is
+    positive definite). It converges quadratically near the optimum: 2–16 iterations
     on the benchmark files (benchmarks/centralized.md compares it with GTSAM's Levenberg–Marquardt
     on the same objective). The stopping rules are checked, and ``callback(k, f)`` /
     ``monitor`` told, after every iteration; ``result.config`` is None.
 
     ``method="mm"``: MM with A = 1 (:func:`solve`), where the majorizer is F plus the proximal term
-    xi/2 ||X - X^k||^2, so each outer iteration is a damped Riemannian Newton step solved by
-    truncated CG (``subproblem``; default near exact: CG to a relative residual 1e-8 in float64,
-    1e-4 in float32, at most 1000 iterations); checked every ``chunk_size`` iterations, and in
+    xi/2 ||X - X^k||^2 (``xi`` default 1e-6), so each outer iteration is a damped Riemannian
+    Newton step solved by truncated CG (``subproblem``; default near exact: CG to a relative
+    residual 1e-8 in float64, 1e-4 in float32, at most 1000 iterations); checked every ``chunk_size`` iterations, and in
     float32, which stalls far above ``grad_tol``, also stopped once a chunk lowers f by less than
     a relative 1e-7.
 
@@ -322,6 +323,7 @@ def centralized_optimum(
         return _newton_optimum(graph, init, initial, grad_tol, max_iterations, xi, fixed, frame, callback, monitor)
     if method != "mm":
         raise ValueError(f"method must be 'newton' or 'mm', got {method!r}")
+    xi = 1e-6 if xi is None else xi
     # float32 cannot resolve a 1e-8 residual: CG would always run to its cap
     tol = 1e-8 if float64_enabled() else 1e-4
     sub = subproblem or SubproblemConfig(max_steps=4, gradient_tolerance=0.1, cg_iterations=1000, cg_tolerance=tol)
@@ -348,7 +350,7 @@ def centralized_optimum(
 def _newton_optimum(graph, init, initial, grad_tol, max_iterations, xi, fixed, frame, callback, monitor) -> SolveResult:
     """:func:`centralized_optimum` by the host Newton solver."""
     termination = Termination(max_iterations, 1, grad_tol)
-    config = NewtonConfig(initial_damping=xi)
+    config = NewtonConfig() if xi is None else NewtonConfig(initial_damping=xi)
     monitor = monitor or Monitor()
     clock = _Clock()
     monitor.phase("initializing")
