@@ -501,7 +501,8 @@ def _markdown(results: list[_Result], meta: dict, done: bool) -> str:
     w("## f after k iterations\n\n")
     w(_table(_F_HEADER, [r for res in results for r in _f_rows(res)], "llrrrrlrr") + "\n\n")
     w("## Optimum f* and initialization\n\n")
-    w("f* ours = centralized solve (1 robot, MM run to ||grad F|| ≤ 1e-6 from the chordal start). Certificate: "
+    w("f* ours = centralized solve (`centralized_optimum`: Riemannian Newton with a sparse factorization per "
+      "step, to ||grad F|| ≤ 1e-6 from the chordal start). Certificate: "
       "smallest eigenvalue of SE-Sync's dual certificate matrix S = M − Λ at our f* (`mmpgo_jax.certify`); "
       "\"certified\" = S + ηI is positive definite (η = 1e-8 · max diag M), i.e. our f* is the global optimum. "
       "The gaps and iteration counts below use \"reference for gaps\": the certified f* of the registry "
