@@ -26,7 +26,7 @@ from .centralized import NewtonConfig, newton_optimum
 from .driver import RESULTS, History, Monitor, NonFiniteError, Termination, compile_once, drive
 from .majorization import unstack
 from .outer import IterationRecord, MMConfig, MMProblem, check_consistent, run, start_state
-from .robust import GNCConfig, RobustLoss, as_loss, loss_code, robust_outcome
+from .robust import L2, GNCConfig, RobustLoss, as_loss, robust_outcome
 from .subproblem import SubproblemConfig
 
 __all__ = ["RESULTS", "ROBUST_START", "History", "NonFiniteError", "SolveResult", "centralized_optimum", "output_frame",
@@ -112,7 +112,7 @@ def start_for(init, loss: RobustLoss | None) -> tuple:
     scale) for a robust loss otherwise (measured in benchmarks/robust.md)."""
     if init is not None:
         return init, {}
-    if loss is None or bool(np.asarray(loss.use_gnc)) or int(np.asarray(loss.kernel)) == loss_code("l2"):
+    if loss is None or bool(np.asarray(loss.use_gnc)) or int(np.asarray(loss.kernel)) == L2:
         return "chordal", {}
     scale = None if loss.scale is None else float(np.asarray(loss.scale))
     return ROBUST_START, dict(scale=scale, trust_odometry=loss.trust_odometry)

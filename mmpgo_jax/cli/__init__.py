@@ -662,6 +662,7 @@ _OPTIMUM_STARTS = ("chordal", "vertices", "odometry")
 
 
 def _cmd_solve(args) -> int:
+    from .._mm.robust import GNC_LOSSES
     from .._mm.solve import solve
     from .progress import progress_bar
     from .sharded import thread_devices
@@ -672,8 +673,8 @@ def _cmd_solve(args) -> int:
         flag = ("--edge-weights" if args.edge_weights else "--drop-outliers" if args.drop_outliers
                 else "--gnc" if args.gnc else "--loss-scale")
         raise CLIError(f"{flag} needs a robust --loss (huber, cauchy, geman-mcclure, welsch or tls)")
-    if args.gnc and args.loss not in ("tls", "geman-mcclure"):
-        raise CLIError(f"--gnc applies to --loss tls and geman-mcclure, not {args.loss}")
+    if args.gnc and args.loss not in GNC_LOSSES:
+        raise CLIError(f"--gnc applies to --loss {' and '.join(GNC_LOSSES)}, not {args.loss}")
     with progress_bar(f"{args.method.upper()}-PGO", args.iterations, disable=args.no_progress,
                       show_gradient=args.grad_tol is not None) as progress:
         progress.phase("reading")
