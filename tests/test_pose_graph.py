@@ -366,3 +366,39 @@ def test_connected_components_isolated_and_ordering():
     np.testing.assert_array_equal(comps[0], [0, 3])
     assert [c.tolist() for c in comps] == [[0, 3], [4, 5], [1], [2]]
     assert [c.tolist() for c in connected_components(3, [], [])] == [[0], [1], [2]]
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(1, 40), st.integers(0, 60), st.integers(0, 2**31 - 1))
+def test_anchor_set_holds_one_pose_per_unheld_component(n, m, seed):
+    """Every component gets exactly one anchor: its fixed poses if it has any, else its smallest
+    pose at the identity; checked against a union-find over the edges."""
+    from mmpgo_jax._core.gauge import FixedPoses, anchor_set
+
+    rng = np.random.default_rng(seed)
+    i, j = rng.integers(0, n, m), rng.integers(0, n, m)
+    parent = list(range(n))
+
+    def root(p):
+        while parent[p] != p:
+            p = parent[p]
+        return p
+
+    for a, b in zip(i.tolist(), j.tolist(), strict=True):
+        parent[root(a)] = root(b)
+    roots = np.array([root(p) for p in range(n)])
+    smallest = {r: int(np.flatnonzero(roots == r)[0]) for r in set(roots.tolist())}
+    g = PoseGraph.from_arrays(i, j, np.broadcast_to(np.eye(2), (m, 2, 2)), np.zeros((m, 2)), np.ones(m),
+                              np.ones(m), num_poses=n, dtype=np.float64)
+    assert sorted(anchor_set(g).index.tolist()) == sorted(smallest.values())
+    fixed_idx = np.unique(rng.integers(0, n, rng.integers(1, 4)))
+    fixed = FixedPoses(fixed_idx, np.broadcast_to(np.eye(2), (fixed_idx.size, 2, 2)).copy(),
+                       rng.standard_normal((fixed_idx.size, 2)))
+    held = {roots[p] for p in fixed_idx.tolist()}
+    expected = set(fixed_idx.tolist()) | {smallest[r] for r in smallest if r not in held}
+    anchors = anchor_set(g, fixed)
+    assert sorted(anchors.index.tolist()) == sorted(expected)
+    at = {int(p): k for k, p in enumerate(anchors.index.tolist())}
+    np.testing.assert_array_equal(anchors.t[[at[p] for p in fixed_idx.tolist()]], fixed.t)  # held at their values
+    free = [at[p] for p in expected - set(fixed_idx.tolist())]
+    np.testing.assert_array_equal(anchors.t[free], 0.0)

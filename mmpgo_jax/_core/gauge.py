@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import jax
 import numpy as np
 
-from .pose_graph import PoseGraph, Poses, connected_components
+from .pose_graph import PoseGraph, Poses, component_labels
 
 __all__ = ["FixedPoses", "anchor_poses", "anchor_set", "express_in_frame"]
 
@@ -128,12 +128,13 @@ def anchor_set(graph: PoseGraph, fixed: FixedPoses | None = None) -> FixedPoses:
     of every connected component without a fixed pose, at R = I, t = 0 (pose 0 alone for a connected
     graph without fixed poses)."""
     d = graph.dim
-    comps = connected_components(graph.num_poses, np.asarray(graph.i), np.asarray(graph.j))
+    labels, _, firsts = component_labels(graph.num_poses, np.asarray(graph.i), np.asarray(graph.j))
     if fixed is None:
-        return FixedPoses.identity(np.array([c[0] for c in comps], dtype=np.int64), d)
+        return FixedPoses.identity(firsts, d)
     fixed.check(graph.num_poses, d)
-    mask = fixed.mask(graph.num_poses)
-    free_comps = np.array([c[0] for c in comps if not mask[c].any()], dtype=np.int64)
+    held = np.zeros(firsts.size, dtype=bool)
+    held[labels[fixed.index]] = True
+    free_comps = firsts[~held]
     if free_comps.size == 0:
         return fixed
     ident = FixedPoses.identity(free_comps, d)

@@ -288,16 +288,28 @@ def data_matrix(graph: PoseGraph) -> sp.csr_matrix:
     return assemble_edge_blocks(graph.i, graph.j, *edge_blocks(graph), full_layout_index(n, d), (d + 1) * n)
 
 
-def connected_components(num_poses: int, i, j) -> list[np.ndarray]:
-    """Connected components of the measurement graph, largest first (host-side)."""
+def component_labels(num_poses: int, i, j) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Connected components of the measurement graph as arrays (host-side): ``labels`` (n,), the
+    component of each pose, numbered largest first (ties: by smallest pose), ``sizes`` and
+    ``firsts`` (the smallest pose of each component), both in that numbering."""
     from scipy.sparse.csgraph import connected_components as _cc
 
     i = np.asarray(i)
     j = np.asarray(j)
     A = sp.coo_matrix((np.ones(len(i)), (i, j)), shape=(num_poses, num_poses))
     k, labels = _cc(A, directed=False)
-    members = np.argsort(labels, kind="stable")  # poses grouped by component, ascending within each
     sizes = np.bincount(labels, minlength=k)
-    firsts = members[np.cumsum(sizes) - sizes]
-    comps = np.split(members, np.cumsum(sizes)[:-1])  # O(n), not one scan of the labels per component
-    return [comps[c] for c in np.lexsort((firsts, -sizes)).tolist()]
+    firsts = np.full(k, num_poses, dtype=np.int64)
+    np.minimum.at(firsts, labels, np.arange(num_poses))
+    order = np.lexsort((firsts, -sizes))  # new number -> old label
+    renumber = np.empty(k, dtype=np.int64)
+    renumber[order] = np.arange(k)
+    return renumber[labels], sizes[order], firsts[order]
+
+
+def connected_components(num_poses: int, i, j) -> list[np.ndarray]:
+    """Connected components of the measurement graph, largest first (host-side): each the
+    ascending array of its poses."""
+    labels, sizes, _ = component_labels(num_poses, i, j)
+    members = np.argsort(labels, kind="stable")  # poses grouped by component, ascending within each
+    return np.split(members, np.cumsum(sizes)[:-1])  # O(n), not one scan of the labels per component

@@ -1,4 +1,4 @@
-"""Sparse symmetric solves on the structure of a pose graph (host-side, scipy and pymetis).
+"""Sparse symmetric solves on the structure of a pose graph (host-side: scipy, pymetis, MKL PARDISO).
 
 Every large linear system of the package (the chordal initialization's rotation and translation
 systems, the centralized Newton steps, the certificate) has one block of unknowns per pose and
@@ -12,15 +12,30 @@ Measured (benchmarks/scaling.md): on the Cube graphs, SuperLU's own minimum-degr
 in 197 s; nested dissection takes 0.8 s and 2.3 s, and 11 s at 100 000 poses. CHOLMOD through
 ``cholespy`` (its own AMD order, which cannot be replaced) took 40 s at 100 000 poses. On the
 benchmark files (at most 10 000 poses) both orders take under 0.5 s.
+
+Large positive-definite systems (:data:`PARDISO_MIN_SIZE` unknowns and more) go to MKL's PARDISO
+(``pypardiso``, the ``large`` extra; x86-64 wheels of MKL, no system library): a supernodal,
+multithreaded Cholesky in its own METIS nested-dissection order. Measured on the chordal rotation
+system of the Cube graphs, same machine (benchmarks/scaling.md): 10^5 poses 2.4 s against
+SuperLU's 5.0 s, 10^6 poses 72 s and 9.8 GB where SuperLU had not finished after 19 minutes and
+18.5 GB. Below the threshold SuperLU stays (faster there, and every benchmark file keeps its
+results bit for bit).
 """
 
 from __future__ import annotations
+
+from collections.abc import Callable
 
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-__all__ = ["SymmetricFactor", "block_order", "factor_symmetric", "pose_order", "solve_spd"]
+__all__ = ["PARDISO_MIN_SIZE", "SymmetricFactor", "block_order", "factor_symmetric",
+           "pardiso_available", "pose_order", "solve_spd"]
+
+#: Unknowns from which :func:`solve_spd` uses PARDISO when it is installed (the measured
+#: crossover on the Cube graphs' chordal systems lies between 6·10^4 and 1.5·10^5 unknowns).
+PARDISO_MIN_SIZE = 100_000
 
 
 def pose_order(num_poses: int, i, j) -> np.ndarray:
@@ -102,12 +117,52 @@ def factor_symmetric(A: sp.spmatrix, perm: np.ndarray | str | None = None) -> Sy
         return None
 
 
-def solve_spd(A: sp.spmatrix, B: np.ndarray, perm: np.ndarray | None = None) -> np.ndarray:
-    """Solve A X = B for a sparse symmetric positive-definite A, factored in the order ``perm``
-    (e.g. :func:`block_order` of :func:`pose_order`)."""
+def pardiso_available() -> bool:
+    """Whether MKL's PARDISO can be loaded (``pypardiso`` and its MKL runtime installed)."""
+    try:
+        import pypardiso  # noqa: F401
+    except (ImportError, OSError):
+        return False
+    return True
+
+
+def _pardiso_solve_spd(A: sp.spmatrix, B: np.ndarray) -> np.ndarray:
+    """Solve with PARDISO's symmetric positive-definite factorization (matrix type 2: the upper
+    triangle in CSR, its own METIS order); the factor is released before returning."""
+    import pypardiso
+
+    solver = pypardiso.PyPardisoSolver(mtype=2)
+    upper = sp.triu(A, format="csr")
+    try:
+        return solver.solve(upper, np.asarray(B, dtype=np.float64))
+    except pypardiso.pardiso_wrapper.PyPardisoError as err:  # -4: zero or negative pivot
+        raise np.linalg.LinAlgError(
+            "the system is not positive definite (singular: is every connected component anchored?); "
+            f"PARDISO: {err}") from None
+    finally:
+        solver.free_memory(everything=True)
+
+
+def solve_spd(A: sp.spmatrix, B: np.ndarray,
+              perm: np.ndarray | Callable[[], np.ndarray] | None = None, *,
+              backend: str = "auto") -> np.ndarray:
+    """Solve A X = B for a sparse symmetric positive-definite A.
+
+    ``backend``: ``"superlu"`` (SuperLU in the order ``perm``, e.g. :func:`block_order` of
+    :func:`pose_order`; a callable is evaluated only here, so that PARDISO does not pay for an
+    order it does not use), ``"pardiso"`` (MKL PARDISO, its own order) or ``"auto"``: PARDISO from
+    :data:`PARDISO_MIN_SIZE` unknowns when it is installed, else SuperLU.
+    """
+    if backend not in ("auto", "superlu", "pardiso"):
+        raise ValueError(f"backend must be 'auto', 'superlu' or 'pardiso', got {backend!r}")
     if A.shape[0] == 0:
         return np.zeros_like(np.asarray(B, dtype=np.float64))
-    factor = factor_symmetric(A, perm)
+    if backend == "auto":
+        large = A.shape[0] >= PARDISO_MIN_SIZE
+        backend = "pardiso" if large and pardiso_available() else "superlu"
+    if backend == "pardiso":
+        return _pardiso_solve_spd(A, B)
+    factor = factor_symmetric(A, perm() if callable(perm) else perm)
     if factor is None:
         raise np.linalg.LinAlgError("the system is singular (is every connected component anchored?)")
     return factor.solve(B)

@@ -22,6 +22,8 @@ convention of the paper's tables); ``relaxed_rotation_cost`` = 2 F_R of Eq. (23)
 
 from __future__ import annotations
 
+import functools
+from collections.abc import Callable
 from pathlib import Path
 
 import jax
@@ -112,6 +114,16 @@ def pose_order_of(graph: PoseGraph) -> np.ndarray:
     return pose_order(graph.num_poses, np.asarray(graph.i), np.asarray(graph.j))
 
 
+def _order_getter(graph: PoseGraph, order) -> Callable[[], np.ndarray]:
+    """``order`` (an array, a callable returning one, or None for :func:`pose_order_of`) as a
+    callable computed at most once: only SuperLU needs it (PARDISO orders the matrix itself)."""
+    if callable(order):
+        return order
+    if order is not None:
+        return lambda: order
+    return functools.cache(lambda: pose_order_of(graph))
+
+
 def _free_mask(n: int, anchors: np.ndarray) -> np.ndarray:
     free = np.ones(n, dtype=bool)
     free[anchors] = False
@@ -124,12 +136,13 @@ def _free_mask(n: int, anchors: np.ndarray) -> np.ndarray:
 
 
 def chordal_relaxed_rotations(graph: PoseGraph, fixed: FixedPoses | None = None, *,
-                              order: np.ndarray | None = None) -> np.ndarray:
+                              order=None, backend: str = "auto") -> np.ndarray:
     """Minimiser of the relaxed rotation problem (22) with the anchor poses held (:func:`anchor_set`:
     the ``fixed`` poses at their rotations, else I): (n, d, d).
 
     The blocks are general d x d matrices (not yet projected to SO(d)). float64 numpy. One sparse
-    LDLᵀ factorization in the pose order ``order`` (default :func:`pose_order_of`).
+    symmetric factorization (:func:`~mmpgo_jax._core.sparse.solve_spd`; for SuperLU in the pose
+    order ``order``, an array or a callable returning one, default :func:`pose_order_of`).
     """
     n, d = graph.num_poses, graph.dim
     anchor = anchor_set(graph, fixed)
@@ -140,8 +153,9 @@ def chordal_relaxed_rotations(graph: PoseGraph, fixed: FixedPoses | None = None,
     fdof = np.repeat(free, d)
     L_f = L[fdof]
     Va = np.swapaxes(anchor.R, 1, 2).reshape(-1, d)  # (d*|anchors|, d): V_a = R_a^T
-    order = pose_order_of(graph) if order is None else order
-    Vf = solve_spd(L_f[:, fdof], -(L_f[:, ~fdof] @ Va), block_order(order, d, fdof))
+    order = _order_getter(graph, order)
+    Vf = solve_spd(L_f[:, fdof], -(L_f[:, ~fdof] @ Va), lambda: block_order(order(), d, fdof),
+                   backend=backend)
     V = np.zeros((d * n, d))
     V[fdof] = Vf
     V[~fdof] = Va
@@ -166,10 +180,10 @@ def relaxed_translation_cost(graph: PoseGraph, R, t) -> float:
 
 
 def translations_given_rotations(graph: PoseGraph, R, fixed: FixedPoses | None = None, *,
-                                 order: np.ndarray | None = None) -> np.ndarray:
+                                 order=None, backend: str = "auto") -> np.ndarray:
     """Minimiser of the translation problem (25) for rotations ``R`` with the anchor translations
-    held (:func:`anchor_set`: the ``fixed`` poses' translations, else 0); a sparse factorization in
-    the pose order ``order`` (default :func:`pose_order_of`).
+    held (:func:`anchor_set`: the ``fixed`` poses' translations, else 0); a sparse factorization as
+    in :func:`chordal_relaxed_rotations`.
 
     Returns (n, d) float64.
     """
@@ -182,8 +196,9 @@ def translations_given_rotations(graph: PoseGraph, R, fixed: FixedPoses | None =
     t[anchor.index] = anchor.t
     # L_ff t_f = b_f - L_fa t_a
     L_f = L[free]
-    order = pose_order_of(graph) if order is None else order
-    t[free] = solve_spd(L_f[:, free], b[free] - L_f[:, ~free] @ t[~free], block_order(order, 1, free))
+    order = _order_getter(graph, order)
+    t[free] = solve_spd(L_f[:, free], b[free] - L_f[:, ~free] @ t[~free],
+                        lambda: block_order(order(), 1, free), backend=backend)
     return t
 
 
@@ -198,16 +213,19 @@ def _poses(graph: PoseGraph, R: np.ndarray, t: np.ndarray) -> Poses:
     return Poses(jax.device_put(np.asarray(R, dt)), jax.device_put(np.asarray(t, dt)))
 
 
-def chordal_initialization(graph: PoseGraph, fixed: FixedPoses | None = None) -> Poses:
+def chordal_initialization(graph: PoseGraph, fixed: FixedPoses | None = None, *,
+                           backend: str = "auto") -> Poses:
     """Centralized chordal initialization (the paper's start for Tables I/II, Section VII):
     relaxed rotations, SO(d) projection, translations by linear least squares. The anchor poses
     (:func:`anchor_set`: the ``fixed`` poses at their values, else pose 0 when connected, at
-    identity) are held."""
-    order = pose_order_of(graph)
-    R = _project_np(chordal_relaxed_rotations(graph, fixed, order=order))
+    identity) are held. ``backend``: the sparse solver
+    (:func:`~mmpgo_jax._core.sparse.solve_spd`; ``"auto"`` uses MKL PARDISO for large systems when
+    installed)."""
+    order = _order_getter(graph, None)  # shared by both solves, computed only for SuperLU
+    R = _project_np(chordal_relaxed_rotations(graph, fixed, order=order, backend=backend))
     if fixed is not None:
         R[fixed.index] = fixed.R  # exactly, not their projection
-    t = translations_given_rotations(graph, R, fixed, order=order)
+    t = translations_given_rotations(graph, R, fixed, order=order, backend=backend)
     return _poses(graph, R, t)
 
 

@@ -1164,12 +1164,19 @@ def _check_vertex_ids(vertex_ids, n: int) -> np.ndarray:
 
 
 def _fmt_rows(ints: np.ndarray | None, floats: np.ndarray, prefix: str) -> list[str]:
-    """Lines ``prefix int.. float..``; floats as Python repr (shortest exact round trip)."""
-    fl = floats.tolist()
-    if ints is None:
-        return [prefix + " ".join(map(repr, row)) for row in fl]
-    il = ints.tolist()
-    return [prefix + " ".join(map(str, a)) + " " + " ".join(map(repr, b)) for a, b in zip(il, fl, strict=True)]
+    """Lines ``prefix int.. float..``; floats as Python repr (shortest exact round trip).
+
+    One %-format of the whole block (the per-value work in C, no Python loop over lines)."""
+    rows = floats.shape[0]
+    if rows == 0:
+        return []
+    k_int = 0 if ints is None else ints.shape[1]
+    fields = np.empty((rows, k_int + floats.shape[1]), dtype=object)
+    if k_int:
+        fields[:, :k_int] = ints.astype(np.int64)  # Python ints: %d prints them as str() does
+    fields[:, k_int:] = floats.astype(np.float64)  # Python floats: %r is their repr
+    line = prefix + " ".join(["%d"] * k_int + ["%r"] * floats.shape[1])
+    return ("\n".join([line] * rows) % tuple(fields.ravel().tolist())).split("\n")
 
 
 def _pose_arrays(poses: Poses, dim: int) -> tuple[np.ndarray, np.ndarray]:

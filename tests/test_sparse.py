@@ -1,0 +1,102 @@
+"""The sparse symmetric solvers: SuperLU in METIS order and MKL PARDISO give the same solutions,
+the automatic choice, and errors for systems that are not positive definite."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+from mmpgo_jax._core import sparse
+from mmpgo_jax._core.sparse import block_order, pardiso_available, pose_order, solve_spd
+from mmpgo_jax._init.chordal import chordal_initialization
+
+needs_pardiso = pytest.mark.skipif(not pardiso_available(), reason="pypardiso (the 'large' extra) not installed")
+
+
+def _random_spd(n, seed):
+    """A graph Laplacian plus a positive diagonal: sparse, symmetric positive definite."""
+    rng = np.random.default_rng(seed)
+    i = rng.integers(0, n, 4 * n)
+    j = rng.integers(0, n, 4 * n)
+    w = rng.random(4 * n)
+    W = sp.coo_matrix((w, (i, j)), shape=(n, n)).tocsr()
+    W = W + W.T
+    L = sp.diags(np.asarray(W.sum(axis=1)).ravel()) - W
+    return (L + sp.diags(0.1 + rng.random(n))).tocsr(), i, j
+
+
+@pytest.mark.parametrize("backend", ["superlu", "pardiso", "auto"])
+def test_solve_spd_matches_dense(backend):
+    if backend == "pardiso" and not pardiso_available():
+        pytest.skip("pypardiso not installed")
+    A, i, j = _random_spd(300, seed=1)
+    B = np.random.default_rng(2).standard_normal((300, 3))
+    X = solve_spd(A, B, block_order(pose_order(300, i, j), 1), backend=backend)
+    np.testing.assert_allclose(X, np.linalg.solve(A.toarray(), B), rtol=0, atol=1e-10)
+
+
+@needs_pardiso
+def test_auto_uses_pardiso_from_the_threshold_and_skips_the_order(monkeypatch):
+    A, _, _ = _random_spd(200, seed=3)
+    B = np.ones((200, 1))
+    used = []
+    monkeypatch.setattr(sparse, "_pardiso_solve_spd", lambda A, B: used.append("pardiso") or np.zeros_like(B))
+
+    def order():
+        used.append("order")
+        return np.arange(200)
+
+    monkeypatch.setattr(sparse, "PARDISO_MIN_SIZE", 201)
+    solve_spd(A, B, order)
+    assert used == ["order"]  # below the threshold: SuperLU, which needs the order
+    monkeypatch.setattr(sparse, "PARDISO_MIN_SIZE", 200)
+    solve_spd(A, B, order)
+    assert used == ["order", "pardiso"]  # PARDISO orders the matrix itself
+
+
+@pytest.mark.parametrize("backend", ["superlu", "pardiso"])
+def test_not_positive_definite_is_an_error(backend):
+    if backend == "pardiso" and not pardiso_available():
+        pytest.skip("pypardiso not installed")
+    path = sp.csr_matrix(np.array([[1.0, -1, 0], [-1, 2, -1], [0, -1, 1]]))  # unanchored Laplacian
+    with pytest.raises(np.linalg.LinAlgError, match="anchored"):
+        solve_spd(path, np.ones((3, 1)), backend=backend)
+    with pytest.raises(ValueError, match="backend"):
+        solve_spd(path, np.ones((3, 1)), backend="cholmod")
+
+
+def _check_backends_agree(graph):
+    a = chordal_initialization(graph, backend="superlu")
+    b = chordal_initialization(graph, backend="pardiso")
+    np.testing.assert_allclose(np.asarray(b.R), np.asarray(a.R), rtol=0, atol=1e-10)
+    # translations to 1e-10 of their scale (both are round-off accurate; the difference is the
+    # round-off amplified by the conditioning of the translation system)
+    scale = max(1.0, float(np.abs(np.asarray(a.t)).max()))
+    np.testing.assert_allclose(np.asarray(b.t), np.asarray(a.t), rtol=0, atol=1e-10 * scale)
+
+
+@needs_pardiso
+@pytest.mark.parametrize("name", ["MIT.g2o", "intel.g2o", "smallGrid3D.g2o"])
+def test_pardiso_chordal_start_equals_superlu_small(benchmark_file, name):
+    from mmpgo_jax._io.g2o import read_g2o
+
+    _check_backends_agree(read_g2o(benchmark_file(name)).graph)
+
+
+@needs_pardiso
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["CSAIL.g2o", "M3500.g2o", "city10000.g2o", "sphere2500.g2o", "torus3D.g2o",
+                                  "parking-garage.g2o", "manhattan.g2o", "kitti_00.g2o"])
+def test_pardiso_chordal_start_equals_superlu_all(benchmark_file, name):
+    from mmpgo_jax._io.g2o import read_g2o
+
+    _check_backends_agree(read_g2o(benchmark_file(name)).graph)
+
+
+@needs_pardiso
+@pytest.mark.slow
+def test_pardiso_chordal_start_equals_superlu_1e5_cube():
+    from mmpgo_jax import cube_dataset
+
+    _check_backends_agree(cube_dataset(0, num_poses=100_000, grid=38).graph)
