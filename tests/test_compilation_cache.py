@@ -139,3 +139,26 @@ def test_sharded_program_is_kept_and_reused(tmp_path):
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2", JAX_PLATFORMS="cpu")
     proc = subprocess.run([sys.executable, "-c", child], env=env, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
+
+
+def test_solve_keeps_start_state_and_chunk_programs(tmp_path, monkeypatch):
+    """``solve`` keeps both of its programs (the state at X^0 and the chunk of iterations) in the
+    exported cache; a solve that finds them (in-process cache cleared, as in a new process) gives
+    the same result bit for bit."""
+    import numpy as np
+
+    import mmpgo_jax as mm
+    from mmpgo_jax._core import compilation_cache as cc
+    from mmpgo_jax._mm import driver
+
+    monkeypatch.setattr(cc, "compilation_cache_dir", lambda: tmp_path)
+    graph = mm.cube_dataset(3, num_poses=60, grid=3).graph
+    monkeypatch.setattr(driver, "_COMPILED", {})
+    first = mm.solve(graph, 3, iterations=6, chunk_size=3)
+    names = sorted(p.name for p in (tmp_path / "exported").glob("*.bin"))
+    assert len(names) == 2  # start_state and the chunk
+    monkeypatch.setattr(driver, "_COMPILED", {})
+    again = mm.solve(graph, 3, iterations=6, chunk_size=3)
+    assert sorted(p.name for p in (tmp_path / "exported").glob("*.bin")) == names
+    np.testing.assert_array_equal(np.asarray(again.history.f), np.asarray(first.history.f))
+    np.testing.assert_array_equal(np.asarray(again.poses.R), np.asarray(first.poses.R))

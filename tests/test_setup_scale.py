@@ -13,7 +13,7 @@ from mmpgo_jax import chordal_initialization, cube_dataset
 from mmpgo_jax._core.partition import partition
 from mmpgo_jax._mm.outer import MMConfig, MMProblem
 
-SETUP_BOUND_S = 60.0  # measured 17-25 s on this 2-core machine at load ~4 (benchmarks/scaling.md)
+SETUP_BOUND_S = 30.0  # partition + chordal + build: 7.2 s idle with PARDISO (17-25 s at load ~4 with SuperLU), benchmarks/scaling.md
 
 
 @pytest.mark.slow

@@ -446,7 +446,7 @@ def init_state(problem: MMProblem, X0: Poses, config: MMConfig = None) -> MMStat
         grad_prev=grad,
         s=jnp.ones(A, share.dtype),
         slack=config.slack_scale * local,
-        iteration=jnp.asarray(0),
+        iteration=jnp.asarray(0, dtype=int),  # not weakly typed: the same as a deserialized program returns
         share_slow=share,
         share_fast=share,
         soft_hits=jnp.zeros(A, jnp.int32),

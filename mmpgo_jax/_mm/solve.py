@@ -8,6 +8,7 @@ every chunk and every call with the same shapes).
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -25,7 +26,7 @@ from .._init.start import initialize
 from .centralized import NewtonConfig, newton_optimum
 from .driver import RESULTS, History, Monitor, NonFiniteError, Termination, compile_once, drive
 from .majorization import unstack
-from .outer import IterationRecord, MMConfig, MMProblem, check_consistent, run, start_state
+from .outer import IterationRecord, MMConfig, MMProblem, MMState, check_consistent, run, start_state
 from .robust import L2, GNCConfig, RobustLoss, as_loss, robust_outcome
 from .subproblem import SubproblemConfig
 
@@ -211,7 +212,7 @@ def solve(
     problem = jax.block_until_ready(MMProblem.build(part, xi, config=config, fixed=fixed, poses=X0, loss=robust))
     clock.lap("build")
     monitor.phase("compiling")
-    start_fn = compile_once(start_state, problem, X0, config)
+    start_fn = compile_once(start_state, problem, X0, config, exported=_start_export(problem))
     clock.lap("compile")
     monitor.phase("building")
     state, start = start_fn(problem, X0, config)
@@ -247,6 +248,17 @@ def solve(
         termination=termination,
         **outcome,
     )
+
+
+def _start_export(problem: MMProblem):
+    """``compile_once``'s ``exported`` for :func:`start_state` (kept in the persistent cache, so a
+    warm process does not trace it again): its output structure, known without tracing for least
+    squares (robust states hold the weighted operators; those are compiled as usual)."""
+    if problem.robust is not None:
+        return None
+    leaf = 0.0
+    state = MMState(**{f.name: leaf for f in dataclasses.fields(MMState) if f.default is dataclasses.MISSING})
+    return start_state.__wrapped__, (), (state, IterationRecord(f=leaf, grad_norm=leaf, restarted=leaf))
 
 
 class _Clock:
