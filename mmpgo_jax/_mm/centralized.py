@@ -46,8 +46,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 import scipy.sparse as sp
-from threadpoolctl import threadpool_limits
 
+from .._core.blas import one_blas_thread
 from .._core.gauge import FixedPoses, anchor_set
 from .._core.pose_graph import (
     PoseGraph,
@@ -375,7 +375,7 @@ def newton_optimum(
                              termination.rel_decrease_tol)
     # one BLAS thread: the iterations are small or memory-bound NumPy / SuperLU operations, where
     # OpenBLAS's threads only add synchronization (measured: 1.8x faster on sphere2500, 2-core machine)
-    with threadpool_limits(limits=1, user_api="blas"):
+    with one_blas_thread():
         out = drive(host_chunk, lm, start, one_by_one, fetch=lambda rec: rec, callback=callback, monitor=monitor)
     stats = dict(build_seconds=build_seconds, solve_seconds=out.solve_seconds + out.compile_seconds,
                  factorizations=lm.factorizations)

@@ -43,8 +43,8 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from threadpoolctl import threadpool_limits
 
+from .._core.blas import one_blas_thread
 from .majorization import soa_bmm, soa_T, tangent_soa
 
 MIN_AGGREGATE = 4  # slots per aggregate at least
@@ -324,7 +324,7 @@ def build_newton_preconditioner(diag, band=None, src=None, dst=None, blocks=None
     coarse[~np.isfinite(coarse).all(axis=(1, 2))] = 0.0
     # one BLAS thread: OpenBLAS's threads and XLA's spin against each other on a small machine
     # (this inverse took 0.5-2 s on intel's 10 robots with the default threads, 0.03 s with one)
-    with threadpool_limits(limits=1, user_api="blas"):
+    with one_blas_thread():
         inverse = _coarse_inverse(coarse)
     return NewtonPreconditioner(**fine, frame=jnp.asarray(frame_soa, dtype), real=jnp.asarray(real, dtype),
                                 coarse_inverse=jnp.asarray(inverse, dtype), aggregate=b)
