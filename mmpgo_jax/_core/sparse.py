@@ -15,11 +15,11 @@ benchmark files (at most 10 000 poses) both orders take under 0.5 s.
 
 Large positive-definite systems (:data:`PARDISO_MIN_SIZE` unknowns and more) go to MKL's PARDISO
 (``pypardiso``, the ``large`` extra; x86-64 wheels of MKL, no system library): a supernodal,
-multithreaded Cholesky in its own METIS nested-dissection order. Measured on the chordal rotation
-start of the Cube graphs, same machine (benchmarks/scaling.md): 10^5 poses 4.2 s against
+multithreaded Cholesky in its own METIS nested-dissection order. Measured on the chordal start
+of the Cube graphs, same machine (benchmarks/scaling.md): 10^5 poses 4.2 s against
 SuperLU's 6.8 s, 3·10^5 poses 16 s against 47 s, 10^6 poses 97 s and 10.1 GB where SuperLU had
-not finished after 19 minutes and 18.5 GB. Below the threshold SuperLU stays (faster there, and every benchmark file keeps its
-results bit for bit).
+not finished after 19 minutes and 18.5 GB. Below the threshold SuperLU stays (faster there, and
+every benchmark file keeps its results bit for bit).
 """
 
 from __future__ import annotations
