@@ -100,3 +100,52 @@ def test_pardiso_chordal_start_equals_superlu_1e5_cube():
     from mmpgo_jax import cube_dataset
 
     _check_backends_agree(cube_dataset(0, num_poses=100_000, grid=38).graph)
+
+
+@needs_pardiso
+def test_pardiso_cholesky_refactors_one_pattern():
+    """One analysis, several numeric factorizations of matrices with the same pattern: each solve
+    matches a dense solve; an indefinite matrix of the pattern is reported, not factored."""
+    from mmpgo_jax._core.sparse import PardisoCholesky
+
+    A, _, _ = _random_spd(250, seed=4)
+    upper = sp.triu(A, format="csr")
+    upper.sort_indices()
+    chol = PardisoCholesky(upper)
+    try:
+        with pytest.raises(RuntimeError, match="no successful factorization"):
+            chol.solve(np.ones(250))
+        rng = np.random.default_rng(5)
+        for shift in (0.0, 1.0, 10.0):
+            M = (A + shift * sp.eye(250)).tocsr()
+            values = sp.triu(M, format="csr")
+            values.sort_indices()
+            assert chol.factor(values.data)
+            b = rng.standard_normal(250)
+            np.testing.assert_allclose(chol.solve(b), np.linalg.solve(M.toarray(), b), rtol=0, atol=1e-10)
+            B = rng.standard_normal((250, 2))
+            np.testing.assert_allclose(chol.solve(B), np.linalg.solve(M.toarray(), B), rtol=0, atol=1e-10)
+        indefinite = sp.triu((A - 100.0 * sp.eye(250)).tocsr(), format="csr")
+        indefinite.sort_indices()
+        assert not chol.factor(indefinite.data)
+    finally:
+        chol.close()
+
+
+@needs_pardiso
+@pytest.mark.parametrize("name", ["intel.g2o", "smallGrid3D.g2o"])
+def test_newton_optimum_same_with_pardiso_and_superlu(benchmark_file, monkeypatch, name):
+    """The centralized Newton solve reaches the same optimum, in the same iterations, whether its
+    steps are factored by SuperLU (with the inertia test) or by PARDISO's Cholesky."""
+    import mmpgo_jax as mm
+    from mmpgo_jax._mm import centralized
+
+    g = mm.read_g2o(benchmark_file(name)).graph
+    results = {}
+    for threshold in (10**12, 0):  # SuperLU, then PARDISO
+        monkeypatch.setattr(centralized, "PARDISO_NEWTON_MIN_SIZE", threshold)
+        results[threshold] = mm.centralized_optimum(g)
+    a, b = results.values()
+    assert b.f == pytest.approx(a.f, rel=1e-11, abs=0)
+    assert a.iterations == b.iterations and a.stats["factorizations"] == b.stats["factorizations"]
+    assert float(b.history.grad_norm[-1]) <= 1e-6

@@ -1,6 +1,10 @@
 """One BLAS thread for host-side factorizations (the centralized Newton steps, the per-robot
 preconditioner's dense factors): their operations are small or memory-bound, where OpenBLAS's
-threads only add synchronization, and they would compete with XLA's own threads."""
+threads only add synchronization, and they would compete with XLA's own threads.
+
+Only OpenBLAS and BLIS (NumPy's and SciPy's BLAS from wheels) are limited, not MKL: PARDISO
+(:mod:`._core.sparse`) runs on MKL's threads, and a PARDISO factorization whose thread count
+changes between its analysis and its numeric phase crashes the process (measured)."""
 
 from __future__ import annotations
 
@@ -18,5 +22,5 @@ def _controller() -> ThreadpoolController:
 
 
 def one_blas_thread():
-    """Context manager: the BLAS libraries loaded at first use limited to one thread inside."""
-    return _controller().limit(limits=1, user_api="blas")
+    """Context manager: OpenBLAS / BLIS (those loaded at first use) limited to one thread inside."""
+    return _controller().select(internal_api=["openblas", "blis"]).limit(limits=1)

@@ -23,14 +23,18 @@ package's isotropic objective F (Eq. (3), SE-Sync's weights):
   1687.006; smallGrid3D needed 6 factorizations for its first Newton step). Later iterations use
   the full H, which keeps the quadratic convergence (Gauss–Newton alone converges linearly on F:
   95 iterations on sphere2500).
-* One sparse LDLᵀ per trial step (SuperLU, :mod:`~mmpgo_jax._core.sparse`), the matrix assembled
-  directly in METIS's nested-dissection order of the poses, except, in 3D, in the quadratic regime: once
+* One sparse factorization per trial step, the matrix assembled directly in METIS's
+  nested-dissection order of the poses: from :data:`PARDISO_NEWTON_MIN_SIZE` unknowns, when MKL's
+  PARDISO is installed, its Cholesky with the symbolic analysis done once for the constant pattern
+  (:class:`~mmpgo_jax._core.sparse.PardisoCholesky`; a failed Cholesky means H + lambda I is not
+  positive definite), else SuperLU's LDLᵀ (:mod:`~mmpgo_jax._core.sparse`; a negative pivot
+  means the same), except, in 3D, in the quadratic regime: once
   ||g|| has shrunk 4x since a successful Newton step, the next step solves with that step's
   factorization (a chord Newton step: one triangular solve, no factorization), kept when its gain
   ratio exceeds 1/2. The gauge is fixed by holding the anchor poses
   (:func:`~mmpgo_jax._core.gauge.anchor_set`: the fixed poses, else the first pose of each
   connected component): their rows are the identity and their steps zero.
-* The iterations run with one BLAS thread (``threadpoolctl``): their NumPy and SuperLU operations
+* The iterations run with one OpenBLAS thread (``threadpoolctl``): their NumPy and SuperLU operations
   are small or memory-bound, and OpenBLAS's threads only added synchronization (measured under
   cProfile on a shared 2-core machine: sphere2500 2.2 s -> 1.2 s).
 
@@ -58,7 +62,7 @@ from .._core.pose_graph import (
     host_graph,
     riemannian_gradient_from_euclidean,
 )
-from .._core.sparse import factor_symmetric, pose_order
+from .._core.sparse import PardisoCholesky, factor_symmetric, pardiso_available, pose_order
 from .driver import RESULTS, History, Monitor, Termination, drive
 
 __all__ = ["NewtonConfig", "newton_optimum"]
@@ -104,6 +108,12 @@ class NewtonConfig:
                        else self.gauss_newton_steps,
                        reuse_contraction=(0.25 if d == 3 else 0.0) if self.reuse_contraction is None
                        else self.reuse_contraction)
+
+
+#: Unknowns (6 per pose in 3D, 3 in 2D) from which the Newton steps are factored by PARDISO
+#: (:class:`~mmpgo_jax._core.sparse.PardisoCholesky`, when installed) instead of SuperLU: measured
+#: crossover in benchmarks/centralized.md.
+PARDISO_NEWTON_MIN_SIZE = 5000
 
 
 @functools.cache
@@ -229,6 +239,12 @@ class _Problem:
         self._anchor_ones = np.ones(held_cols.size)
         self.held_rows = np.zeros(N, dtype=bool)
         self.held_rows[held_cols] = True
+        # the upper triangle as CSR for PARDISO: by symmetry, the CSC entries with row >= column
+        column = np.repeat(np.arange(N), np.diff(indptr))
+        self.upper_entries = np.flatnonzero(indices >= column)
+        self.upper = sp.csr_matrix((np.zeros(self.upper_entries.size), indices[self.upper_entries],
+                                    np.concatenate([[0], np.cumsum(np.bincount(column[self.upper_entries],
+                                                                               minlength=N))])), shape=(N, N))
         free = np.flatnonzero(~held)
         self.free_diagonal = (start[np.searchsorted(blocks, free * n + free)] + local).reshape(-1)  # slots
         self._edge_rows = (self.index[g.i], self.index[g.j])
@@ -291,6 +307,21 @@ class _LM:
         self.iteration = 0
         self.reuse = None  # the last successful Newton step's factorization
         self.g_norm = np.inf  # ||g|| at the previous iteration
+        large = problem.b * problem.n >= PARDISO_NEWTON_MIN_SIZE
+        self.cholesky = PardisoCholesky(problem.upper) if large and pardiso_available() else None
+
+    def _factor(self, data: np.ndarray):
+        """A factorization of the matrix with CSC values ``data`` (an object with ``solve``), or
+        None when it is not positive definite."""
+        self.factorizations += 1
+        if self.cholesky is not None:
+            return self.cholesky if self.cholesky.factor(data[self.pb.upper_entries]) else None
+        factor = factor_symmetric(self.pb.matrix(data), "ordered")
+        return None if factor is None or factor.negative_pivots() != 0 else factor
+
+    def close(self) -> None:
+        if self.cholesky is not None:
+            self.cholesky.close()
 
     def _gain(self, g, s, H):
         """The retraction of the step s, its 2F, and the gain ratio: F's decrease over the decrease
@@ -323,9 +354,8 @@ class _LM:
         for _ in range(cfg.max_retries):
             damped = data.copy()
             damped[pb.free_diagonal] += self.lam
-            factor = factor_symmetric(pb.matrix(damped), "ordered")
-            self.factorizations += 1
-            if factor is None or factor.negative_pivots() != 0:  # not positive definite: more damping
+            factor = self._factor(damped)
+            if factor is None:  # not positive definite: more damping
                 self.lam = max(4.0 * self.lam, 1e-10 * scale)
                 continue
             R, t, f, rho = self._gain(g, -factor.solve(g), H)
@@ -378,8 +408,12 @@ def newton_optimum(
                              termination.rel_decrease_tol)
     # one BLAS thread: the iterations are small or memory-bound NumPy / SuperLU operations, where
     # OpenBLAS's threads only add synchronization (measured: 1.8x faster on sphere2500, 2-core machine)
-    with one_blas_thread():
-        out = drive(host_chunk, lm, start, one_by_one, fetch=lambda rec: rec, callback=callback, monitor=monitor)
+    try:
+        with one_blas_thread():
+            out = drive(host_chunk, lm, start, one_by_one, fetch=lambda rec: rec, callback=callback,
+                        monitor=monitor)
+    finally:
+        lm.close()
     stats = dict(build_seconds=build_seconds, solve_seconds=out.solve_seconds + out.compile_seconds,
                  factorizations=lm.factorizations)
     history = History(out.history.f, out.history.grad_norm, out.history.restarts)
