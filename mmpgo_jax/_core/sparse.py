@@ -24,6 +24,8 @@ every benchmark file keeps its results bit for bit).
 
 from __future__ import annotations
 
+import ctypes
+import functools
 import os
 from collections.abc import Callable
 from pathlib import Path
@@ -147,6 +149,18 @@ def pardiso_available() -> bool:
     return True
 
 
+@functools.cache
+def _pardiso_function():
+    """MKL's ``pardiso`` entry point, from the runtime ``pypardiso`` finds, through a handle of our
+    own (``pypardiso`` sets argument types of its own on its handle); looked up once."""
+    _locate_mkl_runtime()
+    import pypardiso
+
+    function = ctypes.CDLL(pypardiso.PyPardisoSolver(mtype=2).libmkl._name).pardiso
+    function.restype = None
+    return function
+
+
 class PardisoCholesky:
     """Cholesky factorizations (PARDISO, matrix type 2) of positive-definite matrices that share one
     sparsity pattern: the ordering and symbolic analysis run once, each :meth:`factor` is numeric
@@ -160,14 +174,7 @@ class PardisoCholesky:
     ``pypardiso``'s per-call conversion does not allow."""
 
     def __init__(self, upper: sp.csr_matrix):
-        import ctypes
-
-        _locate_mkl_runtime()
-        import pypardiso
-
-        # the library pypardiso found, through a handle of our own (pypardiso sets its own argtypes)
-        self._call = ctypes.CDLL(pypardiso.PyPardisoSolver(mtype=2).libmkl._name).pardiso
-        self._call.restype = None
+        self._call = _pardiso_function()
         self._n = upper.shape[0]
         self._ia = np.ascontiguousarray(upper.indptr, dtype=np.int32) + 1  # one-based, kept alive
         self._ja = np.ascontiguousarray(upper.indices, dtype=np.int32) + 1
@@ -181,8 +188,6 @@ class PardisoCholesky:
         self._run(11, np.zeros(1), np.zeros(1))
 
     def _run(self, phase: int, b: np.ndarray, x: np.ndarray, nrhs: int = 1) -> int:
-        import ctypes
-
         error = ctypes.c_int32(0)
         ref = ctypes.byref
         self._call(self._pt.ctypes.data_as(self._ptr), ref(self._int(1)), ref(self._int(1)), ref(self._int(2)),
@@ -216,21 +221,19 @@ class PardisoCholesky:
 
 
 def _pardiso_solve_spd(A: sp.spmatrix, B: np.ndarray) -> np.ndarray:
-    """Solve with PARDISO's symmetric positive-definite factorization (matrix type 2: the upper
-    triangle in CSR, its own METIS order); the factor is released before returning."""
-    _locate_mkl_runtime()
-    import pypardiso
-
-    solver = pypardiso.PyPardisoSolver(mtype=2)
+    """Solve with :class:`PardisoCholesky` (one analysis, one factorization); its memory is
+    released before returning."""
     upper = sp.triu(A, format="csr")
+    upper.sort_indices()
+    chol = PardisoCholesky(upper)
     try:
-        return solver.solve(upper, np.asarray(B, dtype=np.float64))
-    except pypardiso.pardiso_wrapper.PyPardisoError as err:  # -4: zero or negative pivot
-        raise np.linalg.LinAlgError(
-            "the system is not positive definite (singular: is every connected component anchored?); "
-            f"PARDISO: {err}") from None
+        if not chol.factor(upper.data):
+            raise np.linalg.LinAlgError(
+                "the system is not positive definite (singular: is every connected component anchored?); "
+                "PARDISO found a non-positive pivot")
+        return chol.solve(B)
     finally:
-        solver.free_memory(everything=True)
+        chol.close()
 
 
 def solve_spd(A: sp.spmatrix, B: np.ndarray,

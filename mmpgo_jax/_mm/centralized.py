@@ -239,15 +239,18 @@ class _Problem:
         self._anchor_ones = np.ones(held_cols.size)
         self.held_rows = np.zeros(N, dtype=bool)
         self.held_rows[held_cols] = True
-        # the upper triangle as CSR for PARDISO: by symmetry, the CSC entries with row >= column
-        column = np.repeat(np.arange(N), np.diff(indptr))
-        self.upper_entries = np.flatnonzero(indices >= column)
-        self.upper = sp.csr_matrix((np.zeros(self.upper_entries.size), indices[self.upper_entries],
-                                    np.concatenate([[0], np.cumsum(np.bincount(column[self.upper_entries],
-                                                                               minlength=N))])), shape=(N, N))
         free = np.flatnonzero(~held)
         self.free_diagonal = (start[np.searchsorted(blocks, free * n + free)] + local).reshape(-1)  # slots
         self._edge_rows = (self.index[g.i], self.index[g.j])
+
+    def upper_triangle(self) -> tuple[np.ndarray, sp.csr_matrix]:
+        """The pattern's upper triangle as CSR (for PARDISO) and, for each of its entries, its slot
+        in the CSC data: by symmetry, the CSC entries with row >= column, read as CSR."""
+        N, indices, indptr = self.b * self.n, self._indices, self._indptr
+        column = np.repeat(np.arange(N), np.diff(indptr))
+        entries = np.flatnonzero(indices >= column)
+        row_ptr = np.concatenate([[0], np.cumsum(np.bincount(column[entries], minlength=N))])
+        return entries, sp.csr_matrix((np.zeros(entries.size), indices[entries], row_ptr), shape=(N, N))
 
     def matrix(self, data: np.ndarray) -> sp.csc_matrix:
         """The N x N matrix with the Hessian's pattern and CSC values ``data``."""
@@ -307,15 +310,17 @@ class _LM:
         self.iteration = 0
         self.reuse = None  # the last successful Newton step's factorization
         self.g_norm = np.inf  # ||g|| at the previous iteration
-        large = problem.b * problem.n >= PARDISO_NEWTON_MIN_SIZE
-        self.cholesky = PardisoCholesky(problem.upper) if large and pardiso_available() else None
+        self.cholesky = None
+        if problem.b * problem.n >= PARDISO_NEWTON_MIN_SIZE and pardiso_available():
+            self.upper_entries, upper = problem.upper_triangle()
+            self.cholesky = PardisoCholesky(upper)
 
     def _factor(self, data: np.ndarray):
         """A factorization of the matrix with CSC values ``data`` (an object with ``solve``), or
         None when it is not positive definite."""
         self.factorizations += 1
         if self.cholesky is not None:
-            return self.cholesky if self.cholesky.factor(data[self.pb.upper_entries]) else None
+            return self.cholesky if self.cholesky.factor(data[self.upper_entries]) else None
         factor = factor_symmetric(self.pb.matrix(data), "ordered")
         return None if factor is None or factor.negative_pivots() != 0 else factor
 
