@@ -269,3 +269,49 @@ def test_reaches_centralized_relaxed_solution_on_benchmark(benchmark_file, name)
     assert abs(info.rotation_history[-1] - f_relaxed) <= 1e-6 * f_relaxed
     f_central = float(cost(graph, chordal_initialization(graph)))
     assert abs(float(cost(graph, poses)) - f_central) <= 1e-4 * f_central
+
+
+@pytest.mark.parametrize("rotation", [True, False], ids=["rotation", "translation"])
+def test_gamma_is_the_blockwise_majorizer_of_the_laplacian(graph, rotation):
+    """Each robot's dense Gamma (Eq. (24)), put on the block diagonal Omega in global pose order,
+    agrees with the (rotation connection / translation) Laplacian M within a robot, Omega - M is
+    positive semidefinite (Omega >= M) with trace 2 d sum kappa (2 sum tau) over inter-robot edges,
+    padding slots hold the identity and anchors are eliminated."""
+    from mmpgo_jax._core.pose_graph import data_matrix, host_graph
+
+    g = host_graph(graph)
+    d, n = g.dim, g.num_poses
+    part = partition(graph, ROBOTS)
+    A, n_max = part.pose_mask.shape
+    b = d if rotation else 1
+    no_anchor = np.zeros((A, n_max), dtype=bool)
+    G = dc._gamma_matrices(part, no_anchor, 0.0, d, rotation)
+    zero = np.zeros_like(g.kappa)
+    only = PoseGraph(g.i, g.j, g.R, g.t, g.kappa if rotation else zero, zero if rotation else g.tau, num_poses=n)
+    M = data_matrix(only).toarray()
+    cols = (n + d * np.arange(n)[:, None] + np.arange(d)) if rotation else np.arange(n)[:, None]
+    M = M[np.ix_(cols.reshape(-1), cols.reshape(-1))]
+    robot, slot = np.asarray(part.robot_of_pose), np.asarray(part.slot_of_pose)
+    rows = (b * slot[:, None] + np.arange(b)).reshape(-1)  # each pose's rows in its robot's Gamma
+    owner = np.repeat(robot, b)
+    Omega = np.where(owner[:, None] == owner[None, :], G[owner[:, None], rows[:, None], rows[None, :]], 0.0)
+    same = owner[:, None] == owner[None, :]
+    off_diagonal_block = np.repeat(np.repeat(~np.eye(n, dtype=bool), b, 0), b, 1)
+    np.testing.assert_allclose(Omega[same & off_diagonal_block], M[same & off_diagonal_block], atol=1e-12)
+    D = Omega - M
+    scale = np.abs(M).max()
+    assert np.linalg.eigvalsh(D).min() >= -1e-10 * scale
+    inter = robot[g.i] != robot[g.j]
+    w = g.kappa if rotation else g.tau
+    np.testing.assert_allclose(np.trace(D), 2 * b * w[inter].sum(), rtol=1e-10)
+    padding = np.repeat(~np.asarray(part.pose_mask), b, axis=1)
+    diag = np.diagonal(G, axis1=1, axis2=2)
+    assert np.all(diag[padding] == 1.0)
+    # anchors: identity rows and columns, the rest unchanged
+    anchor = np.zeros((A, n_max), dtype=bool)
+    anchor[robot[0], slot[0]] = True
+    Ga = dc._gamma_matrices(part, anchor, 0.0, d, rotation)
+    fixed = np.repeat(anchor, b, axis=1)[robot[0]]
+    np.testing.assert_array_equal(Ga[robot[0]][fixed][:, fixed], np.eye(b))
+    assert not Ga[robot[0]][fixed][:, ~fixed].any() and not Ga[robot[0]][~fixed][:, fixed].any()
+    np.testing.assert_array_equal(Ga[robot[0]][~fixed][:, ~fixed], G[robot[0]][~fixed][:, ~fixed])
