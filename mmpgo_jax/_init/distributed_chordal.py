@@ -34,8 +34,9 @@ its value never moves.
 
 Solves. Gamma^alpha is factored once, on the host: all robots' Gamma are assembled densely by one
 scatter of the edge blocks (n_max slots, identity on padding slots and anchor rows/columns) and
-each is inverted from its Cholesky factor (LAPACK potrf + potri; on this machine 5-10x faster than a sparse LU solved against the
-identity, e.g. 0.28 s vs 1.6 s for one torus3D robot, N = 1500). The iteration then applies all
+each is inverted from its Cholesky factor (LAPACK potrf + potri; on this machine 5-10x faster
+than a sparse LU solved against the identity, e.g. 0.28 s vs 1.6 s for one torus3D robot,
+N = 1500). The iteration then applies all
 robots' inverses by one batched matrix product, (A, N, N) x (A, N, d) with N = n_max d
 (rotations) or n_max (translations). Measured on this 2-core CPU for A = 10, N = 2000, d = 2
 right-hand sides: batched product 29-34 ms per application, vmapped
