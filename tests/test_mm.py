@@ -653,7 +653,9 @@ def test_traced_config_numbers_compile_once_and_match_static(problem2d):
     (SubproblemConfig, dict(cg_tolerance=1.5), r"SubproblemConfig\.cg_tolerance must be a finite number in \(0, 1\]"),
     (SubproblemConfig, dict(cg_iterations=0), r"SubproblemConfig\.cg_iterations must be an integer >= 1"),
     (SubproblemConfig, dict(max_steps=0), r"SubproblemConfig\.max_steps must be an integer >= 1"),
-    (SubproblemConfig, dict(gradient_tolerance=-0.1), r"SubproblemConfig\.gradient_tolerance must be a finite number in \[0, 1\]"),
+    (SubproblemConfig, dict(gradient_tolerance=-0.1), r"SubproblemConfig\.gradient_tolerance must be a finite number in \[0, 1\)"),
+    # a tolerance of 1 holds at the start: the robot would never move
+    (SubproblemConfig, dict(gradient_tolerance=1.0), r"SubproblemConfig\.gradient_tolerance must be a finite number in \[0, 1\)"),
     (SubproblemConfig, dict(cg_iterations=True), r"SubproblemConfig\.cg_iterations must be an integer >= 1"),
 ])
 def test_config_fields_checked_when_built(cls, kwargs, message):

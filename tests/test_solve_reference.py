@@ -32,6 +32,7 @@ import mmpgo_jax as mm
 DATA = Path(__file__).resolve().parent / "data"
 sys.path.insert(0, str(DATA))
 from make_solve_reference import (  # noqa: E402
+    RECORDED_SUBPROBLEM,
     fingerprint_distance,
     load_recordings,
     machine_fingerprint,
@@ -81,7 +82,7 @@ def _case_id(c):
 
 def _run(path, case, init):
     return mm.solve(mm.read_g2o(path).graph, case["robots"], method=case["method"],
-                    iterations=case["iterations"], init=init)
+                    iterations=case["iterations"], init=init, subproblem=RECORDED_SUBPROBLEM)
 
 
 def _slow_unless_mit(c):
