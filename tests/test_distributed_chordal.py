@@ -315,3 +315,12 @@ def test_gamma_is_the_blockwise_majorizer_of_the_laplacian(graph, rotation):
     np.testing.assert_array_equal(Ga[robot[0]][fixed][:, fixed], np.eye(b))
     assert not Ga[robot[0]][fixed][:, ~fixed].any() and not Ga[robot[0]][~fixed][:, fixed].any()
     np.testing.assert_array_equal(Ga[robot[0]][~fixed][:, ~fixed], G[robot[0]][~fixed][:, ~fixed])
+
+
+def test_inverses_that_cannot_fit_are_refused_in_one_line(graph, monkeypatch):
+    """The dense per-robot inverses are sized before they are built: with too little memory the
+    set-up stops with a ValueError naming the size, the memory available and the way out."""
+    monkeypatch.setattr(dc, "available_memory_bytes", lambda: 1000)
+    with pytest.raises(ValueError, match=r"inverse per robot: 4 robots need about .* GB, more than the 0\.0 GB .*"
+                                         r"use more robots .* or init='chordal'"):
+        distributed_chordal_initialization(graph, ROBOTS, rotation_iterations=10, translation_iterations=10)

@@ -69,6 +69,7 @@ import numpy as np
 from .._core.gauge import FixedPoses
 from .._core.partition import SPLITS, Partition, RobotEdges, partition, split_robots
 from .._core.pose_graph import PoseGraph, Poses
+from .._core.resources import available_memory_bytes
 from .._init.start import initialize
 from .._io.atomic import atomic_write
 from .._mm.driver import NonFiniteError, Termination, compile_once, drive
@@ -117,14 +118,7 @@ def _batched_start(problem: MMProblem, config: MMConfig, X0):
 
 def default_max_batch_bytes(fraction: float = 0.25) -> int:
     """``fraction`` of MemAvailable (``/proc/meminfo``); 4 GiB where that file is missing."""
-    try:
-        with open("/proc/meminfo", encoding="ascii") as fh:
-            for line in fh:
-                if line.startswith("MemAvailable:"):
-                    return int(fraction * int(line.split()[1]) * 1024)
-    except OSError:
-        pass
-    return int(fraction * (16 << 30))
+    return int(fraction * available_memory_bytes())
 
 
 def reference_optimum(graph: PoseGraph, *, grad_tol: float = 1e-5, max_iterations: int = 500) -> float:

@@ -104,6 +104,7 @@ from .._core.geometry import project_to_so
 from .._core.partition import Partition
 from .._core.partition import partition as make_partition
 from .._core.pose_graph import PoseGraph, Poses, edge_hessian_blocks
+from .._core.resources import available_memory_bytes
 
 __all__ = [
     "DEFAULT_ROTATION_ITERATIONS",
@@ -406,8 +407,23 @@ class _Setup(eqx.Module):
     dtype: object = eqx.field(static=True)
 
     def gamma_inverse(self, xi: float, rotation: bool) -> jax.Array:
+        _check_memory(self.part, self.dim if rotation else 1, np.dtype(self.dtype).itemsize)
         G = _gamma_inverses(self.part, np.asarray(self.anchor), float(xi), self.dim, rotation)
         return jnp.asarray(G, self.dtype)
+
+
+def _check_memory(part: Partition, b: int, itemsize: int) -> None:
+    """Refuse, in one line, dense inverses that cannot fit in memory: A N^2 float64 on the host
+    while they are built (and as many bytes of booleans), then a copy in the solver's precision."""
+    A, n_max = part.pose_mask.shape
+    N = n_max * b
+    need = A * N * N * (8 + 1 + itemsize)
+    available = available_memory_bytes()
+    if need > available:
+        raise ValueError(
+            f"distributed-chordal initialization holds a dense {N} x {N} inverse per robot: {A} robots need "
+            f"about {need / 1e9:.1f} GB, more than the {available / 1e9:.1f} GB of memory available; "
+            "use more robots (the memory falls as 1 / robots) or init='chordal'")
 
 
 def _setup(graph: PoseGraph, robots, fixed: FixedPoses | None = None) -> _Setup:
