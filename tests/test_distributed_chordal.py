@@ -294,8 +294,8 @@ def test_gamma_is_the_blockwise_majorizer_of_the_laplacian(graph, rotation):
     robot, slot = np.asarray(part.robot_of_pose), np.asarray(part.slot_of_pose)
     rows = (b * slot[:, None] + np.arange(b)).reshape(-1)  # each pose's rows in its robot's Gamma
     owner = np.repeat(robot, b)
-    Omega = np.where(owner[:, None] == owner[None, :], G[owner[:, None], rows[:, None], rows[None, :]], 0.0)
-    same = owner[:, None] == owner[None, :]
+    same = owner[:, None] == owner[None, :]  # both rows of one robot
+    Omega = np.where(same, G[owner[:, None], rows[:, None], rows[None, :]], 0.0)
     off_diagonal_block = np.repeat(np.repeat(~np.eye(n, dtype=bool), b, 0), b, 1)
     np.testing.assert_allclose(Omega[same & off_diagonal_block], M[same & off_diagonal_block], atol=1e-12)
     D = Omega - M

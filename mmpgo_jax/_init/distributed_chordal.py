@@ -414,7 +414,7 @@ class _Setup(eqx.Module):
 
 def _check_memory(part: Partition, b: int, itemsize: int) -> None:
     """Refuse, in one line, dense inverses that cannot fit in memory: A N^2 float64 on the host
-    while they are built (and as many bytes of booleans), then a copy in the solver's precision."""
+    while they are built (plus an A N^2 boolean mask), then a copy in the solver's precision."""
     A, n_max = part.pose_mask.shape
     N = n_max * b
     need = A * N * N * (8 + 1 + itemsize)

@@ -119,8 +119,9 @@ class SubproblemConfig(eqx.Module):
     take one trust-region step per outer iteration, whose CG stops at 3 % of its starting
     residual. The earlier defaults (0.1 and 1e-2) took 1.03-1.53x (AMM) and 1.08-1.46x (MM) more
     time per iteration, for f within 8e-6 of converged inner solves instead of 8.3e-5 (1.5e-5 on
-    every benchmark file). Looser CG (0.05, 0.1) was faster still but let MM fall behind on long
-    odometry chains: 2.3e-4 and 8.3e-4 above converged inner solves on a 15 000-pose chain graph.
+    every benchmark file). Looser CG tolerances (0.05, 0.1) were faster still but let MM fall behind
+    on long odometry chains: 2.3e-4 and 8.3e-4 above converged inner solves on a 15 000-pose chain
+    graph.
 
     Static (part of the compiled structure): ``preconditioner`` ("two-level" or "block-jacobi"),
     the caps ``max_steps`` (>= 1) and ``cg_iterations`` (>= 1), and ``aggregate``, the slots per
