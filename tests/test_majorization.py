@@ -213,7 +213,8 @@ def _library_G(part, xi, X: Poses, Xk: Poses):
 def _library_G_jit(part, xi, X: Poses, Xk: Poses):
     n_max = part.max_poses
     Xp, Xkp = part.scatter(X), part.scatter(Xk)
-    grad, share, _ = jax.vmap(lambda e: gradient_and_share(e, Xkp, n_max))(part.edges)
+    grad, share, _ = jax.vmap(lambda e: gradient_and_share(e, stack(Xkp), n_max))(part.edges)
+    grad = unstack(grad)
     dec = jax.vmap(lambda e, D, g: majorizer_decrease(e, xi, D, g))(part.edges, Xp - Xkp, grad)
     return dec + share, share, grad
 
@@ -450,3 +451,27 @@ def test_one_rotation_projection_in_both_layouts(d):
                                    np.asarray(project_to_so(jnp.asarray(W))), atol=1e-12)
     with pytest.raises(ValueError, match="layout"):
         nearest_rotations(jnp.asarray(M), layout="rows")
+
+
+@pytest.mark.parametrize("d", [2, 3])
+@pytest.mark.parametrize("size", [1e-3, 0.3, 3.0])
+def test_retraction_is_the_polar_projection_of_a_tangent_step(d, size):
+    """The solver's retraction of a tangent step V = [v | R Omega] (Omega skew) is [t + v | the SVD
+    projection of R + R Omega]: for d = 3 by the closed form, for any step size (small steps, and
+    steps of several radians)."""
+    from mmpgo_jax import project_to_so
+    from mmpgo_jax._mm.subproblem import _retract_soa
+
+    rng = np.random.default_rng(int(10 * d + size))
+    n = 40
+    R = random_rotations(rng, (n,), d)
+    S = rng.standard_normal((n, d, d))
+    Omega = size * (S - np.swapaxes(S, -1, -2))
+    Y = np.concatenate([rng.standard_normal((n, d, 1)), R], axis=-1)
+    V = np.concatenate([rng.standard_normal((n, d, 1)), R @ Omega], axis=-1)
+    soa = lambda a: jnp.asarray(np.moveaxis(a, 0, -1))  # noqa: E731
+    out = np.moveaxis(np.asarray(_retract_soa(soa(Y), soa(V))), -1, 0)
+    np.testing.assert_array_equal(out[..., 0], Y[..., 0] + V[..., 0])
+    np.testing.assert_allclose(out[..., 1:], np.asarray(project_to_so(jnp.asarray(R + R @ Omega))), atol=1e-13)
+    np.testing.assert_allclose(np.swapaxes(out[..., 1:], -1, -2) @ out[..., 1:], np.broadcast_to(np.eye(d), (n, d, d)),
+                               atol=1e-14)

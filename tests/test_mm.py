@@ -242,7 +242,11 @@ def _precond(problem, subconfig):
     return problem.preconditioner(MMConfig(subproblem=subconfig))
 
 
-_grads = eqx.filter_jit(lambda part, X: jax.vmap(lambda e: gradient_and_share(e, X, part.max_poses))(part.edges))
+@eqx.filter_jit
+def _grads(part, X):
+    """(grad F blocks as Poses, shares, local costs) at padded poses X (Poses)."""
+    grad, share, local = jax.vmap(lambda e: gradient_and_share(e, stack(X), part.max_poses))(part.edges)
+    return unstack(grad), share, local
 
 
 @pytest.fixture(scope="module", params=[2, 3], ids=["2d", "3d"])

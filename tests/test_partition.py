@@ -18,7 +18,7 @@ import mmpgo_jax._core.pose_graph as pg
 from mmpgo_jax._core.geometry import random_rotations
 from mmpgo_jax._core.partition import contiguous_robots, partition, partition_stats
 from mmpgo_jax._core.pose_graph import PoseGraph, Poses
-from mmpgo_jax._mm.majorization import gradient_and_share
+from mmpgo_jax._mm.majorization import gradient_and_share, stack, unstack
 
 SETTINGS = settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
@@ -29,8 +29,9 @@ euclidean_gradient = jax.jit(pg.euclidean_gradient)
 
 @functools.partial(jax.jit, static_argnums=2)
 def _robots_eval(part, poses, n_max):
-    X = part.scatter(poses)
+    X = stack(part.scatter(poses))
     grad, share, local = jax.vmap(lambda e: gradient_and_share(e, X, n_max))(part.edges)
+    grad = unstack(grad)
     return grad, share, local, part.gather(grad)
 
 

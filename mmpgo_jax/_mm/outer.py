@@ -31,7 +31,6 @@ from .majorization import (
     robot_share,
     soa_to_gamma,
     stack,
-    unstack,
     weighted_gradient,
 )
 from .preconditioner import (
@@ -345,24 +344,23 @@ def _gradients(problem: MMProblem, X, comm: Collectives = LOCAL):
     Endpoint poses are gathered from all robots' poses: this is the neighbour exchange.
     """
     part = problem.partition
-    Xp = unstack(comm.gather_poses(X))
-    grad, share, local = jax.vmap(lambda e: gradient_and_share(e, Xp, part.max_poses))(part.edges)
-    return stack(grad), share, local
+    Xg = comm.gather_poses(X)
+    return jax.vmap(lambda e: gradient_and_share(e, Xg, part.max_poses))(part.edges)
 
 
 def _residuals(problem: MMProblem, X, comm: Collectives = LOCAL):
-    """(rotation, translation residuals, s) of every robot's incident edges at stacked poses X."""
-    Xp = unstack(comm.gather_poses(X))
-    return jax.vmap(lambda e: incident_residuals(e, Xp))(problem.partition.edges)
+    """(residuals (A, d, d+1, e_max), s (A, e_max)) of every robot's incident edges at stacked poses X."""
+    Xg = comm.gather_poses(X)
+    return jax.vmap(lambda e: incident_residuals(e, Xg))(problem.partition.edges)
 
 
-def _robust_gradients(problem: MMProblem, rot, trans, s, weights):
+def _robust_gradients(problem: MMProblem, E, s, weights):
     """(grad of 1/2 sum w s (stacked), robust shares of F_rho, shares of 1/2 sum w s) per robot."""
     part = problem.partition
-    grad = jax.vmap(lambda e, r, t, w: weighted_gradient(e, r, t, w, part.max_poses))(part.edges, rot, trans, weights)
+    grad = jax.vmap(lambda e, r, w: weighted_gradient(e, r, w, part.max_poses))(part.edges, E, weights)
     share = jax.vmap(robot_share)(part.edges, robust_cost(problem.robust.loss, s, problem.robust.robust_edge))
     weighted = jax.vmap(robot_share)(part.edges, weights * s)
-    return stack(grad), share, weighted
+    return grad, share, weighted
 
 
 def _weighted_operators(problem: MMProblem, config: MMConfig, weights):
@@ -394,7 +392,7 @@ def _operators(problem: MMProblem, config: MMConfig, st: MMState):
 def _reweight(problem: MMProblem, config: MMConfig, st: MMState, X, comm: Collectives):
     """At the new iterate X: the weights (updated when the schedule says so, and Gamma^alpha with its
     preconditioner rebuilt then only), the gradient of the new majorizer, the robust shares."""
-    rot, trans, s = _residuals(problem, X, comm)
+    E, s = _residuals(problem, X, comm)
     rb = problem.robust
     weighted_f = 2.0 * comm.sum(jax.vmap(robot_share)(problem.partition.edges, st.weights * s))
     s_max = comm.max(jnp.where(rb.robust_edge, s, 0.0))
@@ -402,7 +400,7 @@ def _reweight(problem: MMProblem, config: MMConfig, st: MMState, X, comm: Collec
                                              rb.robust_edge)
     gamma, newton = jax.lax.cond(update, lambda: _weighted_operators(problem, config, weights),
                                  lambda: (st.gamma, st.newton))
-    grad, share, weighted = _robust_gradients(problem, rot, trans, s, weights)
+    grad, share, weighted = _robust_gradients(problem, E, s, weights)
     schedule = eqx.tree_at(lambda sc: sc.weighted_f, schedule, 2.0 * comm.sum(weighted))
     return grad, share, update, dict(weights=weights, gamma=gamma, newton=newton, schedule=schedule)
 
@@ -430,10 +428,10 @@ def init_state(problem: MMProblem, X0: Poses, config: MMConfig = None) -> MMStat
         grad, share, local = _gradients(problem, X0)
     else:
         rb = problem.robust
-        rot, trans, s = _residuals(problem, X0)
+        E, s = _residuals(problem, X0)
         weights = start_weights(rb.loss, s, rb.robust_edge)
         gamma, newton = _weighted_operators(problem, config, weights)
-        grad, share, weighted = _robust_gradients(problem, rot, trans, s, weights)
+        grad, share, weighted = _robust_gradients(problem, E, s, weights)
         local = 0.5 * jnp.sum(robust_cost(rb.loss, s, rb.robust_edge), axis=-1)
         robust = dict(weights=weights, gamma=gamma, newton=newton,
                       schedule=initial_schedule(problem.robust.loss, 2.0 * jnp.sum(weighted)))
