@@ -469,7 +469,7 @@ def test_retraction_is_the_polar_projection_of_a_tangent_step(d, size):
     Omega = size * (S - np.swapaxes(S, -1, -2))
     Y = np.concatenate([rng.standard_normal((n, d, 1)), R], axis=-1)
     V = np.concatenate([rng.standard_normal((n, d, 1)), R @ Omega], axis=-1)
-    soa = lambda a: jnp.asarray(np.moveaxis(a, 0, -1))  # noqa: E731
+    soa = lambda a: jnp.asarray(np.moveaxis(a, 0, -1))
     out = np.moveaxis(np.asarray(_retract_soa(soa(Y), soa(V))), -1, 0)
     np.testing.assert_array_equal(out[..., 0], Y[..., 0] + V[..., 0])
     np.testing.assert_allclose(out[..., 1:], np.asarray(project_to_so(jnp.asarray(R + R @ Omega))), atol=1e-13)
