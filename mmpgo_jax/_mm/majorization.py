@@ -66,6 +66,16 @@ def _adjoint_to_slots(edges: RobotEdges, T, EW, n_max: int):
     return out.at[..., edges.slot_i].add(gi).at[..., edges.slot_j].add(gj)
 
 
+def _incident(edges: RobotEdges, X):
+    """(T, residuals (d, d+1, e_max)) of the robot's incident edges, both ends gathered from the
+    padded global stacked poses ``X`` (A, n_max, d, d+1)."""
+    n_max = X.shape[1]
+    Xg = global_soa(X)  # independent of the robot: computed once under vmap
+    T = _edge_maps(edges)
+    Yi, Yj = Xg[..., edges.robot_i * n_max + edges.slot_i], Xg[..., edges.robot_j * n_max + edges.slot_j]
+    return T, _residuals(T, Yi, Yj)
+
+
 def gradient_and_share(edges: RobotEdges, X, n_max: int):
     """(grad_alpha F(X) over local slots (n_max, d, d+1), Gbar^alpha(X), local cost) for one robot.
 
@@ -75,21 +85,18 @@ def gradient_and_share(edges: RobotEdges, X, n_max: int):
     ``X`` is the padded GLOBAL stacked pose array (A, n_max, d, d+1): endpoint poses are gathered
     from it, which is exactly the neighbour communication of one iteration.
     """
-    E = incident_residuals(edges, X)[0]
+    T, E = _incident(edges, X)
     EW = E * _column_weights(edges)
     edge_F = 0.5 * jnp.sum(EW * E, axis=(0, 1))
     share = jnp.sum(jnp.where(edges.is_inter, 0.5, 1.0) * edge_F)
-    return from_soa(_adjoint_to_slots(edges, _edge_maps(edges), EW, n_max)), share, jnp.sum(edge_F)
+    return from_soa(_adjoint_to_slots(edges, T, EW, n_max)), share, jnp.sum(edge_F)
 
 
 def incident_residuals(edges: RobotEdges, X):
     """(residuals E (d, d+1, e_max), s) of one robot's incident edges at the padded global stacked
     poses ``X`` (A, n_max, d, d+1): E_e = [R_i tt + t_i - t_j | R_i Rt - R_j] and
     s_e = kappa ||R_i Rt - R_j||^2 + tau ||R_i tt + t_i - t_j||^2 (0 on padding)."""
-    n_max = X.shape[1]
-    Xg = global_soa(X)  # independent of the robot: computed once under vmap
-    E = _residuals(_edge_maps(edges), Xg[..., edges.robot_i * n_max + edges.slot_i],
-                   Xg[..., edges.robot_j * n_max + edges.slot_j])
+    E = _incident(edges, X)[1]
     return E, jnp.sum(E * E * _column_weights(edges), axis=(0, 1))
 
 
