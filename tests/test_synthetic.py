@@ -246,17 +246,76 @@ def test_dtype_and_small_lattice():
 # --------------------------------------------------------------------------------------------
 
 
+def _walk_reference(rng, dim, grid, num_poses):
+    """The walk's definition: one rng.integers call per step with more than one option."""
+    steps = np.concatenate([np.eye(dim, dtype=np.int64), -np.eye(dim, dtype=np.int64)])
+    pos = np.zeros((num_poses, dim), dtype=np.int64)
+    prev = -1  # index into steps of the previous move
+    for k in range(1, num_poses):
+        nxt = pos[k - 1] + steps
+        ok = np.all((nxt >= 0) & (nxt <= grid), axis=1)
+        if prev >= 0:
+            ok_forward = ok.copy()
+            ok_forward[(prev + dim) % (2 * dim)] = False
+            if ok_forward.any():
+                ok = ok_forward
+        choices = np.flatnonzero(ok)
+        prev = int(choices[rng.integers(len(choices))]) if len(choices) > 1 else int(choices[0])
+        pos[k] = nxt[prev]
+    return pos
+
+
 @pytest.mark.parametrize(("dim", "grid", "n"), [(3, 12, 3000), (3, 1, 200), (2, 1, 300), (2, 3, 2000)])
 def test_lattice_walk_is_the_per_step_walk(dim, grid, n):
-    """The batched-draw walk equals one rng.integers call per step, and leaves the generator where
+    """The compiled walk equals one rng.integers call per step, and leaves the generator where
     those calls leave it (grid 1 in 2D has one-option steps, which draw nothing)."""
-    from mmpgo_jax._experiments.synthetic import _lattice_walk, _walk_reference
+    from mmpgo_jax._experiments.synthetic import _lattice_walk
 
     for seed in range(3):
         r1, r2 = np.random.default_rng(seed), np.random.default_rng(seed)
         np.testing.assert_array_equal(_lattice_walk(r1, dim, grid, n), _walk_reference(r2, dim, grid, n))
         assert r1.bit_generator.state == r2.bit_generator.state
         np.testing.assert_array_equal(r1.integers(0, 7, 5), r2.integers(0, 7, 5))  # 32-bit buffer too
+
+
+def _bounded_reference(draws, k):
+    """numpy's bounded integer in [0, k) from an iterator of 32-bit draws (Lemire's method)."""
+    threshold = (2**32 - k) % k
+    m, redraws = next(draws) * k, 0
+    while (m & 0xFFFFFFFF) < threshold:
+        m, redraws = next(draws) * k, redraws + 1
+    return m >> 32, redraws
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_walk_redraws_where_numpy_would(dim):
+    """Draws whose product with the option count falls below Lemire's threshold (x = 0 for 3 or 5
+    options) are rejected and the next draw taken, as numpy does; the count of draws used says so."""
+    from mmpgo_jax._experiments.synthetic import _walk_moves
+
+    rng = np.random.default_rng(1)
+    n, grid = 400, 3
+    u = rng.integers(0, 2**32, size=n + 40, dtype=np.uint32)
+    u[rng.choice(n, 30, replace=False)] = 0
+    moves, used = _walk_moves(u, dim, grid, n)
+
+    draws = iter(u.tolist())
+    pos, prev, expect, redraws = [0] * dim, -1, [], 0
+    for _ in range(n):
+        options = [s for s in range(2 * dim) if 0 <= pos[s % dim] + (1 if s < dim else -1) <= grid]
+        rev = (prev + dim) % (2 * dim)
+        if prev >= 0 and rev in options and len(options) > 1:
+            options.remove(rev)
+        if len(options) > 1:
+            choice, redrawn = _bounded_reference(draws, len(options))
+            prev, redraws = options[choice], redraws + redrawn
+        else:
+            prev = options[0]
+        pos[prev % dim] += 1 if prev < dim else -1
+        expect.append(prev)
+    np.testing.assert_array_equal(np.asarray(moves), expect)
+    assert int(used) == len(u) - len(list(draws))
+    assert redraws > 0
 
 
 @pytest.mark.parametrize("dim", [2, 3])

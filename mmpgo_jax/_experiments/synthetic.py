@@ -78,7 +78,9 @@ import math
 from dataclasses import dataclass
 
 import jax
+import jax.numpy as jnp
 import numpy as np
+from jax import lax
 from scipy import integrate, optimize, special
 
 from .._core.pose_graph import PoseGraph, Poses
@@ -367,74 +369,73 @@ def _plane_rotations(h_from: np.ndarray, h_to: np.ndarray) -> np.ndarray:
     return np.where(dot < -0.5, flip, np.where(dot > 0.5, eye, turn))
 
 
-def _walk_reference(rng: np.random.Generator, dim: int, grid: int, num_poses: int) -> np.ndarray:
-    """The walk one ``rng.integers`` call per step (the definition :func:`_lattice_walk` reproduces)."""
-    steps = np.concatenate([np.eye(dim, dtype=np.int64), -np.eye(dim, dtype=np.int64)])
-    pos = np.zeros((num_poses, dim), dtype=np.int64)
-    prev = -1  # index into steps of the previous move
-    for k in range(1, num_poses):
-        nxt = pos[k - 1] + steps
-        ok = np.all((nxt >= 0) & (nxt <= grid), axis=1)
-        if prev >= 0:
-            ok_nr = ok.copy()
-            ok_nr[(prev + dim) % (2 * dim)] = False
-            if ok_nr.any():
-                ok = ok_nr
-        choices = np.flatnonzero(ok)
-        prev = int(choices[rng.integers(len(choices))])
-        pos[k] = nxt[prev]
-    return pos
+@functools.partial(jax.jit, static_argnums=(1, 2, 3))
+def _walk_moves(u: jax.Array, dim: int, grid: int, num_steps: int):
+    """The moves (num_steps,) of the walk from the 32-bit draws ``u``, and how many draws it used.
+
+    Move s < dim is +1 along axis s, move s >= dim is -1 along axis s - dim. A step with k > 1
+    options takes numpy's ``rng.integers(k)`` from the draws (Lemire's method: from a draw x,
+    m = x k in 64 bits; draw again while the low 32 bits of m are below (2^32 - k) mod k; the
+    option is m >> 32); a step with one option draws nothing. The walk is a Markov chain on
+    (vertex, last move), so the steps run one after another, inside a compiled scan.
+    """
+    two_d = 2 * dim
+    s = jnp.arange(two_d, dtype=jnp.int32)
+    axis, sign = s % dim, jnp.where(s < dim, 1, -1).astype(jnp.int32)
+    last = u.shape[0] - 1
+
+    def bounded(used, k):  # numpy's rng.integers(k) from u[used:], and the draws it consumed
+        k = k.astype(jnp.uint32)
+        threshold = (jnp.uint32(0) - k) % k
+        used = lax.while_loop(lambda i: (u[jnp.minimum(i, last)] * k < threshold) & (i <= last),
+                              lambda i: i + 1, used)
+        x = u[jnp.minimum(used, last)]
+        high = ((x >> 16) * k + (((x & 0xFFFF) * k) >> 16)) >> 16  # (x k) >> 32 in 32-bit words
+        return high.astype(jnp.int32), used + 1
+
+    def step(carry, _):
+        pos, prev, used = carry
+        nxt = pos[axis] + sign
+        ok = (nxt >= 0) & (nxt <= grid)
+        ok_forward = ok & (s != (prev + dim) % two_d)
+        ok = jnp.where((prev >= 0) & ok_forward.any(), ok_forward, ok)
+        n_ok = ok.sum()
+        choice, used_after = bounded(used, jnp.maximum(n_ok, 2))
+        choice = jnp.where(n_ok > 1, choice, 0)
+        used = jnp.where(n_ok > 1, used_after, used)
+        move = jnp.argmax(jnp.cumsum(ok) == choice + 1).astype(jnp.int32)
+        pos = pos.at[move % dim].add(jnp.where(move < dim, 1, -1))
+        return (pos, move, used), move
+
+    start = (jnp.zeros(dim, jnp.int32), jnp.int32(-1), jnp.int32(0))
+    (_, _, used), moves = lax.scan(step, start, None, length=num_steps)
+    return moves, used
 
 
 def _lattice_walk(rng: np.random.Generator, dim: int, grid: int, num_poses: int) -> np.ndarray:
     """Integer vertex coordinates (num_poses, dim) of the non-reversing random walk.
 
-    Bit for bit :func:`_walk_reference`: a step with k > 1 options takes ``rng.integers(k)``, which
-    numpy computes from one 32-bit draw u as (u k) >> 32 (Lemire's method; it draws again only
-    when the low 32 bits of u k are below (2^32 - k) mod k, probability < 2e-9 per step), and a step
-    with one option draws nothing. The 32-bit draws are made at once (``rng.integers(0, 2**32,
-    dtype=uint32)`` returns the same stream) and the generator is then left exactly where the
-    per-step calls would leave it. The walk itself is a Markov chain on (vertex, last move): each
-    step's options depend on where the previous one ended, so the scan over the steps is sequential;
-    it is a tight loop on Python integers (no numpy call per step); the positions are a cumulative
-    sum of the moves.
+    Bit for bit one ``rng.integers(len(options))`` call per step with more than one option (the
+    definition the tests check against): the 32-bit draws are made at once
+    (``rng.integers(0, 2**32, dtype=uint32)`` is the same stream numpy's bounded draws consume),
+    the steps run in :func:`_walk_moves`, and the generator is then left exactly where the
+    per-step calls would leave it. The positions are a cumulative sum of the moves.
     """
     if num_poses < 2:
         return np.zeros((num_poses, dim), dtype=np.int64)
-    bitgen = rng.bit_generator
-    saved = bitgen.state
-    u = rng.integers(0, 2**32, size=num_poses + 15, dtype=np.uint32).tolist()
-    moves = [0] * (num_poses - 1)
-    pos = [0] * dim
-    prev = -1
-    used = 0
-    two_d = 2 * dim
-    for k in range(num_poses - 1):  # sequential by nature (see above)
-        options = [s for s in range(two_d) if 0 <= pos[s % dim] + (1 if s < dim else -1) <= grid]
-        if prev >= 0:
-            rev = (prev + dim) % two_d
-            if len(options) > 1 and rev in options:
-                options.remove(rev)
-        n_opt = len(options)
-        if n_opt > 1:
-            if used >= len(u):
-                break
-            prod = u[used] * n_opt
-            used += 1
-            if (prod & 0xFFFFFFFF) < (2**32 - n_opt) % n_opt:  # numpy would draw again: rare
-                break
-            prev = options[prod >> 32]
-        else:
-            prev = options[0]
-        moves[k] = prev
-        pos[prev % dim] += 1 if prev < dim else -1
-    else:
-        bitgen.state = saved
-        rng.integers(0, 2**32, size=used, dtype=np.uint32)  # consume exactly the draws used
-        steps = np.concatenate([np.eye(dim, dtype=np.int64), -np.eye(dim, dtype=np.int64)])
-        return np.concatenate([np.zeros((1, dim), np.int64), np.cumsum(steps[moves], axis=0)])
-    bitgen.state = saved  # a rejection (or draws ran out): the per-step definition
-    return _walk_reference(rng, dim, grid, num_poses)
+    saved = rng.bit_generator.state
+    spare = 16
+    while True:  # a redraw has probability <= 2^-32 per step: the spare draws almost always do
+        u = rng.integers(0, 2**32, size=num_poses - 1 + spare, dtype=np.uint32)
+        moves, used = _walk_moves(jax.device_put(u), dim, grid, num_poses - 1)
+        used = int(used)
+        rng.bit_generator.state = saved
+        if used <= len(u):
+            break
+        spare *= 16
+    rng.integers(0, 2**32, size=used, dtype=np.uint32)  # consume exactly the draws used
+    steps = np.concatenate([np.eye(dim, dtype=np.int64), -np.eye(dim, dtype=np.int64)])
+    return np.concatenate([np.zeros((1, dim), np.int64), np.cumsum(steps[np.asarray(moves)], axis=0)])
 
 
 def _heading_frames(pos: np.ndarray) -> np.ndarray:
