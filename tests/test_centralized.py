@@ -6,7 +6,7 @@ import pytest
 
 from mmpgo_jax import PoseGraph, cost
 from mmpgo_jax._core.geometry import random_rotations
-from mmpgo_jax._core.pose_graph import Poses
+from mmpgo_jax._core.pose_graph import Poses, riemannian_gradient_norm
 from mmpgo_jax._mm.centralized import _Problem
 
 
@@ -20,12 +20,18 @@ def _graph(d, seed, n=6, extra=5):
     return g, random_rotations(rng, (n,), d), rng.normal(size=(n, d))
 
 
+def _array(H):
+    return H if isinstance(H, np.ndarray) else H.toarray()
+
+
+@pytest.mark.parametrize("dense", [False, True], ids=["sparse", "dense"])
 @pytest.mark.parametrize("d", [2, 3])
-def test_gradient_and_hessian_match_finite_differences(d):
+def test_gradient_and_hessian_match_finite_differences(d, dense):
+    """Both layouts of the Hessian (sparse in nested-dissection order, dense in pose order)."""
     g, R, t = _graph(d, seed=d)
-    pb = _Problem(g, None)
+    pb = _Problem(g, None, dense=dense)
     grad, data = pb.linearize(R, t)
-    H = pb.matrix(data).toarray()
+    H = _array(pb.matrix(data))
     free = ~pb.held_rows
     N = free.size
 
@@ -41,6 +47,45 @@ def test_gradient_and_hessian_match_finite_differences(d):
     np.testing.assert_allclose(grad[free], g_fd[free], atol=1e-6 * max(1, np.abs(g_fd).max()))
     np.testing.assert_allclose(H[np.ix_(free, free)], H_fd[np.ix_(free, free)], atol=1e-5 * np.abs(H_fd).max())
     np.testing.assert_array_equal(H[~free][:, ~free], np.eye((~free).sum()))  # the anchor is held
+    # the stopping rule's ||grad F||, from the same gradient, against the Riemannian gradient's norm
+    np.testing.assert_allclose(pb.gradient(R, t).norm, float(riemannian_gradient_norm(pb.graph, Poses(R, t))),
+                               rtol=1e-12)
+
+
+@pytest.mark.parametrize("name", ["tinyGrid3D.g2o", "smallGrid3D.g2o"])
+def test_dense_and_sparse_factorizations_take_the_same_steps(benchmark_file, name, monkeypatch):
+    """The dense path of small problems (LAPACK's Cholesky, poses in their order) and the sparse one
+    (nested-dissection order) take the same iterations to the same optimum (same configuration)."""
+    import mmpgo_jax as mm
+    import mmpgo_jax._mm.centralized as centralized
+    from mmpgo_jax._mm.centralized import NewtonConfig, newton_optimum
+    from mmpgo_jax._mm.driver import Termination
+
+    g = mm.read_g2o(benchmark_file(name)).graph
+    X0 = mm.chordal_initialization(g)
+    R0, t0 = np.asarray(X0.R, np.float64), np.asarray(X0.t, np.float64)
+    runs = []
+    for limit in (10**9, 0):
+        monkeypatch.setattr(centralized, "DENSE_NEWTON_MAX_SIZE", limit)
+        runs.append(newton_optimum(g, R0, t0, Termination(100, 1, 1e-8), config=NewtonConfig(reuse_contraction=0.0)))
+    (R, t, hist, _, stats), (R1, t1, hist1, _, stats1) = runs
+    assert hist.iterations == hist1.iterations and stats["factorizations"] == stats1["factorizations"]
+    np.testing.assert_allclose(hist.f, hist1.f, rtol=1e-10)
+    assert hist.grad_norm[-1] <= 1e-8 and mm.certify(g, Poses(R, t)).certified
+
+
+def test_centralized_result_builds_its_partition_when_read(benchmark_file):
+    """The Newton solver's result carries the one-robot split, built on first use (device arrays)."""
+    import dataclasses
+
+    import mmpgo_jax as mm
+
+    g = mm.read_g2o(benchmark_file("tinyGrid3D.g2o")).graph
+    res = mm.centralized_optimum(g)
+    assert callable(res._partition)
+    part = res.partition
+    assert part.num_robots == 1 and part.num_poses == g.num_poses and res.partition is part
+    assert dataclasses.replace(res, poses=res.poses).partition is part
 
 
 def test_gtsam_reference_reaches_our_optimum(benchmark_file):
@@ -59,17 +104,18 @@ def test_gtsam_reference_reaches_our_optimum(benchmark_file):
     assert ours.f <= f_lm <= ours.f * (1 + 1e-3), (ours.f, f_lm)
 
 
-def test_block_pattern_with_several_anchors_matches_finite_differences():
+@pytest.mark.parametrize("dense", [False, True], ids=["sparse", "dense"])
+def test_block_pattern_with_several_anchors_matches_finite_differences(dense):
     """The Hessian's pattern is built per pose block: with three held poses (rows and columns of the
     identity) the free part still equals the finite-difference Hessian."""
     from mmpgo_jax._core.gauge import FixedPoses
 
     g, R, t = _graph(3, seed=7, n=7, extra=6)
     fixed = FixedPoses.identity([0, 2, 5], 3)
-    pb = _Problem(g, fixed)
+    pb = _Problem(g, fixed, dense=dense)
     grad, data = pb.linearize(R, t)
     H = pb.matrix(data)
-    assert H.has_sorted_indices and pb.held_rows.sum() == 3 * pb.b
+    assert (dense or H.has_sorted_indices) and pb.held_rows.sum() == 3 * pb.b
     free = ~pb.held_rows
     N = free.size
 
@@ -80,13 +126,13 @@ def test_block_pattern_with_several_anchors_matches_finite_differences():
     h, eye = 1e-4, np.eye(N)
     H_fd = np.array([[(F(h * (a + b)) - F(h * (a - b)) - F(h * (b - a)) + F(-h * (a + b))) / (4 * h * h)
                       for b in eye] for a in eye])
-    Hd = H.toarray()
+    Hd = _array(H)
     np.testing.assert_allclose(Hd[np.ix_(free, free)], H_fd[np.ix_(free, free)], atol=1e-5 * np.abs(H_fd).max())
     np.testing.assert_array_equal(Hd[~free][:, ~free], np.eye((~free).sum()))
     assert np.all(Hd[np.ix_(free, ~free)] == 0) and np.all(grad[~free] == 0)
-    diag = np.zeros(H.nnz)
+    diag = np.zeros(data.size)
     diag[pb.free_diagonal] = 1.0
-    np.testing.assert_array_equal(pb.matrix(diag).toarray(), np.diag(free.astype(float)))
+    np.testing.assert_array_equal(_array(pb.matrix(diag)), np.diag(free.astype(float)))
 
 
 def test_gauss_newton_start_and_factor_reuse_reach_the_same_optimum(benchmark_file):

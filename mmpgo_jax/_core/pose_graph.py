@@ -8,6 +8,9 @@ All functions are pure and jittable; graphs and poses are pytrees.
 
 from __future__ import annotations
 
+import math
+from typing import NamedTuple
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -104,9 +107,10 @@ def _segment_sum(xp, values, index, n: int):
     if xp is jnp:
         return jax.ops.segment_sum(values, index, n)
     # one bincount over (segment, component) pairs: the same sums, in input order, as np.add.at
-    k = int(np.prod(values.shape[1:], dtype=np.int64))
+    k = math.prod(values.shape[1:])
     flat = (np.asarray(index, np.int64)[:, None] * k + np.arange(k)).reshape(-1)
-    return np.bincount(flat, values.reshape(-1), minlength=n * k).reshape(n, *values.shape[1:]).astype(values.dtype)
+    sums = np.bincount(flat, values.reshape(-1), minlength=n * k).reshape(n, *values.shape[1:])
+    return sums if sums.dtype == values.dtype else sums.astype(values.dtype)
 
 
 def edge_residuals(graph: PoseGraph, poses: Poses):
@@ -145,11 +149,13 @@ def euclidean_gradient(graph: PoseGraph, poses: Poses) -> Poses:
     xp = _xp(rot)
     wr = graph.kappa[:, None, None] * rot
     wt = graph.tau[:, None] * trans
-    n = graph.num_poses
+    n, d = graph.num_poses, wt.shape[-1]
     gRi = wr @ graph.R.swapaxes(-1, -2) + wt[:, :, None] * graph.t[:, None, :]
-    gR = _segment_sum(xp, gRi, graph.i, n) - _segment_sum(xp, wr, graph.j, n)
-    gt = _segment_sum(xp, wt, graph.i, n) - _segment_sum(xp, wt, graph.j, n)
-    return Poses(gR, gt)
+    # one sum per end of the edges, rotation and translation parts side by side (same sums per entry)
+    tails = _segment_sum(xp, xp.concatenate([gRi.reshape(-1, d * d), wt], 1), graph.i, n)
+    heads = _segment_sum(xp, xp.concatenate([wr.reshape(-1, d * d), wt], 1), graph.j, n)
+    g = tails - heads
+    return Poses(g[:, : d * d].reshape(n, d, d), g[:, d * d :])
 
 
 def riemannian_gradient_from_euclidean(poses: Poses, egrad: Poses) -> Poses:
@@ -181,6 +187,34 @@ def host_graph(graph: PoseGraph) -> PoseGraph:
                      R=np.asarray(graph.R, np.float64), t=np.asarray(graph.t, np.float64),
                      kappa=np.asarray(graph.kappa, np.float64), tau=np.asarray(graph.tau, np.float64),
                      num_poses=graph.num_poses)
+
+
+class HostGraph(NamedTuple):
+    """A graph's fields as NumPy arrays in a tuple (:func:`host_view`): the functions above read
+    only these fields, and a tuple's fields are read without the lookup an equinox module's
+    attributes cost (about a microsecond each, which host-side solvers of tiny graphs pay hundreds
+    of times per solve)."""
+
+    i: np.ndarray
+    j: np.ndarray
+    R: np.ndarray
+    t: np.ndarray
+    kappa: np.ndarray
+    tau: np.ndarray
+    num_poses: int
+
+
+class HostPoses(NamedTuple):
+    """Poses as a tuple of NumPy arrays (R (n, d, d), t (n, d)), for the same reason as :class:`HostGraph`."""
+
+    R: np.ndarray
+    t: np.ndarray
+
+
+def host_view(graph: PoseGraph) -> HostGraph:
+    """:func:`host_graph`'s arrays as a :class:`HostGraph`."""
+    g = host_graph(graph)
+    return HostGraph(g.i, g.j, g.R, g.t, g.kappa, g.tau, g.num_poses)
 
 
 def poses_to_matrix(poses: Poses) -> np.ndarray:

@@ -262,7 +262,7 @@ def solve_sharded(
         poses=poses,
         accuracy=None if ground_truth is None else trajectory_accuracy(poses, ground_truth),
         history=out.history,
-        partition=user_part,
+        _partition=user_part,
         config=config,
         result=out.result,
         stats={

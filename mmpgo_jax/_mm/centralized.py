@@ -34,6 +34,11 @@ package's isotropic objective F (Eq. (3), SE-Sync's weights):
   ratio exceeds 1/2. The gauge is fixed by holding the anchor poses
   (:func:`~mmpgo_jax._core.gauge.anchor_set`: the fixed poses, else the first pose of each
   connected component): their rows are the identity and their steps zero.
+* Problems of at most :data:`DENSE_NEWTON_MAX_SIZE` unknowns (33 poses in 3D, 66 in 2D) are
+  factored densely instead (LAPACK's Cholesky, poses in their own order; the same entries summed
+  into a dense matrix), without chord steps: there the sparse machinery's fixed costs and the
+  extra iterations of chord steps exceed the work of a factorization. The gradient of a point is
+  computed once, for the stopping rule, and reused by the step that follows.
 * The iterations run with one OpenBLAS thread (``threadpoolctl``): their NumPy and SuperLU operations
   are small or memory-bound, and OpenBLAS's threads only added synchronization (measured under
   cProfile on a shared 2-core machine: sphere2500 2.2 s -> 1.2 s).
@@ -48,20 +53,15 @@ import functools
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
+from typing import NamedTuple
 
 import numpy as np
 import scipy.sparse as sp
+from scipy.linalg import lapack
 
 from .._core.blas import one_blas_thread
 from .._core.gauge import FixedPoses, anchor_set
-from .._core.pose_graph import (
-    PoseGraph,
-    Poses,
-    cost,
-    euclidean_gradient,
-    host_graph,
-    riemannian_gradient_from_euclidean,
-)
+from .._core.pose_graph import HostPoses, PoseGraph, cost, euclidean_gradient, host_view
 from .._core.sparse import PardisoCholesky, factor_symmetric, pardiso_available, pose_order
 from .driver import RESULTS, History, Monitor, Termination, drive
 
@@ -83,7 +83,11 @@ class NewtonConfig:
     None (the defaults of both): 1 and 0.25 in 3D, 0 and 0 in 2D, where the Newton step from the
     chordal start is already good and the factorization cheap (its L + U holds 50–100 nonzeros
     per measurement on the 2D benchmark files, 150–700 on the 3D ones), so that a Gauss–Newton
-    step or a chord step only adds iterations (measured on MIT, intel, M3500, kitti_00).
+    step or a chord step only adds iterations (measured on MIT, intel, M3500, kitti_00). Problems
+    small enough for the dense factorization (:data:`DENSE_NEWTON_MAX_SIZE`) never reuse one: it
+    costs less than the rest of an iteration, and chord steps converge only linearly (measured:
+    tinyGrid3D 7 -> 5 iterations, the graphs of smallGrid3D's first 20 and 33 poses 7 -> 5 and
+    13 -> 7).
     """
 
     initial_damping: float = 0.0
@@ -102,13 +106,19 @@ class NewtonConfig:
         if self.reuse_contraction is not None and not (0.0 <= self.reuse_contraction < 1.0):
             raise ValueError(f"reuse_contraction must be None or in [0, 1), got {self.reuse_contraction!r}")
 
-    def resolved(self, d: int) -> NewtonConfig:
-        """This configuration with the defaults (None) of dimension d filled in."""
+    def resolved(self, d: int, dense: bool = False) -> NewtonConfig:
+        """This configuration with the defaults (None) of dimension d filled in (``dense``: the
+        problem is factored densely)."""
         return replace(self, gauss_newton_steps=(1 if d == 3 else 0) if self.gauss_newton_steps is None
                        else self.gauss_newton_steps,
-                       reuse_contraction=(0.25 if d == 3 else 0.0) if self.reuse_contraction is None
+                       reuse_contraction=(0.25 if d == 3 and not dense else 0.0) if self.reuse_contraction is None
                        else self.reuse_contraction)
 
+
+#: Unknowns (6 per pose in 3D, 3 in 2D) up to which the Newton steps are factored densely (LAPACK's
+#: Cholesky, rows in pose order) instead of by a sparse factorization: on graphs this small the
+#: sparse machinery's fixed costs exceed the work (measured in benchmarks/centralized.md).
+DENSE_NEWTON_MAX_SIZE = 200
 
 #: Unknowns (6 per pose in 3D, 3 in 2D) from which the Newton steps are factored by PARDISO
 #: (:class:`~mmpgo_jax._core.sparse.PardisoCholesky`, when installed) instead of SuperLU: measured
@@ -144,22 +154,32 @@ def _exp(omega: np.ndarray, d: int) -> np.ndarray:
     return np.eye(3) + a[:, None, None] * W + b[:, None, None] * (W @ W)
 
 
-class _Problem:
-    """The host-side data of one centralized solve: the graph in float64, the dof layout in
-    nested-dissection order, the anchors."""
+class _Gradient(NamedTuple):
+    """F's gradient at a point: ``g`` in local coordinates (N,), A_i = R_iᵀ ∂F/∂R_i (n, d, d),
+    ``norm`` = ||grad F|| over the poses that are not fixed."""
 
-    def __init__(self, graph: PoseGraph, fixed: FixedPoses | None):
-        self.graph = host_graph(graph)
+    g: np.ndarray
+    A: np.ndarray
+    norm: float
+
+
+class _Problem:
+    """The host-side data of one centralized solve: the graph in float64, the dof layout (in
+    nested-dissection order for the sparse factorizations), the anchors."""
+
+    def __init__(self, graph: PoseGraph, fixed: FixedPoses | None, dense: bool | None = None):
+        self.graph = host_view(graph)
         g = self.graph
-        n, d = g.num_poses, g.dim
+        n, d = g.num_poses, g.R.shape[-1]
         self.n, self.d = n, d
         self.p = d * (d - 1) // 2
         self.b = self.p + d  # unknowns per pose: omega, then delta
+        self.dense = self.b * n <= DENSE_NEWTON_MAX_SIZE if dense is None else bool(dense)
         self.E = _generators(d)
-        rank = np.empty(n, dtype=np.int64)
-        rank[pose_order(n, g.i, g.j)] = np.arange(n)
-        self.rank = rank  # each pose's place in the nested-dissection order
-        self.index = self.b * rank[:, None] + np.arange(self.b)  # (n, b) rows of each pose, ND order
+        self.EE = self.E[:, None] @ self.E[None]  # (p, p, d, d): E_k E_l
+        # each pose's place in the unknowns: nested-dissection order for the sparse factorizations
+        self.rank = np.arange(n) if self.dense else np.argsort(pose_order(n, g.i, g.j))
+        self.index = self.b * self.rank[:, None] + np.arange(self.b)  # (n, b) rows of each pose
         held = anchor_set(graph, fixed).index
         self.held = np.zeros(n, dtype=bool)
         self.held[held] = True
@@ -169,23 +189,36 @@ class _Problem:
         self._pattern()
 
     def cost(self, R, t) -> float:
-        return float(cost(self.graph, Poses(R, t)))
+        """f = 2F at (R, t)."""
+        return float(cost(self.graph, HostPoses(R, t)))
+
+    def gradient(self, R, t) -> _Gradient:
+        """F's gradient at (R, t): in local coordinates (anchors' entries zero), A_i = R_iᵀ ∂F/∂R_i
+        (for the curvature) and ||grad F|| over the poses that are not fixed (Riemannian: the
+        rotation part of pose i is R_i skew(A_i), the translation part ∂F/∂t_i)."""
+        n, d = self.n, self.d
+        G = euclidean_gradient(self.graph, HostPoses(R, t))
+        A = np.swapaxes(R, 1, 2) @ G.R
+        skew = A - np.swapaxes(A, 1, 2)  # 2 skew(A_i)
+        keep = self.free_poses
+        norm = float(np.sqrt(0.25 * np.sum(skew[keep] ** 2) + np.sum(G.t[keep] ** 2)))
+        local = np.concatenate([A.reshape(n, d * d) @ self.E.reshape(self.p, d * d).T, G.t], 1)  # <A_i, E_k>
+        local[self.held] = 0.0
+        grad = np.empty(self.b * n)
+        grad[self.index] = local
+        return _Gradient(grad, A, norm)
 
     def grad_norm(self, R, t) -> float:
         """||grad F|| over the poses that are not fixed (Riemannian, of F)."""
-        X = Poses(R, t)
-        rg = riemannian_gradient_from_euclidean(X, euclidean_gradient(self.graph, X))
-        keep = self.free_poses
-        return float(np.sqrt(np.sum(rg.R[keep] ** 2) + np.sum(rg.t[keep] ** 2)))
+        return self.gradient(R, t).norm
 
-    def jacobians(self, R, t):
-        """Residuals r (m, q) and their Jacobians J_i, J_j (m, q, b) in local coordinates, q = d^2 + d."""
+    def jacobians(self, R):
+        """The residuals' Jacobians J_i, J_j (m, q, b) in local coordinates, q = d^2 + d (the
+        residuals, weighted, are (sqrt(kappa) (R_i R~ - R_j), sqrt(tau) (R_i t~ + t_i - t_j)))."""
         g, d, p = self.graph, self.d, self.p
         m = g.i.shape[0]
         Ri, Rj = R[g.i], R[g.j]
         sk, st = self.sqrt_kappa[:, None], self.sqrt_tau[:, None]
-        r = np.concatenate([sk * (Ri @ g.R - Rj).reshape(m, d * d),
-                            st * ((Ri @ g.t[:, :, None])[:, :, 0] + t[g.i] - t[g.j])], 1)
         # matmul, not einsum: NumPy's einsum is several times slower on these small operands
         RiE = Ri[:, None] @ self.E  # (m, p, d, d): R_i E_k
         Ji = np.zeros((m, d * d + d, self.b))
@@ -196,25 +229,53 @@ class _Problem:
         eye = np.eye(d)
         Ji[:, d * d :, p:] = st[:, :, None] * eye
         Jj[:, d * d :, p:] = -st[:, :, None] * eye
-        return r, Ji, Jj
+        return Ji, Jj
 
     def _pattern(self):
-        """The Hessian's sparsity (constant), built per pose block (no sort of the entries): CSC
-        indices and indptr, and the slot in the CSC data of every entry :meth:`linearize_parts`
-        assembles (the pose-pair blocks of each edge, then the anchors' unit diagonal; the curvature
-        blocks), so that one bincount per part sums the duplicates."""
+        """Where every entry :meth:`hessian_parts` assembles goes in the matrix's values (the
+        pose-pair blocks of each edge, then the anchors' unit diagonal; the curvature blocks), so
+        that one bincount per part sums the duplicates: the CSC data of the Hessian's constant
+        sparsity, or the row-major entries of a dense matrix."""
         g, n, b, p = self.graph, self.n, self.b, self.p
-        N = b * n
         rank = self.rank
         held = np.zeros(n, dtype=bool)  # per pose rank
         held[rank[self.held]] = True
         si, sj, diag_poses = rank[g.i], rank[g.j], rank
-        # block instances (row pose, column pose), in the order of linearize_parts' values:
+        # block instances (row pose, column pose), in the order of hessian_parts' values:
         # (i, i), (j, j), (i, j), (j, i) for every edge, then (k, k) for every pose (curvature)
         brow = np.concatenate([si, sj, si, sj, diag_poses])
         bcol = np.concatenate([si, sj, sj, si, diag_poses])
         keep = ~(held[brow] | held[bcol])
-        blocks, inverse = np.unique(bcol[keep] * n + brow[keep], return_inverse=True)  # CSC order of blocks
+        local = np.arange(b)
+        held_cols = (b * np.flatnonzero(held)[:, None] + local).reshape(-1)
+        free = np.flatnonzero(~held)
+        # entry [instance, row a, column c] of a block sits at start[instance, c] + a * row_stride
+        if self.dense:
+            N = b * n
+            start = (b * N * brow[keep])[:, None] + b * bcol[keep][:, None] + local
+            row_stride, self._size = N, N * N
+            anchor_slots = held_cols * (N + 1)
+            self.free_diagonal = ((b * free[:, None] + local) * (N + 1)).reshape(-1)
+        else:
+            start, anchor_slots = self._sparse_pattern(brow[keep], bcol[keep], held, held_cols, free)
+            row_stride, self._size = 1, self._indices.size
+        num_pairs = 4 * si.size
+        kp, kc = keep[:num_pairs], keep[num_pairs:]
+        self._keep_pairs = np.repeat(kp, b * b)
+        self._slot_pairs = np.concatenate([(start[: kp.sum()][:, None, :] + row_stride * local[:, None]).reshape(-1),
+                                           anchor_slots])
+        self._keep_curvature = np.repeat(kc, p * p)
+        self._slot_curvature = (start[kp.sum():][:, None, :p] + row_stride * local[:p, None]).reshape(-1)
+        self._anchor_ones = np.ones(held_cols.size)
+        self.held_rows = np.zeros(b * n, dtype=bool)
+        self.held_rows[held_cols] = True
+
+    def _sparse_pattern(self, brow, bcol, held, held_cols, free):
+        """The Hessian's sparsity (constant), built per pose block (no sort of the entries): CSC
+        indices and indptr; returns each kept block instance's column starts (instance, b) and the
+        anchors' diagonal slots, and sets :attr:`free_diagonal`."""
+        n, b = self.n, self.b
+        blocks, inverse = np.unique(bcol * n + brow, return_inverse=True)  # CSC order of blocks
         ucol, urow = blocks // n, blocks % n
         position = np.arange(blocks.size) - np.searchsorted(ucol, ucol)  # among the blocks of its column
         per_column = np.repeat(np.where(held, 1, b * np.bincount(ucol, minlength=n)), b)
@@ -223,77 +284,73 @@ class _Problem:
         start = indptr[ucol[:, None] * b + local] + b * position[:, None]  # (block, column in block)
         indices = np.empty(int(indptr[-1]), dtype=np.int64)
         indices[start[:, :, None] + local] = (b * urow)[:, None, None] + local  # [block, column, row]
-        held_cols = (b * np.flatnonzero(held)[:, None] + local).reshape(-1)
         indices[indptr[held_cols]] = held_cols
         self._indices, self._indptr = indices, indptr
-        block = np.full(brow.size, -1, dtype=np.int64)
-        block[keep] = inverse.reshape(-1)
-        num_pairs = 4 * si.size
-        kp, kc = keep[:num_pairs], keep[num_pairs:]
-        # entry [instance, row a, column c] of a block sits at start[block, c] + a
-        self._keep_pairs = np.repeat(kp, b * b)
-        self._slot_pairs = np.concatenate([(start[block[:num_pairs][kp]][:, None, :] + local[:, None]).reshape(-1),
-                                           indptr[held_cols]])
-        self._keep_curvature = np.repeat(kc, p * p)
-        self._slot_curvature = (start[block[num_pairs:][kc]][:, None, :p] + local[:p, None]).reshape(-1)
-        self._anchor_ones = np.ones(held_cols.size)
-        self.held_rows = np.zeros(N, dtype=bool)
-        self.held_rows[held_cols] = True
-        free = np.flatnonzero(~held)
         self.free_diagonal = (start[np.searchsorted(blocks, free * n + free)] + local).reshape(-1)  # slots
-        self._edge_rows = (self.index[g.i], self.index[g.j])
+        return start[inverse.reshape(-1)], indptr[held_cols]
 
     def upper_triangle(self) -> tuple[np.ndarray, sp.csr_matrix]:
-        """The pattern's upper triangle as CSR (for PARDISO) and, for each of its entries, its slot
-        in the CSC data: by symmetry, the CSC entries with row >= column, read as CSR."""
+        """The sparse pattern's upper triangle as CSR (for PARDISO) and, for each of its entries, its
+        slot in the CSC data: by symmetry, the CSC entries with row >= column, read as CSR."""
         N, indices, indptr = self.b * self.n, self._indices, self._indptr
         column = np.repeat(np.arange(N), np.diff(indptr))
         entries = np.flatnonzero(indices >= column)
         row_ptr = np.concatenate([[0], np.cumsum(np.bincount(column[entries], minlength=N))])
         return entries, sp.csr_matrix((np.zeros(entries.size), indices[entries], row_ptr), shape=(N, N))
 
-    def matrix(self, data: np.ndarray) -> sp.csc_matrix:
-        """The N x N matrix with the Hessian's pattern and CSC values ``data``."""
+    def matrix(self, data: np.ndarray) -> sp.csc_matrix | np.ndarray:
+        """The N x N matrix with values ``data``: sparse CSC with the Hessian's pattern, or dense."""
         N = self.b * self.n
+        if self.dense:
+            return data.reshape(N, N)
         return sp.csc_matrix((data, self._indices, self._indptr), shape=(N, N))
 
     def linearize(self, R, t):
-        """Gradient g (N,) and the Hessian's CSC values (pattern :meth:`matrix`, nested-dissection
-        order) of the pulled-back F at (R, t), N = b n; the anchors' rows and columns are those of
-        the identity, g = 0 there."""
-        grad, gauss_newton, curvature = self.linearize_parts(R, t)
-        return grad, gauss_newton + curvature
+        """Gradient g (N,) and the Hessian's values (:meth:`matrix`) of the pulled-back F at
+        (R, t), N = b n; the anchors' rows and columns are those of the identity, g = 0 there."""
+        gradient = self.gradient(R, t)
+        gauss_newton, curvature = self.hessian_parts(R, gradient.A)
+        return gradient.g, gauss_newton + curvature
 
-    def linearize_parts(self, R, t):
-        """Gradient g and the Hessian's two parts (CSC values, pattern :meth:`matrix`): the
-        Gauss–Newton matrix JᵀJ (with the anchors' unit diagonal; positive semidefinite) and the
-        exponential's curvature C (block diagonal, zero at the anchors); the Hessian is their sum."""
-        g, n, b, p = self.graph, self.n, self.b, self.p
-        r, Ji, Jj = self.jacobians(R, t)
+    def hessian_parts(self, R, A):
+        """The Hessian's two parts at rotations R (values, :meth:`matrix`), given A_i = R_iᵀ ∂F/∂R_i
+        (:meth:`gradient`): the Gauss–Newton matrix JᵀJ (with the anchors' unit diagonal; positive
+        semidefinite) and the exponential's curvature C (block diagonal, zero at the anchors),
+        C_kl = sym <A_i, E_k E_l>; the Hessian is their sum."""
+        n, p = self.n, self.p
+        Ji, Jj = self.jacobians(R)
         JiT, JjT = np.swapaxes(Ji, 1, 2), np.swapaxes(Jj, 1, 2)
-        ri, rj = self._edge_rows
-        N = b * n
-        grad = (np.bincount(ri.reshape(-1), (JiT @ r[:, :, None]).reshape(-1), minlength=N)
-                + np.bincount(rj.reshape(-1), (JjT @ r[:, :, None]).reshape(-1), minlength=N))
         Hij = JiT @ Jj
-        # the exponential's curvature: C_kl = sym <R^T G, E_k E_l>, G = dF/dR (Euclidean)
-        A = np.swapaxes(R, 1, 2) @ euclidean_gradient(g, Poses(R, t)).R
-        EE = self.E[:, None] @ self.E[None]  # (p, p, d, d): E_k E_l
-        C = (A.reshape(n, -1) @ EE.reshape(p * p, -1).T).reshape(n, p, p)
+        C = (A.reshape(n, -1) @ self.EE.reshape(p * p, -1).T).reshape(n, p, p)
         C = 0.5 * (C + np.swapaxes(C, 1, 2))
         pairs = np.concatenate([(JiT @ Ji).reshape(-1), (JjT @ Jj).reshape(-1), Hij.reshape(-1),
                                 np.swapaxes(Hij, 1, 2).reshape(-1)])
-        size = self._indices.size
         gauss_newton = np.bincount(self._slot_pairs, np.concatenate([pairs[self._keep_pairs], self._anchor_ones]),
-                                   minlength=size)
-        curvature = np.bincount(self._slot_curvature, C.reshape(-1)[self._keep_curvature], minlength=size)
-        grad[self.held_rows] = 0.0
-        return grad, gauss_newton, curvature
+                                   minlength=self._size)
+        curvature = np.bincount(self._slot_curvature, C.reshape(-1)[self._keep_curvature], minlength=self._size)
+        return gauss_newton, curvature
 
     def retract(self, R, t, step: np.ndarray):
         """(R_i Exp(omega_i), t_i + delta_i) for the step (in nested-dissection order)."""
         s = step[self.index]  # (n, b)
         return R @ _exp(s[:, : self.p], self.d), t + s[:, self.p :]
+
+
+class _DenseCholesky:
+    """LAPACK's Cholesky factor of a small dense matrix (potrf / potrs called directly: SciPy's
+    wrappers' checks cost more than the factorization at this size)."""
+
+    def __init__(self, lower: np.ndarray):
+        self.lower = lower
+
+    @staticmethod
+    def factor(H: np.ndarray) -> _DenseCholesky | None:
+        """The factor of H, or None when H is not positive definite."""
+        lower, info = lapack.dpotrf(H, lower=1, clean=0)
+        return _DenseCholesky(lower) if info == 0 else None
+
+    def solve(self, g: np.ndarray) -> np.ndarray:
+        return lapack.dpotrs(self.lower, g, lower=1)[0]
 
 
 class _LM:
@@ -303,22 +360,35 @@ class _LM:
         self.pb = problem
         self.R, self.t = R, t
         self.f = problem.cost(R, t)  # 2F
+        self._gradient = None  # at (R, t), once computed
         self.lam = config.initial_damping
         self.nu = 2.0
-        self.config = config.resolved(problem.d)
+        self.config = config.resolved(problem.d, problem.dense)
         self.factorizations = 0
         self.iteration = 0
         self.reuse = None  # the last successful Newton step's factorization
         self.g_norm = np.inf  # ||g|| at the previous iteration
         self.cholesky = None
-        if problem.b * problem.n >= PARDISO_NEWTON_MIN_SIZE and pardiso_available():
+        if not problem.dense and problem.b * problem.n >= PARDISO_NEWTON_MIN_SIZE and pardiso_available():
             self.upper_entries, upper = problem.upper_triangle()
             self.cholesky = PardisoCholesky(upper)
 
+    def gradient(self) -> _Gradient:
+        """F's gradient at the current point (computed once per point: the iteration that follows
+        reuses the one the stopping rule needed)."""
+        if self._gradient is None:
+            self._gradient = self.pb.gradient(self.R, self.t)
+        return self._gradient
+
+    def _accept(self, R, t, f) -> None:
+        self.R, self.t, self.f, self._gradient = R, t, f, None
+
     def _factor(self, data: np.ndarray):
-        """A factorization of the matrix with CSC values ``data`` (an object with ``solve``), or
-        None when it is not positive definite."""
+        """A factorization of the matrix with values ``data`` (an object with ``solve``), or None
+        when it is not positive definite."""
         self.factorizations += 1
+        if self.pb.dense:
+            return _DenseCholesky.factor(self.pb.matrix(data))
         if self.cholesky is not None:
             return self.cholesky if self.cholesky.factor(data[self.upper_entries]) else None
         factor = factor_symmetric(self.pb.matrix(data), "ordered")
@@ -341,7 +411,9 @@ class _LM:
 
     def step(self) -> None:
         pb, cfg = self.pb, self.config
-        g, gauss_newton, curvature = pb.linearize_parts(self.R, self.t)
+        gradient = self.gradient()
+        g = gradient.g
+        gauss_newton, curvature = pb.hessian_parts(self.R, gradient.A)
         newton = self.iteration >= cfg.gauss_newton_steps
         self.iteration += 1
         data = gauss_newton + curvature if newton else gauss_newton
@@ -352,7 +424,7 @@ class _LM:
         if reuse:  # quadratic regime: the previous factorization of H + lambda I still fits
             R, t, f, rho = self._gain(g, -self.reuse.solve(g), H)
             if rho > 0.5:
-                self.R, self.t, self.f = R, t, f
+                self._accept(R, t, f)
                 return
         self.reuse = None
         scale = float(np.max(np.abs(data[pb.free_diagonal]), initial=1.0))
@@ -365,7 +437,7 @@ class _LM:
                 continue
             R, t, f, rho = self._gain(g, -factor.solve(g), H)
             if rho > 1e-4:
-                self.R, self.t, self.f = R, t, f
+                self._accept(R, t, f)
                 self.lam *= max(0.1, 1.0 - (2.0 * rho - 1.0) ** 3)
                 self.nu = 2.0
                 if newton and rho > 0.5 and cfg.reuse_contraction > 0:
@@ -398,13 +470,13 @@ def newton_optimum(
     t_build = time.perf_counter()
     problem = _Problem(graph, fixed)
     lm = _LM(problem, np.array(R0, dtype=np.float64), np.array(t0, dtype=np.float64), config)
-    start = (np.float64(lm.f), np.float64(problem.grad_norm(lm.R, lm.t)), np.zeros(1, bool))
+    start = (np.float64(lm.f), np.float64(lm.gradient().norm), np.zeros(1, bool))
     build_seconds = time.perf_counter() - t_build
 
     def host_chunk(state, length, limit):
         def chunk(lm, limit):
             lm.step()
-            record = (np.array([lm.f]), np.array([problem.grad_norm(lm.R, lm.t)]), np.zeros((1, 1), bool))
+            record = (np.array([lm.f]), np.array([lm.gradient().norm]), np.zeros((1, 1), bool))
             return lm, record
 
         return chunk

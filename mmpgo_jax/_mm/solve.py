@@ -9,6 +9,7 @@ every chunk and every call with the same shapes).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -41,11 +42,12 @@ class SolveResult:
     :class:`RESULTS`; ``stop_reason`` is its short name) and ``stats`` (timings in seconds:
     ``initialize_seconds`` (partition and start), ``build_seconds`` (Gamma, preconditioner, state at
     X^0), ``init_seconds`` (their sum), ``compile_seconds``, ``solve_seconds`` = the compiled
-    iterations alone; a sharded run adds its mesh size, plan and exchange)."""
+    iterations alone; a sharded run adds its mesh size, plan and exchange). ``partition`` is the
+    split the run used (one robot for the centralized Newton solver, built when first read)."""
 
     poses: Poses
     history: History
-    partition: Partition
+    _partition: Partition | Callable[[], Partition] = field(repr=False)
     config: MMConfig | None  # None for the centralized Newton solver
     result: RESULTS
     stats: dict = field(default_factory=dict)
@@ -54,6 +56,12 @@ class SolveResult:
     loss: RobustLoss | None = None  # the robust loss (its numbers filled in), None for least squares
     weights: np.ndarray | None = None  # (m,) final edge weights (robust losses), graph edge order
     inliers: np.ndarray | None = None  # (m,) bool: final residual within the scale (robust losses)
+
+    @property
+    def partition(self) -> Partition:
+        if not isinstance(self._partition, Partition):  # built on first use
+            object.__setattr__(self, "_partition", self._partition())
+        return self._partition
 
     @property
     def f(self) -> float:
@@ -240,7 +248,7 @@ def solve(
     return SolveResult(
         poses=poses,
         history=out.history,
-        partition=part,
+        _partition=part,
         config=config,
         result=out.result,
         stats={**clock.stats(out), **robust_stats},
@@ -372,12 +380,12 @@ def _newton_optimum(graph, init, initial, grad_tol, max_iterations, xi, fixed, f
     R, t, history, result, stats = newton_optimum(graph, np.asarray(X0.R), np.asarray(X0.t), termination, fixed=fixed,
                                                   config=config, callback=callback, monitor=monitor)
     dt = np.dtype(X0.R.dtype)
-    poses = output_frame(Poses(jax.device_put(R.astype(dt)), jax.device_put(t.astype(dt))), fixed, frame)
+    poses = jax.device_put(output_frame(Poses(R.astype(dt), t.astype(dt)), fixed, frame))  # the frame on the host
     seconds = clock.seconds
     return SolveResult(
         poses=poses,
         history=history,
-        partition=partition(graph, 1),
+        _partition=functools.partial(partition, graph, 1),  # device arrays only when asked for
         config=None,
         result=result,
         stats=dict(initialize_seconds=seconds["initialize"], build_seconds=stats["build_seconds"],
