@@ -208,10 +208,6 @@ class _Problem:
         grad[self.index] = local
         return _Gradient(grad, A, norm)
 
-    def grad_norm(self, R, t) -> float:
-        """||grad F|| over the poses that are not fixed (Riemannian, of F)."""
-        return self.gradient(R, t).norm
-
     def jacobians(self, R):
         """The residuals' Jacobians J_i, J_j (m, q, b) in local coordinates, q = d^2 + d (the
         residuals, weighted, are (sqrt(kappa) (R_i R~ - R_j), sqrt(tau) (R_i t~ + t_i - t_j)))."""
