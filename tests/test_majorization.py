@@ -453,6 +453,24 @@ def test_one_rotation_projection_in_both_layouts(d):
         nearest_rotations(jnp.asarray(M), layout="rows")
 
 
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+@pytest.mark.parametrize("distance", [0.2, 1e-3, 1e-7, 0.0])
+def test_newton_polar_iteration_stops_at_rounding_accuracy(distance, dtype):
+    """The 3D Newton polar iteration stops once a step changes no entry by more than sqrt(eps):
+    from near-rotations at any distance (exact rotations included) it lands on the SVD projection
+    to rounding, in float64 and float32."""
+    from mmpgo_jax import project_to_so
+    from mmpgo_jax._core.geometry import nearest_rotations
+
+    rng = np.random.default_rng(3)
+    M = random_rotations(rng, (4, 50), 3) + distance * rng.standard_normal((4, 50, 3, 3))
+    ref = np.asarray(project_to_so(jnp.asarray(M)))
+    got = np.asarray(nearest_rotations(jnp.asarray(M, dtype), method="fast"))
+    tol = 1e-13 if dtype == np.float64 else 3e-6
+    assert got.dtype == dtype
+    np.testing.assert_allclose(got, ref, atol=tol)
+
+
 @pytest.mark.parametrize("d", [2, 3])
 @pytest.mark.parametrize("size", [1e-3, 0.3, 3.0])
 def test_retraction_is_the_polar_projection_of_a_tangent_step(d, size):

@@ -9,6 +9,7 @@ from typing import NamedTuple
 
 import jax.numpy as jnp
 import numpy as np
+from jax import lax
 
 
 def rotation_2d(theta):
@@ -123,24 +124,35 @@ def _closed_form_2d(M, L: _Blocks):
     return L.stack_rows([L.stack_row([c, -s]), L.stack_row([s, c])])
 
 
-def _newton_polar_3d(M, iterations: int = 6):
+def _newton_polar_3d(M, max_iterations: int = 6, settled: float | None = None):
     """Orthogonal polar factor of near-rotations (3, 3, ...) (entries first: each step is an
     elementwise loop over contiguous vectors) by scaled Newton iteration (Higham).
 
-    Converges quadratically; from ||M - R|| ~ 0.1, four iterations reach machine precision. Inputs
-    with det(M) <= 0 (far from SO(3)) are mapped to a proper rotation by flipping the last row's
-    sign (not the nearest rotation: :func:`project_to_so` is exact for those); the solver's
-    accept/reject test guards against such poor points.
+    Converges quadratically, so it stops once a step changed no entry by more than ``settled``
+    (default sqrt(eps); 0 runs all ``max_iterations`` steps): the error left after that step is of
+    order eps. From ||M - R|| ~ 0.1 that is four steps; an AMM extrapolation takes one to three
+    (benchmarks/projection_steps.py). Inputs with det(M) <= 0 (far from
+    SO(3)) are mapped to a proper rotation by flipping the last row's sign (not the nearest
+    rotation: :func:`project_to_so` is exact for those); the solver's accept/reject test guards
+    against such poor points.
     """
-    X = M
-    for _ in range(iterations):
+    def step(X):
         r0, r1, r2 = X[0], X[1], X[2]
         c0, c1, c2 = jnp.cross(r1, r2, axis=0), jnp.cross(r2, r0, axis=0), jnp.cross(r0, r1, axis=0)  # det(X) X^{-T}
         det = jnp.sum(r0 * c0, axis=0)
         invT = jnp.stack([c0, c1, c2]) / det
         scale = jnp.sqrt(jnp.sqrt(jnp.sum(invT**2, axis=(0, 1)) / jnp.sum(X**2, axis=(0, 1))))
         scale = jnp.where(jnp.isfinite(scale) & (scale > 0), scale, 1.0)
-        X = 0.5 * (scale * X + invT / scale)
+        return 0.5 * (scale * X + invT / scale)
+
+    def body(carry):
+        k, X, _ = carry
+        X_next = step(X)
+        return k + 1, X_next, jnp.max(jnp.abs(X_next - X), initial=0.0)
+
+    settled = jnp.sqrt(jnp.finfo(M.dtype).eps) if settled is None else settled
+    _, X, _ = lax.while_loop(lambda c: (c[0] < max_iterations) & (c[2] > settled), body,
+                             (0, M, jnp.asarray(jnp.inf, M.dtype)))
     det = jnp.sum(X[0] * jnp.cross(X[1], X[2], axis=0), axis=0)
     return X.at[2].multiply(jnp.where(det < 0, -1.0, 1.0))
 
@@ -152,9 +164,9 @@ def nearest_rotations(M, *, method: str = "svd", layout: str = "blocks-last"):
     ``"blocks-first"``: M (d, d, ...), the matrix axes first (the solver's structure-of-arrays
     layout, where every entry is a contiguous vector). ``method="svd"``: Umeyama's SVD projection,
     exact for any input and any d (= :func:`project_to_so`). ``"fast"``: the solver's hot path,
-    the closed form for d = 2 (exact as well) and a 6-step scaled Newton polar iteration for d = 3
-    (exact to rounding for near-rotations with det > 0, which is what a retraction or an AMM
-    extrapolation produces); other d fall back to the SVD.
+    the closed form for d = 2 (exact as well) and a scaled Newton polar iteration for d = 3, run
+    until it has converged (at most 6 steps; exact to rounding for near-rotations with det > 0,
+    which is what a retraction or an AMM extrapolation produces); other d fall back to the SVD.
     """
     if layout not in ("blocks-last", "blocks-first"):
         raise ValueError(f"layout must be 'blocks-last' or 'blocks-first', got {layout!r}")
