@@ -370,8 +370,10 @@ def _plane_rotations(h_from: np.ndarray, h_to: np.ndarray) -> np.ndarray:
 
 
 @functools.partial(jax.jit, static_argnums=(1, 2, 3))
-def _walk_moves(u: jax.Array, dim: int, grid: int, num_steps: int):
-    """The moves (num_steps,) of the walk from the 32-bit draws ``u``, and how many draws it used.
+def _walk_moves(u: jax.Array, dim: int, grid: int, length: int, num_steps, num_draws):
+    """The moves (length,) of the walk from the 32-bit draws ``u[:num_draws]``, and how many draws
+    it used; steps from ``num_steps`` on (padding: ``length`` is a power of two, so that one
+    compilation serves every walk up to it) neither move nor draw.
 
     Move s < dim is +1 along axis s, move s >= dim is -1 along axis s - dim. A step with k > 1
     options takes numpy's ``rng.integers(k)`` from the draws (Lemire's method: from a draw x,
@@ -382,7 +384,7 @@ def _walk_moves(u: jax.Array, dim: int, grid: int, num_steps: int):
     two_d = 2 * dim
     s = jnp.arange(two_d, dtype=jnp.int32)
     axis, sign = s % dim, jnp.where(s < dim, 1, -1).astype(jnp.int32)
-    last = u.shape[0] - 1
+    last = num_draws - 1
 
     def bounded(used, k):  # numpy's rng.integers(k) from u[used:], and the draws it consumed
         k = k.astype(jnp.uint32)
@@ -393,22 +395,23 @@ def _walk_moves(u: jax.Array, dim: int, grid: int, num_steps: int):
         high = ((x >> 16) * k + (((x & 0xFFFF) * k) >> 16)) >> 16  # (x k) >> 32 in 32-bit words
         return high.astype(jnp.int32), used + 1
 
-    def step(carry, _):
+    def step(carry, k):
         pos, prev, used = carry
         nxt = pos[axis] + sign
         ok = (nxt >= 0) & (nxt <= grid)
         ok_forward = ok & (s != (prev + dim) % two_d)
         ok = jnp.where((prev >= 0) & ok_forward.any(), ok_forward, ok)
         n_ok = ok.sum()
+        draws = (n_ok > 1) & (k < num_steps)
         choice, used_after = bounded(used, jnp.maximum(n_ok, 2))
-        choice = jnp.where(n_ok > 1, choice, 0)
-        used = jnp.where(n_ok > 1, used_after, used)
+        choice = jnp.where(draws, choice, 0)
+        used = jnp.where(draws, used_after, used)
         move = jnp.argmax(jnp.cumsum(ok) == choice + 1).astype(jnp.int32)
-        pos = pos.at[move % dim].add(jnp.where(move < dim, 1, -1))
+        pos = pos.at[move % dim].add(jnp.where(k < num_steps, jnp.where(move < dim, 1, -1), 0))
         return (pos, move, used), move
 
     start = (jnp.zeros(dim, jnp.int32), jnp.int32(-1), jnp.int32(0))
-    (_, _, used), moves = lax.scan(step, start, None, length=num_steps)
+    (_, _, used), moves = lax.scan(step, start, jnp.arange(length, dtype=jnp.int32))
     return moves, used
 
 
@@ -423,19 +426,23 @@ def _lattice_walk(rng: np.random.Generator, dim: int, grid: int, num_poses: int)
     """
     if num_poses < 2:
         return np.zeros((num_poses, dim), dtype=np.int64)
+    steps = num_poses - 1
+    length = max(256, 1 << (steps - 1).bit_length())  # the compiled walk's size: the next power of two
     saved = rng.bit_generator.state
     spare = 16
     while True:  # a redraw has probability <= 2^-32 per step: the spare draws almost always do
-        u = rng.integers(0, 2**32, size=num_poses - 1 + spare, dtype=np.uint32)
-        moves, used = _walk_moves(jax.device_put(u), dim, grid, num_poses - 1)
+        u = rng.integers(0, 2**32, size=steps + spare, dtype=np.uint32)
+        padded = np.zeros(length + spare, np.uint32)
+        padded[: u.size] = u
+        moves, used = _walk_moves(jax.device_put(padded), dim, grid, length, steps, u.size)
         used = int(used)
         rng.bit_generator.state = saved
-        if used <= len(u):
+        if used <= u.size:
             break
         spare *= 16
     rng.integers(0, 2**32, size=used, dtype=np.uint32)  # consume exactly the draws used
-    steps = np.concatenate([np.eye(dim, dtype=np.int64), -np.eye(dim, dtype=np.int64)])
-    return np.concatenate([np.zeros((1, dim), np.int64), np.cumsum(steps[np.asarray(moves)], axis=0)])
+    unit = np.concatenate([np.eye(dim, dtype=np.int64), -np.eye(dim, dtype=np.int64)])
+    return np.concatenate([np.zeros((1, dim), np.int64), np.cumsum(unit[np.asarray(moves)[:steps]], axis=0)])
 
 
 def _heading_frames(pos: np.ndarray) -> np.ndarray:
