@@ -278,13 +278,23 @@ def test_lattice_walk_is_the_per_step_walk(dim, grid, n):
         np.testing.assert_array_equal(r1.integers(0, 7, 5), r2.integers(0, 7, 5))  # 32-bit buffer too
 
 
-def _bounded_reference(draws, k):
-    """numpy's bounded integer in [0, k) from an iterator of 32-bit draws (Lemire's method)."""
-    threshold = (2**32 - k) % k
-    m, redraws = next(draws) * k, 0
-    while (m & 0xFFFFFFFF) < threshold:
-        m, redraws = next(draws) * k, redraws + 1
-    return m >> 32, redraws
+class _CraftedDraws:
+    """A stand-in for numpy's generator in :func:`_walk_reference`: ``integers(k)`` is numpy's
+    bounded integer in [0, k) (Lemire's method) from a given list of 32-bit draws, counting them."""
+
+    def __init__(self, draws):
+        self.draws, self.used, self.redraws = list(draws), 0, 0
+
+    def _next(self):
+        self.used += 1
+        return self.draws[self.used - 1]
+
+    def integers(self, k):
+        threshold = (2**32 - k) % k
+        m = self._next() * k
+        while (m & 0xFFFFFFFF) < threshold:
+            m, self.redraws = self._next() * k, self.redraws + 1
+        return m >> 32
 
 
 @pytest.mark.parametrize("dim", [2, 3])
@@ -298,25 +308,12 @@ def test_walk_redraws_where_numpy_would(dim):
     u = rng.integers(0, 2**32, size=n + 40, dtype=np.uint32)
     u[rng.choice(n, 30, replace=False)] = 0
     moves, used = _walk_moves(u, dim, grid, 512, n, u.size)  # padded beyond the walk: the tail neither moves nor draws
-    moves = moves[:n]
+    unit = np.concatenate([np.eye(dim, dtype=np.int64), -np.eye(dim, dtype=np.int64)])
+    pos = np.concatenate([np.zeros((1, dim), np.int64), np.cumsum(unit[np.asarray(moves)[:n]], axis=0)])
 
-    draws = iter(u.tolist())
-    pos, prev, expect, redraws = [0] * dim, -1, [], 0
-    for _ in range(n):
-        options = [s for s in range(2 * dim) if 0 <= pos[s % dim] + (1 if s < dim else -1) <= grid]
-        rev = (prev + dim) % (2 * dim)
-        if prev >= 0 and rev in options and len(options) > 1:
-            options.remove(rev)
-        if len(options) > 1:
-            choice, redrawn = _bounded_reference(draws, len(options))
-            prev, redraws = options[choice], redraws + redrawn
-        else:
-            prev = options[0]
-        pos[prev % dim] += 1 if prev < dim else -1
-        expect.append(prev)
-    np.testing.assert_array_equal(np.asarray(moves), expect)
-    assert int(used) == len(u) - len(list(draws))
-    assert redraws > 0
+    crafted = _CraftedDraws(u.tolist())
+    np.testing.assert_array_equal(pos, _walk_reference(crafted, dim, grid, n + 1))
+    assert int(used) == crafted.used and crafted.redraws > 0
 
 
 @pytest.mark.parametrize("dim", [2, 3])

@@ -257,11 +257,12 @@ class _Problem:
             row_stride, self._size = 1, self._indices.size
         num_pairs = 4 * si.size
         kp, kc = keep[:num_pairs], keep[num_pairs:]
+        kept_pairs = int(kp.sum())  # start holds the kept pair blocks, then the kept curvature blocks
         self._keep_pairs = np.repeat(kp, b * b)
-        self._slot_pairs = np.concatenate([(start[: kp.sum()][:, None, :] + row_stride * local[:, None]).reshape(-1),
+        self._slot_pairs = np.concatenate([(start[:kept_pairs][:, None, :] + row_stride * local[:, None]).reshape(-1),
                                            anchor_slots])
         self._keep_curvature = np.repeat(kc, p * p)
-        self._slot_curvature = (start[kp.sum():][:, None, :p] + row_stride * local[:p, None]).reshape(-1)
+        self._slot_curvature = (start[kept_pairs:][:, None, :p] + row_stride * local[:p, None]).reshape(-1)
         self._anchor_ones = np.ones(held_cols.size)
         self.held_rows = np.zeros(b * n, dtype=bool)
         self.held_rows[held_cols] = True
