@@ -2,7 +2,7 @@
 sparse LDLᵀ) side by side with GTSAM's Levenberg–Marquardt, both from the same chordal start.
 
 For each benchmark file: read it, compute the chordal start once (:func:`mmpgo_jax.chordal_initialization`),
-then time
+then time, one call of each in turn, round after round (both meet the same machine state),
 
 * ours: ``centralized_optimum(graph, init=X0)`` (to ||grad F|| <= 1e-6, the default), and
 * GTSAM: :func:`mmpgo_jax._experiments.gtsam_lm.gtsam_levenberg_marquardt` (Between factors whose
@@ -56,17 +56,23 @@ def grad_norm(graph, poses) -> float:
 MIN_TIMED_SECONDS = 0.3
 
 
-def _best(fn, repeats: int, seconds=lambda out: None):
-    """(result of the last call, seconds of the first call, fewest seconds over at least
-    ``repeats`` calls, more while they take less than MIN_TIMED_SECONDS in all, at most 100).
-    ``seconds(out)``: the time to count of a call, when the call reports its own (else its wall time)."""
-    times = []
-    while len(times) < repeats or (sum(times) < MIN_TIMED_SECONDS and len(times) < 100):
-        t = time.perf_counter()
-        out = fn()
-        own = seconds(out)
-        times.append(time.perf_counter() - t if own is None else own)
-    return out, times[0], min(times)
+def _best(fns: dict, repeats: int) -> dict:
+    """Each of ``fns`` (name -> (call, seconds)) called in turn, round after round — so that both solvers
+    meet the same machine state (this machine's speed moves by tens of percent within minutes) — for
+    at least ``repeats`` rounds, more while the first takes less than MIN_TIMED_SECONDS in all (at
+    most 100 rounds). ``seconds(out)``: the time to count of a call, when the call reports its own
+    (None: its wall time). Returns name -> (result of the last call, seconds of the first call,
+    fewest seconds)."""
+    times = {name: [] for name in fns}
+    outs = {}
+    first = next(iter(fns))
+    while len(times[first]) < repeats or (sum(times[first]) < MIN_TIMED_SECONDS and len(times[first]) < 100):
+        for name, (fn, seconds) in fns.items():
+            t = time.perf_counter()
+            outs[name] = fn()
+            own = seconds(outs[name])
+            times[name].append(time.perf_counter() - t if own is None else own)
+    return {name: (outs[name], times[name][0], min(times[name])) for name in fns}
 
 
 def one_file(path: Path, repeats: int = 3) -> dict:
@@ -76,15 +82,18 @@ def one_file(path: Path, repeats: int = 3) -> dict:
     X0 = mm.chordal_initialization(g)
     chordal_s = time.perf_counter() - t
     X0h = mm.Poses(np.asarray(X0.R), np.asarray(X0.t))
-    ours, ours_first_s, ours_s = _best(lambda: mm.centralized_optimum(g, init=X0), repeats)
+    fns = {"ours": (lambda: mm.centralized_optimum(g, init=X0), lambda out: None)}
+    if gtsam_available():  # only GTSAM's optimize() is timed (the call reports its seconds)
+        fns["gtsam"] = (lambda: gtsam_levenberg_marquardt(g, X0h), lambda r: r.seconds)
+    timed = _best(fns, repeats)
+    ours, ours_first_s, ours_s = timed["ours"]
     cert = mm.certify(g, ours.poses)
     row = {"file": path.name, "poses": g.num_poses, "edges": g.num_edges, "dim": g.dim, "chordal_s": chordal_s,
            "ours_s": ours_s, "ours_first_s": ours_first_s, "ours_f": ours.f, "ours_iterations": ours.iterations,
            "ours_grad_norm": float(ours.history.grad_norm[-1]), "ours_stop": ours.stop_reason,
            "ours_factorizations": ours.stats.get("factorizations"), "certified": bool(cert.certified)}
-    if gtsam_available():
-        # only GTSAM's optimize() is timed (the call reports its seconds)
-        lm, _, gtsam_s = _best(lambda: gtsam_levenberg_marquardt(g, X0h), repeats, seconds=lambda r: r.seconds)
+    if "gtsam" in timed:
+        lm, _, gtsam_s = timed["gtsam"]
         row.update(gtsam_s=gtsam_s, gtsam_iterations=lm.iterations,
                    gtsam_f=float(mm.cost(g, lm.poses)), gtsam_grad_norm=grad_norm(g, lm.poses))
     else:

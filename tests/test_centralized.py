@@ -50,6 +50,8 @@ def test_gradient_and_hessian_match_finite_differences(d, dense):
     # the stopping rule's ||grad F||, from the same gradient, against the Riemannian gradient's norm
     np.testing.assert_allclose(pb.gradient(R, t).norm, float(riemannian_gradient_norm(pb.graph, Poses(R, t))),
                                rtol=1e-12)
+    # f from the solver's residual layout against the package's cost
+    np.testing.assert_allclose(pb.cost(R, t), float(cost(pb.graph, Poses(R, t))), rtol=1e-14)
 
 
 @pytest.mark.parametrize("name", ["tinyGrid3D.g2o", "smallGrid3D.g2o"])

@@ -163,6 +163,29 @@ def test_result_frame():
     np.testing.assert_allclose(np.asarray(again.t), np.asarray(moved.poses.t), atol=1e-12)
 
 
+def test_frame_already_met_returns_the_poses_and_the_origin_is_shared():
+    """Poses whose reference pose already has the frame's value are returned as they are (the
+    rigid motion would be the identity exactly), on the device or the host; FixedPoses.identity
+    of pose 0 alone is one shared instance whose arrays cannot be changed."""
+    from mmpgo_jax._core.pose_graph import HostPoses
+
+    rng = np.random.default_rng(3)
+    R = random_rotations(rng, (5,), 3)
+    R[0] = np.eye(3)
+    t = rng.normal(size=(5, 3))
+    t[0] = 0.0
+    origin = mm.FixedPoses.identity([0], 3)
+    assert mm.FixedPoses.identity(np.array([0]), 3) is origin and not origin.R.flags.writeable
+    with pytest.raises(ValueError):
+        origin.t[0, 0] = 1.0
+    for poses in (HostPoses(R, t), mm.Poses(jnp.asarray(R), jnp.asarray(t))):
+        assert mm.express_in_frame(poses, origin) is poses
+    moved = mm.express_in_frame(HostPoses(R, t + 1.0), origin)  # not in the frame: moved, on the host
+    assert isinstance(moved, HostPoses)
+    np.testing.assert_allclose(moved.t, t, atol=1e-14)
+    np.testing.assert_allclose(moved.R, R, atol=1e-14)
+
+
 def test_fixed_poses_validation():
     with pytest.raises(ValueError, match="distinct"):
         mm.FixedPoses([1, 1], np.stack([np.eye(2)] * 2), np.zeros((2, 2)))

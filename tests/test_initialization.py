@@ -261,6 +261,25 @@ def test_initialize_methods(tmp_path):
     np.testing.assert_allclose(np.asarray(q.t), tg, atol=1e-6)
 
 
+def test_initialize_on_the_host_gives_the_same_start():
+    """``host=True`` (the host-side solvers' start) returns NumPy arrays equal to the device
+    start, for a given start (projected) and a method, with fixed poses applied."""
+    from mmpgo_jax._core.gauge import FixedPoses
+    from mmpgo_jax._core.pose_graph import HostPoses
+
+    g, Rg, tg = random_graph(12, 3, 6, seed=5, noise=0.01)
+    fixed = FixedPoses.from_poses([0, 4], Poses(jnp.asarray(Rg), jnp.asarray(tg)))
+    noisy = Poses(jnp.asarray(Rg * 1.1), jnp.asarray(tg))
+    for method in (noisy, "chordal", "odometry"):
+        for fix in (None, fixed):
+            device = initialize(g, method, fixed=fix)
+            host = initialize(g, method, fixed=fix, host=True)
+            assert isinstance(host, HostPoses) and isinstance(host.R, np.ndarray)
+            assert host.R.dtype == np.asarray(device.R).dtype
+            np.testing.assert_array_equal(host.R, np.asarray(device.R))
+            np.testing.assert_array_equal(host.t, np.asarray(device.t))
+
+
 def test_initialize_distributed_chordal():
     g, _, _ = random_graph(36, 2, 30, seed=102)  # the shapes of tests/test_distributed_chordal.py
     p = initialize(g, "distributed-chordal", robots=4, rotation_iterations=400, translation_iterations=1500, tol=None)

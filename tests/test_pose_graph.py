@@ -368,6 +368,35 @@ def test_connected_components_isolated_and_ordering():
     assert [c.tolist() for c in connected_components(3, [], [])] == [[0], [1], [2]]
 
 
+@settings(max_examples=60, deadline=None)
+@given(st.integers(1, 30), st.integers(0, 40), st.booleans(), st.integers(0, 2**31 - 1))
+def test_component_labels_shortcut_for_odometry_chains_matches_the_graph_search(n, m, chain, seed):
+    """A chain of consecutive poses (in either direction) joins every pose: the shortcut's labels,
+    sizes and firsts equal those of the general search (scipy's connected components), and graphs
+    without a full chain take the search."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components as scipy_components
+
+    rng = np.random.default_rng(seed)
+    i, j = rng.integers(0, n, m), rng.integers(0, n, m)
+    if chain:
+        k = np.arange(n - 1)
+        flip = rng.random(n - 1) < 0.5
+        i, j = np.concatenate([i, np.where(flip, k + 1, k)]), np.concatenate([j, np.where(flip, k, k + 1)])
+    labels, sizes, firsts = pg.component_labels(n, i, j)
+    count, reference = scipy_components(coo_matrix((np.ones(i.size), (i, j)), shape=(n, n)), directed=False)
+    connects = pg._odometry_connects(n, i, j)
+    assert connects or not (chain or n == 1)
+    assert count == 1 or not connects
+    assert labels.shape == (n,) and sizes.sum() == n and len(sizes) == count
+    # the same partition of the poses, numbered largest first (ties: smallest pose), firsts the smallest
+    same = labels[:, None] == labels[None, :]
+    np.testing.assert_array_equal(same, reference[:, None] == reference[None, :])
+    np.testing.assert_array_equal(sizes, np.bincount(labels))
+    assert np.all(np.diff(sizes) <= 0)
+    np.testing.assert_array_equal(firsts, [np.flatnonzero(labels == c).min() for c in range(count)])
+
+
 @settings(max_examples=40, deadline=None)
 @given(st.integers(1, 40), st.integers(0, 60), st.integers(0, 2**31 - 1))
 def test_anchor_set_holds_one_pose_per_unheld_component(n, m, seed):

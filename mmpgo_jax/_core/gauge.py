@@ -14,12 +14,13 @@ PGO is invariant to one rigid motion applied to all poses (the gauge). Two thing
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import jax
 import numpy as np
 
-from .pose_graph import PoseGraph, Poses, component_labels
+from .pose_graph import HostPoses, PoseGraph, Poses, component_labels
 
 __all__ = ["FixedPoses", "anchor_poses", "anchor_set", "express_in_frame"]
 
@@ -54,9 +55,11 @@ class FixedPoses:
 
     @staticmethod
     def identity(index, dim: int) -> FixedPoses:
-        """``index`` held at R = I, t = 0."""
+        """``index`` held at R = I, t = 0 (pose 0 alone, the usual gauge: one shared read-only instance)."""
         index = np.atleast_1d(np.asarray(index, dtype=np.int64))
         k = index.shape[0]
+        if k == 1 and index[0] == 0:
+            return _origin(dim)
         return FixedPoses(index, np.broadcast_to(np.eye(dim), (k, dim, dim)).copy(), np.zeros((k, dim)))
 
     @staticmethod
@@ -98,28 +101,44 @@ class FixedPoses:
         return FixedPoses(mapped[sel], self.R[sel], self.t[sel])
 
     def apply(self, poses: Poses) -> Poses:
-        """``poses`` with the fixed poses set to their values (same dtype; set on the host)."""
+        """``poses`` with the fixed poses set to their values (same dtype; set on the host; a
+        :class:`HostPoses` stays on the host)."""
         R = np.array(poses.R)
         t = np.array(poses.t)
         R[self.index] = self.R
         t[self.index] = self.t
-        return Poses(jax.device_put(R), jax.device_put(t))
+        return HostPoses(R, t) if isinstance(poses, HostPoses) else Poses(jax.device_put(R), jax.device_put(t))
+
+
+@functools.cache
+def _origin(dim: int) -> FixedPoses:
+    """Pose 0 at R = I, t = 0, built once per dimension (its checks cost more than a tiny graph's
+    iteration); its arrays are read-only, as it is shared."""
+    origin = FixedPoses(np.zeros(1, dtype=np.int64), np.eye(dim)[None], np.zeros((1, dim)))
+    for array in (origin.index, origin.R, origin.t):
+        array.setflags(write=False)
+    return origin
 
 
 def express_in_frame(poses: Poses, frame: FixedPoses) -> Poses:
     """``poses`` moved rigidly (g -> T g) so that pose ``frame.index[0]`` equals its value in ``frame``.
 
-    T = g_ref_target g_ref^-1; the PGO cost is invariant to it. Computed in float64 on the host.
+    T = g_ref_target g_ref^-1; the PGO cost is invariant to it. Computed in float64 on the host
+    (a :class:`HostPoses` is returned as one, else the result is put on the device).
     """
     R = np.asarray(poses.R, dtype=np.float64)
     t = np.asarray(poses.t, dtype=np.float64)
     k = int(frame.index[0])
+    if np.array_equal(R[k], frame.R[0]) and np.array_equal(t[k], frame.t[0]):
+        return poses  # already in the frame (e.g. pose 0 held at the identity): T is exactly the identity
     # T = (Ra, ta) with Ra R_k = R_target, Ra t_k + ta = t_target
     Ra = frame.R[0] @ R[k].T
     ta = frame.t[0] - Ra @ t[k]
     R_new = np.einsum("ab,nbc->nac", Ra, R)
     t_new = t @ Ra.T + ta
     dt = np.dtype(poses.R.dtype)
+    if isinstance(poses, HostPoses):
+        return HostPoses(R_new.astype(dt, copy=False), t_new.astype(dt, copy=False))
     return Poses(jax.device_put(R_new.astype(dt)), jax.device_put(t_new.astype(dt)))
 
 

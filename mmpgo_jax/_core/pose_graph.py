@@ -125,16 +125,18 @@ def edge_residuals(graph: PoseGraph, poses: Poses):
     return rot, trans
 
 
-def edge_costs(graph: PoseGraph, poses: Poses):
-    """Per-edge cost kappa ||rot||^2 + tau ||trans||^2 (the f = 2F convention)."""
-    rot, trans = edge_residuals(graph, poses)
+def edge_costs(graph: PoseGraph, poses: Poses, residuals=None):
+    """Per-edge cost kappa ||rot||^2 + tau ||trans||^2 (the f = 2F convention); ``residuals``:
+    :func:`edge_residuals` at ``poses`` when the caller has them already."""
+    rot, trans = edge_residuals(graph, poses) if residuals is None else residuals
     xp = _xp(rot)
     return graph.kappa * xp.sum(rot**2, axis=(-1, -2)) + graph.tau * xp.sum(trans**2, axis=-1)
 
 
-def cost(graph: PoseGraph, poses: Poses):
-    """f = 2F: the objective as reported in the paper's tables and by SE-Sync."""
-    costs = edge_costs(graph, poses)
+def cost(graph: PoseGraph, poses: Poses, residuals=None):
+    """f = 2F: the objective as reported in the paper's tables and by SE-Sync (``residuals``: as
+    for :func:`edge_costs`)."""
+    costs = edge_costs(graph, poses, residuals)
     return _xp(costs).sum(costs)
 
 
@@ -143,9 +145,10 @@ def objective(graph: PoseGraph, poses: Poses):
     return 0.5 * cost(graph, poses)
 
 
-def euclidean_gradient(graph: PoseGraph, poses: Poses) -> Poses:
-    """Euclidean gradient of F with respect to (R, t), as a ``Poses`` of the same shapes."""
-    rot, trans = edge_residuals(graph, poses)
+def euclidean_gradient(graph: PoseGraph, poses: Poses, residuals=None) -> Poses:
+    """Euclidean gradient of F with respect to (R, t), as poses of the same shapes and type (a
+    :class:`HostPoses` stays one); ``residuals``: as for :func:`edge_costs`."""
+    rot, trans = edge_residuals(graph, poses) if residuals is None else residuals
     xp = _xp(rot)
     wr = graph.kappa[:, None, None] * rot
     wt = graph.tau[:, None] * trans
@@ -155,7 +158,8 @@ def euclidean_gradient(graph: PoseGraph, poses: Poses) -> Poses:
     tails = _segment_sum(xp, xp.concatenate([gRi.reshape(-1, d * d), wt], 1), graph.i, n)
     heads = _segment_sum(xp, xp.concatenate([wr.reshape(-1, d * d), wt], 1), graph.j, n)
     g = tails - heads
-    return Poses(g[:, : d * d].reshape(n, d, d), g[:, d * d :])
+    # a host tuple stays one: building an equinox module costs more than this whole function on tiny graphs
+    return (HostPoses if isinstance(poses, HostPoses) else Poses)(g[:, : d * d].reshape(n, d, d), g[:, d * d :])
 
 
 def riemannian_gradient_from_euclidean(poses: Poses, egrad: Poses) -> Poses:
@@ -213,8 +217,10 @@ class HostPoses(NamedTuple):
 
 def host_view(graph: PoseGraph) -> HostGraph:
     """:func:`host_graph`'s arrays as a :class:`HostGraph`."""
-    g = host_graph(graph)
-    return HostGraph(g.i, g.j, g.R, g.t, g.kappa, g.tau, g.num_poses)
+    g = graph
+    return HostGraph(np.asarray(g.i, np.int64), np.asarray(g.j, np.int64), np.asarray(g.R, np.float64),
+                     np.asarray(g.t, np.float64), np.asarray(g.kappa, np.float64), np.asarray(g.tau, np.float64),
+                     g.num_poses)
 
 
 def poses_to_matrix(poses: Poses) -> np.ndarray:
@@ -330,6 +336,8 @@ def component_labels(num_poses: int, i, j) -> tuple[np.ndarray, np.ndarray, np.n
 
     i = np.asarray(i)
     j = np.asarray(j)
+    if _odometry_connects(num_poses, i, j):  # the usual pose graph: one component, no graph search
+        return np.zeros(num_poses, dtype=np.int64), np.array([num_poses]), np.zeros(1, dtype=np.int64)
     A = sp.coo_matrix((np.ones(len(i)), (i, j)), shape=(num_poses, num_poses))
     k, labels = _cc(A, directed=False)
     sizes = np.bincount(labels, minlength=k)
@@ -339,6 +347,17 @@ def component_labels(num_poses: int, i, j) -> tuple[np.ndarray, np.ndarray, np.n
     renumber = np.empty(k, dtype=np.int64)
     renumber[order] = np.arange(k)
     return renumber[labels], sizes[order], firsts[order]
+
+
+def _odometry_connects(num_poses: int, i: np.ndarray, j: np.ndarray) -> bool:
+    """Whether edges between consecutive poses (k, k + 1) join all poses into one chain: then the
+    graph is connected whatever its other edges (a test of a few microseconds, where the general
+    search costs ~0.1 ms of fixed overhead, a noticeable share of a tiny graph's centralized solve)."""
+    if num_poses <= 1:
+        return True
+    step = i - j
+    low = np.minimum(i, j)[(step == 1) | (step == -1)]
+    return low.size >= num_poses - 1 and bool(np.bincount(low, minlength=num_poses).astype(bool)[:-1].all())
 
 
 def connected_components(num_poses: int, i, j) -> list[np.ndarray]:

@@ -32,7 +32,7 @@ import scipy.sparse as sp
 
 from .._core.gauge import FixedPoses, anchor_poses, anchor_set
 from .._core.geometry import project_to_so
-from .._core.pose_graph import PoseGraph, Poses, assemble_edge_blocks, edge_blocks
+from .._core.pose_graph import HostPoses, PoseGraph, Poses, assemble_edge_blocks, edge_blocks
 from .._core.sparse import block_order, pose_order, solve_spd
 
 __all__ = [
@@ -359,8 +359,9 @@ def odometry_initialization(graph: PoseGraph, fixed: FixedPoses | None = None) -
 # --------------------------------------------------------------------------------------------
 
 
-def poses_from_arrays(graph: PoseGraph, R, t, *, what: str = "initial poses") -> Poses:
-    """Validate (n, d, d) rotations / (n, d) translations for ``graph``, project to SO(d)."""
+def poses_from_arrays(graph: PoseGraph, R, t, *, what: str = "initial poses", host: bool = False) -> Poses:
+    """Validate (n, d, d) rotations / (n, d) translations for ``graph``, project to SO(d)
+    (``host``: returned as NumPy arrays in a :class:`HostPoses`, for host-side solvers)."""
     n, d = graph.num_poses, graph.dim
     R = np.asarray(R, dtype=np.float64)
     t = np.asarray(t, dtype=np.float64)
@@ -368,9 +369,13 @@ def poses_from_arrays(graph: PoseGraph, R, t, *, what: str = "initial poses") ->
         raise ValueError(f"{what}: rotations must have shape ({n}, {d}, {d}), got {R.shape}")
     if t.shape != (n, d):
         raise ValueError(f"{what}: translations must have shape ({n}, {d}), got {t.shape}")
-    if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
+    if not (np.isfinite(R).all() and np.isfinite(t).all()):
         raise ValueError(f"{what}: contain non-finite values")
-    return _poses(graph, _project_np(R), t)
+    R = _project_np(R)
+    if host:
+        dt = _float_dtype(graph)
+        return HostPoses(R.astype(dt, copy=False), t.astype(dt, copy=False))
+    return _poses(graph, R, t)
 
 
 def _id_list(ids: np.ndarray, limit: int = 5) -> str:

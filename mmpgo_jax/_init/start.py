@@ -10,8 +10,10 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+import numpy as np
+
 from .._core.gauge import FixedPoses
-from .._core.pose_graph import PoseGraph, Poses
+from .._core.pose_graph import HostPoses, PoseGraph, Poses
 from .chordal import chordal_initialization, load_poses, odometry_initialization, poses_from_arrays
 
 __all__ = ["INITIALIZATION_METHODS", "initialize"]
@@ -26,6 +28,7 @@ def initialize(
     initial: Poses | None = None,
     robots=None,
     fixed: FixedPoses | None = None,
+    host: bool = False,
     **options,
 ) -> Poses:
     """Initial poses for ``graph``; the ``fixed`` poses (if any) are at their values in every case.
@@ -48,17 +51,21 @@ def initialize(
       ``vertex_ids`` otherwise).
 
     The chordal, odometry and distributed-chordal starts hold the fixed poses during their solves;
-    the others get them set afterwards.
+    the others get them set afterwards. ``host=True`` returns the poses as NumPy arrays (a
+    :class:`~mmpgo_jax._core.pose_graph.HostPoses`), for host-side solvers: a given start is then
+    checked without a round trip through the device.
     """
     if fixed is not None:
         fixed.check(graph.num_poses, graph.dim)
-    poses = _initial_poses(graph, method, initial, robots, fixed, options)
+    poses = _initial_poses(graph, method, initial, robots, fixed, options, host)
+    if host and not isinstance(poses, HostPoses):
+        poses = HostPoses(np.asarray(poses.R), np.asarray(poses.t))
     return poses if fixed is None else fixed.apply(poses)
 
 
-def _initial_poses(graph, method, initial, robots, fixed, options) -> Poses:
+def _initial_poses(graph, method, initial, robots, fixed, options, host=False) -> Poses:
     if isinstance(method, Poses):
-        return poses_from_arrays(graph, method.R, method.t)
+        return poses_from_arrays(graph, method.R, method.t, host=host)
     if isinstance(method, str) and method in INITIALIZATION_METHODS:
         if options and method not in ("distributed-chordal", "gnc-chordal"):
             raise ValueError(f"options {sorted(options)} only apply to 'distributed-chordal' and 'gnc-chordal'")
@@ -76,7 +83,7 @@ def _initial_poses(graph, method, initial, robots, fixed, options) -> Poses:
                 raise ValueError(
                     "method 'vertices' needs the file's VERTEX estimates (initial=...), but none were given"
                 )
-            return poses_from_arrays(graph, initial.R, initial.t, what="VERTEX estimates")
+            return poses_from_arrays(graph, initial.R, initial.t, what="VERTEX estimates", host=host)
         from .distributed_chordal import distributed_chordal_initialization
 
         if robots is None:

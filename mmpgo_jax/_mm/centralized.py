@@ -39,9 +39,14 @@ package's isotropic objective F (Eq. (3), SE-Sync's weights):
   into a dense matrix), without chord steps: there the sparse machinery's fixed costs and the
   extra iterations of chord steps exceed the work of a factorization. The gradient of a point is
   computed once, for the stopping rule, and reused by the step that follows.
-* The iterations run with one OpenBLAS thread (``threadpoolctl``): their NumPy and SuperLU operations
-  are small or memory-bound, and OpenBLAS's threads only added synchronization (measured under
-  cProfile on a shared 2-core machine: sphere2500 2.2 s -> 1.2 s).
+* Cost, gradient and Hessian come from one layout of the weighted residuals (d x (d + 1) per edge,
+  :class:`_Problem`), a few whole-array operations per quantity: on tiny graphs the solve's time
+  is the count of NumPy calls (tinyGrid3D, 9 poses: about 1 ms in all, 5 iterations).
+* The sparse problems run with one OpenBLAS thread (``threadpoolctl``), their start included: their
+  NumPy and SuperLU operations are small or memory-bound, OpenBLAS's threads only added
+  synchronization (measured under cProfile on a shared 2-core machine: sphere2500 2.2 s -> 1.2 s),
+  and threads woken by a large reduction kept spinning while PARDISO's threads factored (intel 3x
+  slower factorizations).
 
 Everything runs in float64 NumPy on the host: no compilation. ``||grad F||`` (the stopping rule)
 is the Riemannian gradient over the poses that are not fixed, as in :func:`~mmpgo_jax.solve`.
@@ -49,6 +54,7 @@ is the Riemannian gradient over the poses that are not fixed, as in :func:`~mmpg
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import time
 from collections.abc import Callable
@@ -61,7 +67,7 @@ from scipy.linalg import lapack
 
 from .._core.blas import one_blas_thread
 from .._core.gauge import FixedPoses, anchor_set
-from .._core.pose_graph import HostPoses, PoseGraph, cost, euclidean_gradient, host_view
+from .._core.pose_graph import PoseGraph, host_view
 from .._core.sparse import PardisoCholesky, factor_symmetric, pardiso_available, pose_order
 from .driver import RESULTS, History, Monitor, Termination, drive
 
@@ -145,27 +151,72 @@ def _exp(omega: np.ndarray, d: int) -> np.ndarray:
     if d == 2:
         c, s = np.cos(omega[:, 0]), np.sin(omega[:, 0])
         return np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
-    theta = np.linalg.norm(omega, axis=1)
-    small = theta < 1e-8
-    safe = np.where(small, 1.0, theta)
-    a = np.where(small, 1.0 - theta**2 / 6.0, np.sin(theta) / safe)
-    b = np.where(small, 0.5 - theta**2 / 24.0, (1.0 - np.cos(theta)) / safe**2)
-    W = (omega @ _generators(3).reshape(3, 9)).reshape(-1, 3, 3)
-    return np.eye(3) + a[:, None, None] * W + b[:, None, None] * (W @ W)
+    from scipy.spatial.transform import Rotation  # compiled Rodrigues: half the time of NumPy's dozen calls
+
+    return Rotation.from_rotvec(omega).as_matrix()
+
+
+@functools.cache
+def _local_constants(d: int):
+    """The constants of dimension d that the local coordinates need (read-only, built once): the
+    generators E_k; [E_k, 0] (pose j's rotation Jacobians); the map of A_i (flattened) to <A_i, E_k>
+    then <A_i, sym(E_k E_l)> (the rotation gradient, the curvature); the squared-norm weights of the
+    local gradient (1/2 per rotation coordinate, see :meth:`_Problem.gradient`); and the diagonal
+    of the translation rows in the residuals' d x (d + 1) layout, as (row, entry) index arrays."""
+    E = _generators(d)
+    p = E.shape[0]
+    Ej = np.concatenate([E, np.zeros((p, d, 1))], 2)
+    EE = E[:, None] @ E[None]  # (p, p, d, d): E_k E_l
+    EE = 0.5 * (EE + np.swapaxes(EE, 0, 1))
+    A_map = np.concatenate([E.reshape(p, d * d), EE.reshape(p * p, d * d)]).T  # (d^2, p + p^2)
+    weights = np.concatenate([np.full(p, 0.5), np.ones(d)])
+    last_column = (np.arange(d), np.arange(d) * (d + 1) + d)
+    for array in (Ej, A_map, weights, *last_column):
+        array.setflags(write=False)
+    return E, Ej, A_map, weights, last_column
+
+
+class _Point(NamedTuple):
+    """An iterate: poses (R, t), the rotations of each edge's ends (R_i, R_j gathered), the
+    weighted residuals r (m, d, d + 1) (:meth:`_Problem.evaluate`) and f = 2F = sum of r²."""
+
+    R: np.ndarray
+    t: np.ndarray
+    Ri: np.ndarray
+    Rj: np.ndarray
+    r: np.ndarray
+    f: float
 
 
 class _Gradient(NamedTuple):
-    """F's gradient at a point: ``g`` in local coordinates (N,), A_i = R_iᵀ ∂F/∂R_i (n, d, d),
-    ``norm`` = ||grad F|| over the poses that are not fixed."""
+    """F's gradient at a point: ``g`` in local coordinates (N,), the exponential's curvature
+    blocks C_i (n, p, p) (:meth:`_Problem.hessian_parts`), ``norm`` = ||grad F|| over the poses
+    that are not fixed."""
 
     g: np.ndarray
-    A: np.ndarray
+    curvature: np.ndarray
     norm: float
+
+
+class _Linearization(NamedTuple):
+    """The residuals' transposed Jacobians J (m, 2b, d (d + 1)) at a point, and F's gradient there."""
+
+    J: np.ndarray
+    gradient: _Gradient
 
 
 class _Problem:
     """The host-side data of one centralized solve: the graph in float64, the dof layout (in
-    nested-dissection order for the sparse factorizations), the anchors."""
+    nested-dissection order for the sparse factorizations), the anchors, and the constant parts of
+    the residuals and their Jacobians.
+
+    The residuals of an edge, weighted, are laid out as a d x (d + 1) array r_e = R_i K_e +
+    [-sqrt(kappa) R_j, sqrt(tau) (t_i - t_j)] with K_e = [sqrt(kappa) R~, sqrt(tau) t~]: the
+    rotation residual sqrt(kappa) (R_i R~ - R_j) in the first d columns, the translation residual
+    sqrt(tau) (R_i t~ + t_i - t_j) in the last, so that f = 2F = sum of r². Along omega_k of pose i
+    they change by R_i E_k K_e, along omega_k of pose j by R_j [-sqrt(kappa) E_k, 0], along the
+    translations by ±sqrt(tau) in the last column. Cost, gradient and Hessian are all computed
+    from this layout, a few whole-array operations each (tiny graphs pay per operation)."""
 
     def __init__(self, graph: PoseGraph, fixed: FixedPoses | None, dense: bool | None = None):
         self.graph = host_view(graph)
@@ -175,97 +226,138 @@ class _Problem:
         self.p = d * (d - 1) // 2
         self.b = self.p + d  # unknowns per pose: omega, then delta
         self.dense = self.b * n <= DENSE_NEWTON_MAX_SIZE if dense is None else bool(dense)
-        self.E = _generators(d)
-        self.EE = self.E[:, None] @ self.E[None]  # (p, p, d, d): E_k E_l
         # each pose's place in the unknowns: nested-dissection order for the sparse factorizations
         self.rank = np.arange(n) if self.dense else np.argsort(pose_order(n, g.i, g.j))
         self.index = self.b * self.rank[:, None] + np.arange(self.b)  # (n, b) rows of each pose
         held = anchor_set(graph, fixed).index
         self.held = np.zeros(n, dtype=bool)
         self.held[held] = True
-        self.free_poses = np.ones(n, dtype=bool) if fixed is None else ~fixed.mask(n)
-        self.sqrt_kappa = np.sqrt(g.kappa)
-        self.sqrt_tau = np.sqrt(g.tau)
+        self.free_poses = None if fixed is None else ~fixed.mask(n)  # None: all
+        self._residual_constants()
         self._pattern()
+
+    def _residual_constants(self):
+        """The constant parts of the residuals and their Jacobians (see the class docstring)."""
+        g, d, p, b = self.graph, self.d, self.p, self.b
+        m, n = g.i.shape[0], self.n
+        sk, st = np.sqrt(g.kappa), np.sqrt(g.tau)
+        E, self._Ej, self._A_map, self._norm_weights, last_column = _local_constants(d)
+        self._K = np.concatenate([sk[:, None, None] * g.R, (st[:, None] * g.t)[:, :, None]], 2)  # (m, d, d+1)
+        self._KT = np.ascontiguousarray(np.swapaxes(self._K, 1, 2))
+        self._Ki = E @ self._K[:, None]  # (m, p, d, d+1): E_k K_e
+        self._minus_sk = -sk[:, None, None]
+        self._st = st[:, None]
+        # the Jacobians' transposes (m, 2b, q), rows: pose i's unknowns, then pose j's
+        self._J_template = np.zeros((m, 2 * b, d * (d + 1)))
+        rows, entries = last_column
+        self._J_template[:, p + rows, entries] = st[:, None]
+        self._J_template[:, b + p + rows, entries] = -st[:, None]
+        # where each edge's terms go: its ends' local unknowns (gradient), its ends' d x d blocks (A)
+        ends = np.concatenate([g.i, g.j])
+        self._end_slots = (b * ends.reshape(2, m).T[:, :, None] + np.arange(b)).reshape(-1)
+        self._A_slots = (d * d * ends[:, None] + np.arange(d * d)).reshape(-1)
+        self._local_size, self._A_size = n * b, n * d * d
+
+    def evaluate(self, R, t) -> _Point:
+        """The point (R, t) with its weighted residuals and f = 2F."""
+        g, d = self.graph, self.d
+        Ri, Rj = R[g.i], R[g.j]
+        r = Ri @ self._K
+        r[..., :d] += self._minus_sk * Rj
+        r[..., d] += self._st * (t[g.i] - t[g.j])
+        return _Point(R, t, Ri, Rj, r, float(np.vdot(r, r)))
 
     def cost(self, R, t) -> float:
         """f = 2F at (R, t)."""
-        return float(cost(self.graph, HostPoses(R, t)))
+        return self.evaluate(R, t).f
+
+    def linearization(self, x: _Point) -> _Linearization:
+        """The Jacobians and F's gradient at the point x: in local coordinates g = Jᵀ r (anchors'
+        entries zero), the curvature blocks C_i,kl = <A_i, sym(E_k E_l)> with A_i = R_iᵀ ∂F/∂R_i
+        (the second derivative of the exponential, paired with the gradient), and ||grad F|| over
+        the poses that are not fixed: the Riemannian gradient's rotation part R_i skew(A_i) has
+        squared norm ||skew(A_i)||² = ½ Σ_k <A_i, E_k>² = ½ Σ_k g_ik² (the E_k are orthogonal,
+        of squared norm 2); its translation parts are ∂F/∂t_i = g_i's last d entries."""
+        g, n, d, p, b = self.graph, self.n, self.d, self.p, self.b
+        m = g.i.shape[0]
+        J = self._J_template.copy()
+        J[:, :p] = (x.Ri[:, None] @ self._Ki).reshape(m, p, -1)
+        J[:, b : b + p] = (self._minus_sk[..., None] * (x.Rj[:, None] @ self._Ej)).reshape(m, p, -1)
+        local = np.bincount(self._end_slots, (J @ x.r.reshape(m, -1, 1)).reshape(-1),
+                            minlength=self._local_size).reshape(n, b)
+        squares = (local * local) @ self._norm_weights
+        norm = float(np.sqrt(squares.sum() if self.free_poses is None else squares[self.free_poses].sum()))
+        local[self.held] = 0.0
+        if self.dense:
+            grad = local.reshape(-1)
+        else:
+            grad = np.empty(self.b * n)
+            grad[self.index] = local
+        # A_i: R_iᵀ r_e K_eᵀ from the edges it starts, -sqrt(kappa) R_jᵀ r_e[:, :d] from those it ends
+        tails = np.swapaxes(x.Ri, 1, 2) @ (x.r @ self._KT)
+        heads = self._minus_sk * (np.swapaxes(x.Rj, 1, 2) @ x.r[..., :d])
+        A = np.bincount(self._A_slots, np.concatenate([tails, heads]).reshape(-1), minlength=self._A_size)
+        curvature = A.reshape(n, d * d) @ self._A_map[:, p:]
+        return _Linearization(J, _Gradient(grad, curvature, norm))
 
     def gradient(self, R, t) -> _Gradient:
-        """F's gradient at (R, t): in local coordinates (anchors' entries zero), A_i = R_iᵀ ∂F/∂R_i
-        (for the curvature) and ||grad F|| over the poses that are not fixed (Riemannian: the
-        rotation part of pose i is R_i skew(A_i), the translation part ∂F/∂t_i)."""
-        n, d = self.n, self.d
-        G = euclidean_gradient(self.graph, HostPoses(R, t))
-        A = np.swapaxes(R, 1, 2) @ G.R
-        skew = A - np.swapaxes(A, 1, 2)  # 2 skew(A_i)
-        keep = self.free_poses
-        norm = float(np.sqrt(0.25 * np.sum(skew[keep] ** 2) + np.sum(G.t[keep] ** 2)))
-        local = np.concatenate([A.reshape(n, d * d) @ self.E.reshape(self.p, d * d).T, G.t], 1)  # <A_i, E_k>
-        local[self.held] = 0.0
-        grad = np.empty(self.b * n)
-        grad[self.index] = local
-        return _Gradient(grad, A, norm)
-
-    def jacobians(self, R):
-        """The residuals' Jacobians J_i, J_j (m, q, b) in local coordinates, q = d^2 + d (the
-        residuals, weighted, are (sqrt(kappa) (R_i R~ - R_j), sqrt(tau) (R_i t~ + t_i - t_j)))."""
-        g, d, p = self.graph, self.d, self.p
-        m = g.i.shape[0]
-        Ri, Rj = R[g.i], R[g.j]
-        sk, st = self.sqrt_kappa[:, None], self.sqrt_tau[:, None]
-        # matmul, not einsum: NumPy's einsum is several times slower on these small operands
-        RiE = Ri[:, None] @ self.E  # (m, p, d, d): R_i E_k
-        Ji = np.zeros((m, d * d + d, self.b))
-        Jj = np.zeros_like(Ji)
-        Ji[:, : d * d, :p] = sk[:, :, None] * (RiE @ g.R[:, None]).reshape(m, p, d * d).transpose(0, 2, 1)
-        Ji[:, d * d :, :p] = st[:, :, None] * (RiE @ g.t[:, None, :, None])[..., 0].transpose(0, 2, 1)
-        Jj[:, : d * d, :p] = -sk[:, :, None] * (Rj[:, None] @ self.E).reshape(m, p, d * d).transpose(0, 2, 1)
-        eye = np.eye(d)
-        Ji[:, d * d :, p:] = st[:, :, None] * eye
-        Jj[:, d * d :, p:] = -st[:, :, None] * eye
-        return Ji, Jj
+        """F's gradient at (R, t) (:meth:`linearization`)."""
+        return self.linearization(self.evaluate(R, t)).gradient
 
     def _pattern(self):
-        """Where every entry :meth:`hessian_parts` assembles goes in the matrix's values (the
-        pose-pair blocks of each edge, then the anchors' unit diagonal; the curvature blocks), so
-        that one bincount per part sums the duplicates: the CSC data of the Hessian's constant
-        sparsity, or the row-major entries of a dense matrix."""
+        """Where every entry :meth:`hessian_parts` assembles goes in the matrix's values: for each
+        edge, its (2b, 2b) block JᵀJ (pose-pair blocks (i, i), (i, j), (j, i), (j, j)); for each
+        pose, its curvature block; plus the anchors' unit diagonal. One bincount per part then sums
+        the duplicates into the CSC data of the Hessian's constant sparsity, or the row-major
+        entries of a dense matrix. Entries of held poses go to one extra slot (dropped)."""
+        if self.dense:
+            self._dense_pattern()
+            return
         g, n, b, p = self.graph, self.n, self.b, self.p
+        m = g.i.shape[0]
         rank = self.rank
         held = np.zeros(n, dtype=bool)  # per pose rank
         held[rank[self.held]] = True
         si, sj, diag_poses = rank[g.i], rank[g.j], rank
-        # block instances (row pose, column pose), in the order of hessian_parts' values:
-        # (i, i), (j, j), (i, j), (j, i) for every edge, then (k, k) for every pose (curvature)
+        # block instances (row pose, column pose): (i, i), (j, j), (i, j), (j, i) for every edge,
+        # then (k, k) for every pose (curvature)
         brow = np.concatenate([si, sj, si, sj, diag_poses])
         bcol = np.concatenate([si, sj, sj, si, diag_poses])
         keep = ~(held[brow] | held[bcol])
         local = np.arange(b)
         held_cols = (b * np.flatnonzero(held)[:, None] + local).reshape(-1)
         free = np.flatnonzero(~held)
-        # entry [instance, row a, column c] of a block sits at start[instance, c] + a * row_stride
-        if self.dense:
-            N = b * n
-            start = (b * N * brow[keep])[:, None] + b * bcol[keep][:, None] + local
-            row_stride, self._size = N, N * N
-            anchor_slots = held_cols * (N + 1)
-            self.free_diagonal = ((b * free[:, None] + local) * (N + 1)).reshape(-1)
-        else:
-            start, anchor_slots = self._sparse_pattern(brow[keep], bcol[keep], held, held_cols, free)
-            row_stride, self._size = 1, self._indices.size
-        num_pairs = 4 * si.size
-        kp, kc = keep[:num_pairs], keep[num_pairs:]
-        kept_pairs = int(kp.sum())  # start holds the kept pair blocks, then the kept curvature blocks
-        self._keep_pairs = np.repeat(kp, b * b)
-        self._slot_pairs = np.concatenate([(start[:kept_pairs][:, None, :] + row_stride * local[:, None]).reshape(-1),
-                                           anchor_slots])
-        self._keep_curvature = np.repeat(kc, p * p)
-        self._slot_curvature = (start[kept_pairs:][:, None, :p] + row_stride * local[:p, None]).reshape(-1)
-        self._anchor_ones = np.ones(held_cols.size)
+        # entry [instance, row a, column c] of a block sits at start[instance, c] + a (CSC)
+        start, self._anchor_slots = self._sparse_pattern(brow[keep], bcol[keep], held, held_cols, free)
+        self._size = self._indices.size
+        slots = np.full((keep.size, b, b), self._size)  # the extra slot for what is dropped
+        slots[keep] = start[:, None, :] + local[:, None]
+        pairs = slots[: 4 * m].reshape(4, m, b, b)
+        edge_slots = np.empty((m, 2 * b, 2 * b), dtype=np.int64)  # [edge, row, column] of JᵀJ
+        edge_slots[:, :b, :b], edge_slots[:, b:, b:] = pairs[0], pairs[1]
+        edge_slots[:, :b, b:], edge_slots[:, b:, :b] = pairs[2], pairs[3]
+        self._slot_pairs = edge_slots.reshape(-1)
+        self._slot_curvature = slots[4 * m :, :p, :p].reshape(-1)
         self.held_rows = np.zeros(b * n, dtype=bool)
         self.held_rows[held_cols] = True
+
+    def _dense_pattern(self):
+        """:meth:`_pattern` for a dense matrix in pose order: entry (row, column) at N row + column."""
+        g, n, b, p = self.graph, self.n, self.b, self.p
+        N = b * n
+        self._size = N * N
+        self.held_rows = np.repeat(self.held, b)
+        unknowns = (b * np.stack([g.i, g.j], 1)[:, :, None] + np.arange(b)).reshape(-1, 2 * b)  # of each edge
+        slots = N * unknowns[:, :, None] + unknowns[:, None, :]
+        dropped = self.held_rows[unknowns]
+        slots[dropped[:, :, None] | dropped[:, None, :]] = self._size
+        self._slot_pairs = slots.reshape(-1)
+        rotations = b * np.arange(n)[:, None] + np.arange(p)  # each pose's rotation unknowns
+        curvature = N * rotations[:, :, None] + rotations[:, None, :]
+        curvature[self.held] = self._size
+        self._slot_curvature = curvature.reshape(-1)
+        self._anchor_slots = np.flatnonzero(self.held_rows) * (N + 1)
+        self.free_diagonal = np.flatnonzero(~self.held_rows) * (N + 1)
 
     def _sparse_pattern(self, brow, bcol, held, held_cols, free):
         """The Hessian's sparsity (constant), built per pose block (no sort of the entries): CSC
@@ -305,31 +397,24 @@ class _Problem:
     def linearize(self, R, t):
         """Gradient g (N,) and the Hessian's values (:meth:`matrix`) of the pulled-back F at
         (R, t), N = b n; the anchors' rows and columns are those of the identity, g = 0 there."""
-        gradient = self.gradient(R, t)
-        gauss_newton, curvature = self.hessian_parts(R, gradient.A)
-        return gradient.g, gauss_newton + curvature
+        lin = self.linearization(self.evaluate(R, t))
+        gauss_newton, curvature = self.hessian_parts(lin)
+        return lin.gradient.g, gauss_newton + curvature
 
-    def hessian_parts(self, R, A):
-        """The Hessian's two parts at rotations R (values, :meth:`matrix`), given A_i = R_iᵀ ∂F/∂R_i
-        (:meth:`gradient`): the Gauss–Newton matrix JᵀJ (with the anchors' unit diagonal; positive
-        semidefinite) and the exponential's curvature C (block diagonal, zero at the anchors),
-        C_kl = sym <A_i, E_k E_l>; the Hessian is their sum."""
-        n, p = self.n, self.p
-        Ji, Jj = self.jacobians(R)
-        JiT, JjT = np.swapaxes(Ji, 1, 2), np.swapaxes(Jj, 1, 2)
-        Hij = JiT @ Jj
-        C = (A.reshape(n, -1) @ self.EE.reshape(p * p, -1).T).reshape(n, p, p)
-        C = 0.5 * (C + np.swapaxes(C, 1, 2))
-        pairs = np.concatenate([(JiT @ Ji).reshape(-1), (JjT @ Jj).reshape(-1), Hij.reshape(-1),
-                                np.swapaxes(Hij, 1, 2).reshape(-1)])
-        gauss_newton = np.bincount(self._slot_pairs, np.concatenate([pairs[self._keep_pairs], self._anchor_ones]),
-                                   minlength=self._size)
-        curvature = np.bincount(self._slot_curvature, C.reshape(-1)[self._keep_curvature], minlength=self._size)
+    def hessian_parts(self, lin: _Linearization):
+        """The Hessian's two parts at a point (values, :meth:`matrix`), from its linearization: the
+        Gauss–Newton matrix JᵀJ (with the anchors' unit diagonal; positive semidefinite) and the
+        exponential's curvature C (block diagonal, zero at the anchors); the Hessian is their sum."""
+        size = self._size + 1  # the last slot collects what the anchors drop
+        J = lin.J
+        gauss_newton = np.bincount(self._slot_pairs, (J @ np.swapaxes(J, 1, 2)).reshape(-1), minlength=size)[:-1]
+        gauss_newton[self._anchor_slots] = 1.0
+        curvature = np.bincount(self._slot_curvature, lin.gradient.curvature.reshape(-1), minlength=size)[:-1]
         return gauss_newton, curvature
 
     def retract(self, R, t, step: np.ndarray):
         """(R_i Exp(omega_i), t_i + delta_i) for the step (in nested-dissection order)."""
-        s = step[self.index]  # (n, b)
+        s = step.reshape(self.n, self.b) if self.dense else step[self.index]  # (n, b)
         return R @ _exp(s[:, : self.p], self.d), t + s[:, self.p :]
 
 
@@ -355,9 +440,8 @@ class _LM:
 
     def __init__(self, problem: _Problem, R, t, config: NewtonConfig):
         self.pb = problem
-        self.R, self.t = R, t
-        self.f = problem.cost(R, t)  # 2F
-        self._gradient = None  # at (R, t), once computed
+        self.point = problem.evaluate(R, t)
+        self._linearization = None  # at the point, once computed
         self.lam = config.initial_damping
         self.nu = 2.0
         self.config = config.resolved(problem.d, problem.dense)
@@ -373,12 +457,16 @@ class _LM:
     def gradient(self) -> _Gradient:
         """F's gradient at the current point (computed once per point: the iteration that follows
         reuses the one the stopping rule needed)."""
-        if self._gradient is None:
-            self._gradient = self.pb.gradient(self.R, self.t)
-        return self._gradient
+        return self.linearization().gradient
 
-    def _accept(self, R, t, f) -> None:
-        self.R, self.t, self.f, self._gradient = R, t, f, None
+    def linearization(self) -> _Linearization:
+        """The linearization at the current point (computed once per point)."""
+        if self._linearization is None:
+            self._linearization = self.pb.linearization(self.point)
+        return self._linearization
+
+    def _accept(self, point: _Point) -> None:
+        self.point, self._linearization = point, None
 
     def _factor(self, data: np.ndarray):
         """A factorization of the matrix with values ``data`` (an object with ``solve``), or None
@@ -396,51 +484,58 @@ class _LM:
             self.cholesky.close()
 
     def _gain(self, g, s, H):
-        """The retraction of the step s, its 2F, and the gain ratio: F's decrease over the decrease
-        predicted by the quadratic model g, H."""
-        predicted = -(np.sum(g * s) + 0.5 * np.sum(s * (H @ s)))
-        R, t = self.pb.retract(self.R, self.t, s)
-        f = self.pb.cost(R, t)
-        actual = 0.5 * (self.f - f)
-        tiny = 1e-13 * max(abs(self.f), 1e-300)  # below the rounding of F: trust the model
+        """The retraction of the step s (a :class:`_Point`) and the gain ratio: F's decrease over
+        the decrease predicted by the quadratic model g, H."""
+        predicted = -(g @ s + 0.5 * (s @ (H @ s)))
+        x = self.point
+        trial = self.pb.evaluate(*self.pb.retract(x.R, x.t, s))
+        actual = 0.5 * (x.f - trial.f)
+        tiny = 1e-13 * max(abs(x.f), 1e-300)  # below the rounding of F: trust the model
         rho = 1.0 if predicted <= tiny and actual >= -tiny else actual / predicted if predicted > 0 else -1.0
-        return R, t, f, rho
+        return trial, rho
 
     def step(self) -> None:
         pb, cfg = self.pb, self.config
-        gradient = self.gradient()
+        lin = self.linearization()
+        gradient = lin.gradient
         g = gradient.g
-        gauss_newton, curvature = pb.hessian_parts(self.R, gradient.A)
+        gauss_newton, curvature = pb.hessian_parts(lin)
         newton = self.iteration >= cfg.gauss_newton_steps
         self.iteration += 1
         data = gauss_newton + curvature if newton else gauss_newton
         H = pb.matrix(data)
-        g_norm = float(np.sqrt(np.sum(g * g)))
+        g_norm = float(np.sqrt(g @ g))
         reuse = self.reuse is not None and newton and g_norm <= cfg.reuse_contraction * self.g_norm
         self.g_norm = g_norm
         if reuse:  # quadratic regime: the previous factorization of H + lambda I still fits
-            R, t, f, rho = self._gain(g, -self.reuse.solve(g), H)
+            trial, rho = self._gain(g, -self.reuse.solve(g), H)
             if rho > 0.5:
-                self._accept(R, t, f)
+                self._accept(trial)
                 return
         self.reuse = None
-        scale = float(np.max(np.abs(data[pb.free_diagonal]), initial=1.0))
+
+        def least_damping():  # after a failure: relative to the diagonal's scale (rarely needed)
+            return 1e-10 * float(np.max(np.abs(data[pb.free_diagonal]), initial=1.0))
+
         for _ in range(cfg.max_retries):
-            damped = data.copy()
-            damped[pb.free_diagonal] += self.lam
+            if self.lam > 0:
+                damped = data.copy()
+                damped[pb.free_diagonal] += self.lam
+            else:  # undamped (the usual Newton step): the factorizations leave their input unchanged
+                damped = data
             factor = self._factor(damped)
             if factor is None:  # not positive definite: more damping
-                self.lam = max(4.0 * self.lam, 1e-10 * scale)
+                self.lam = max(4.0 * self.lam, least_damping())
                 continue
-            R, t, f, rho = self._gain(g, -factor.solve(g), H)
+            trial, rho = self._gain(g, -factor.solve(g), H)
             if rho > 1e-4:
-                self._accept(R, t, f)
+                self._accept(trial)
                 self.lam *= max(0.1, 1.0 - (2.0 * rho - 1.0) ** 3)
                 self.nu = 2.0
                 if newton and rho > 0.5 and cfg.reuse_contraction > 0:
                     self.reuse = factor
                 return
-            self.lam = max(self.lam * self.nu, 1e-10 * scale)
+            self.lam = max(self.lam * self.nu, least_damping())
             self.nu *= 2.0
         # no acceptable step: the point is stationary to rounding; keep it (the history shows it)
 
@@ -466,30 +561,34 @@ def newton_optimum(
     monitor = monitor or Monitor()
     t_build = time.perf_counter()
     problem = _Problem(graph, fixed)
-    lm = _LM(problem, np.array(R0, dtype=np.float64), np.array(t0, dtype=np.float64), config)
-    start = (np.float64(lm.f), np.float64(lm.gradient().norm), np.zeros(1, bool))
-    build_seconds = time.perf_counter() - t_build
 
     def host_chunk(state, length, limit):
         def chunk(lm, limit):
             lm.step()
-            record = (np.array([lm.f]), np.array([lm.gradient().norm]), np.zeros((1, 1), bool))
+            record = (np.array([lm.point.f]), np.array([lm.gradient().norm]), np.zeros((1, 1), bool))
             return lm, record
 
         return chunk
 
     one_by_one = Termination(termination.iterations, 1, termination.grad_tol, termination.f_target,
                              termination.rel_decrease_tol)
-    # one BLAS thread: the iterations are small or memory-bound NumPy / SuperLU operations, where
-    # OpenBLAS's threads only add synchronization (measured: 1.8x faster on sphere2500, 2-core machine)
-    try:
-        with one_blas_thread():
+    # One BLAS thread for all the numerical work, the start's included: the iterations are small or
+    # memory-bound NumPy / SuperLU operations, where OpenBLAS's threads only add synchronization
+    # (measured: 1.8x faster on sphere2500, 2-core machine), and OpenBLAS threads woken by a large
+    # reduction keep spinning while PARDISO's threads factor (measured: intel's factorization 3x
+    # slower). Not for the dense problems, where setting and restoring the limit costs more than
+    # it saves (measured: tinyGrid3D's whole solve 1.07 -> 1.01 ms without it).
+    with contextlib.nullcontext() if problem.dense else one_blas_thread():
+        lm = _LM(problem, np.asarray(R0, dtype=np.float64), np.asarray(t0, dtype=np.float64), config)
+        try:
+            start = (np.float64(lm.point.f), np.float64(lm.gradient().norm), np.zeros(1, bool))
+            build_seconds = time.perf_counter() - t_build
             out = drive(host_chunk, lm, start, one_by_one, fetch=lambda rec: rec, callback=callback,
                         monitor=monitor)
-    finally:
-        lm.close()
+        finally:
+            lm.close()
     stats = dict(build_seconds=build_seconds, solve_seconds=out.solve_seconds + out.compile_seconds,
                  factorizations=lm.factorizations)
     history = History(out.history.f, out.history.grad_norm, out.history.restarts)
     result: RESULTS = out.result
-    return lm.R, lm.t, history, result, stats
+    return lm.point.R, lm.point.t, history, result, stats
