@@ -145,7 +145,7 @@ def express_in_frame(poses: Poses, frame: FixedPoses) -> Poses:
 def anchor_set(graph: PoseGraph, fixed: FixedPoses | None = None) -> FixedPoses:
     """The poses the initializations hold: the ``fixed`` poses at their values, plus the first pose
     of every connected component without a fixed pose, at R = I, t = 0 (pose 0 alone for a connected
-    graph without fixed poses)."""
+    graph without fixed poses). ``graph`` may be a :class:`~mmpgo_jax._core.pose_graph.HostGraph`."""
     d = graph.dim
     labels, _, firsts = component_labels(graph.num_poses, np.asarray(graph.i), np.asarray(graph.j))
     if fixed is None:

@@ -207,6 +207,10 @@ class HostGraph(NamedTuple):
     tau: np.ndarray
     num_poses: int
 
+    @property
+    def dim(self) -> int:
+        return self.R.shape[-1]
+
 
 class HostPoses(NamedTuple):
     """Poses as a tuple of NumPy arrays (R (n, d, d), t (n, d)), for the same reason as :class:`HostGraph`."""

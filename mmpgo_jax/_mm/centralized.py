@@ -112,6 +112,7 @@ class NewtonConfig:
         if self.reuse_contraction is not None and not (0.0 <= self.reuse_contraction < 1.0):
             raise ValueError(f"reuse_contraction must be None or in [0, 1), got {self.reuse_contraction!r}")
 
+    @functools.lru_cache(maxsize=64)  # noqa: B019 (frozen and hashable: a few configurations per process)
     def resolved(self, d: int, dense: bool = False) -> NewtonConfig:
         """This configuration with the defaults (None) of dimension d filled in (``dense``: the
         problem is factored densely)."""
@@ -151,9 +152,19 @@ def _exp(omega: np.ndarray, d: int) -> np.ndarray:
     if d == 2:
         c, s = np.cos(omega[:, 0]), np.sin(omega[:, 0])
         return np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
-    from scipy.spatial.transform import Rotation  # compiled Rodrigues: half the time of NumPy's dozen calls
+    # (SciPy's compiled Rotation.from_rotvec takes half the time per call, but importing
+    # scipy.spatial costs ~60 ms, more than fifty solves of a tiny graph)
+    theta = np.sqrt((omega * omega).sum(1))
+    small = theta < 1e-8
+    safe = np.where(small, 1.0, theta)
+    a = np.where(small, 1.0 - theta**2 / 6.0, np.sin(theta) / safe)
+    b = np.where(small, 0.5 - theta**2 / 24.0, (1.0 - np.cos(theta)) / safe**2)
+    W = (omega @ _generators(3).reshape(3, 9)).reshape(-1, 3, 3)
+    return _EYE3 + a[:, None, None] * W + b[:, None, None] * (W @ W)
 
-    return Rotation.from_rotvec(omega).as_matrix()
+
+_EYE3 = np.eye(3)
+_EYE3.setflags(write=False)
 
 
 @functools.cache
@@ -177,13 +188,12 @@ def _local_constants(d: int):
 
 
 class _Point(NamedTuple):
-    """An iterate: poses (R, t), the rotations of each edge's ends (R_i, R_j gathered), the
+    """An iterate: poses (R, t), the rotations at the edges' ends (R_i of every edge, then R_j), the
     weighted residuals r (m, d, d + 1) (:meth:`_Problem.evaluate`) and f = 2F = sum of r²."""
 
     R: np.ndarray
     t: np.ndarray
-    Ri: np.ndarray
-    Rj: np.ndarray
+    R_ends: np.ndarray
     r: np.ndarray
     f: float
 
@@ -229,7 +239,7 @@ class _Problem:
         # each pose's place in the unknowns: nested-dissection order for the sparse factorizations
         self.rank = np.arange(n) if self.dense else np.argsort(pose_order(n, g.i, g.j))
         self.index = self.b * self.rank[:, None] + np.arange(self.b)  # (n, b) rows of each pose
-        held = anchor_set(graph, fixed).index
+        held = anchor_set(g, fixed).index  # (the host view: no device array read again)
         self.held = np.zeros(n, dtype=bool)
         self.held[held] = True
         self.free_poses = None if fixed is None else ~fixed.mask(n)  # None: all
@@ -238,34 +248,35 @@ class _Problem:
 
     def _residual_constants(self):
         """The constant parts of the residuals and their Jacobians (see the class docstring)."""
-        g, d, p, b = self.graph, self.d, self.p, self.b
-        m, n = g.i.shape[0], self.n
+        g, d = self.graph, self.d
+        m, n, q = g.i.shape[0], self.n, d * (d + 1)
         sk, st = np.sqrt(g.kappa), np.sqrt(g.tau)
-        E, self._Ej, self._A_map, self._norm_weights, last_column = _local_constants(d)
+        E, Ej, self._A_map, self._norm_weights, last_column = _local_constants(d)
+        self._ends = np.concatenate([g.i, g.j])  # each edge's tail, then each edge's head
         self._K = np.concatenate([sk[:, None, None] * g.R, (st[:, None] * g.t)[:, :, None]], 2)  # (m, d, d+1)
         self._KT = np.ascontiguousarray(np.swapaxes(self._K, 1, 2))
-        self._Ki = E @ self._K[:, None]  # (m, p, d, d+1): E_k K_e
         self._minus_sk = -sk[:, None, None]
         self._st = st[:, None]
-        # the Jacobians' transposes (m, 2b, q), rows: pose i's unknowns, then pose j's
-        self._J_template = np.zeros((m, 2 * b, d * (d + 1)))
-        rows, entries = last_column
-        self._J_template[:, p + rows, entries] = st[:, None]
-        self._J_template[:, b + p + rows, entries] = -st[:, None]
+        # the rotation rows of the transposed Jacobians are R_end K_end: E_k K_e for the tails,
+        # -sqrt(kappa) [E_k, 0] for the heads; the translation rows are constant
+        self._K_ends = np.concatenate([E @ self._K[:, None], self._minus_sk[:, None] * Ej])  # (2m, p, d, d+1)
+        self._T_tail = np.zeros((m, d, q))
+        self._T_tail[:, last_column[0], last_column[1]] = st[:, None]
+        self._T_head = -self._T_tail
         # where each edge's terms go: its ends' local unknowns (gradient), its ends' d x d blocks (A)
-        ends = np.concatenate([g.i, g.j])
-        self._end_slots = (b * ends.reshape(2, m).T[:, :, None] + np.arange(b)).reshape(-1)
-        self._A_slots = (d * d * ends[:, None] + np.arange(d * d)).reshape(-1)
+        b = self.b
+        self._end_slots = (b * self._ends.reshape(2, m).T[:, :, None] + np.arange(b)).reshape(-1)
+        self._A_slots = (d * d * self._ends[:, None] + np.arange(d * d)).reshape(-1)
         self._local_size, self._A_size = n * b, n * d * d
 
     def evaluate(self, R, t) -> _Point:
         """The point (R, t) with its weighted residuals and f = 2F."""
-        g, d = self.graph, self.d
-        Ri, Rj = R[g.i], R[g.j]
-        r = Ri @ self._K
-        r[..., :d] += self._minus_sk * Rj
-        r[..., d] += self._st * (t[g.i] - t[g.j])
-        return _Point(R, t, Ri, Rj, r, float(np.vdot(r, r)))
+        m, d = self._T_tail.shape[0], self.d
+        R_ends, t_ends = R[self._ends], t[self._ends]
+        r = R_ends[:m] @ self._K
+        r[..., :d] += self._minus_sk * R_ends[m:]
+        r[..., d] += self._st * (t_ends[:m] - t_ends[m:])
+        return _Point(R, t, R_ends, r, float(np.vdot(r, r)))
 
     def cost(self, R, t) -> float:
         """f = 2F at (R, t)."""
@@ -278,11 +289,10 @@ class _Problem:
         the poses that are not fixed: the Riemannian gradient's rotation part R_i skew(A_i) has
         squared norm ||skew(A_i)||² = ½ Σ_k <A_i, E_k>² = ½ Σ_k g_ik² (the E_k are orthogonal,
         of squared norm 2); its translation parts are ∂F/∂t_i = g_i's last d entries."""
-        g, n, d, p, b = self.graph, self.n, self.d, self.p, self.b
-        m = g.i.shape[0]
-        J = self._J_template.copy()
-        J[:, :p] = (x.Ri[:, None] @ self._Ki).reshape(m, p, -1)
-        J[:, b : b + p] = (self._minus_sk[..., None] * (x.Rj[:, None] @ self._Ej)).reshape(m, p, -1)
+        n, d, p, b = self.n, self.d, self.p, self.b
+        m = self._T_tail.shape[0]
+        rotation = (x.R_ends[:, None] @ self._K_ends).reshape(2, m, p, -1)
+        J = np.concatenate([rotation[0], self._T_tail, rotation[1], self._T_head], 1)
         local = np.bincount(self._end_slots, (J @ x.r.reshape(m, -1, 1)).reshape(-1),
                             minlength=self._local_size).reshape(n, b)
         squares = (local * local) @ self._norm_weights
@@ -294,9 +304,8 @@ class _Problem:
             grad = np.empty(self.b * n)
             grad[self.index] = local
         # A_i: R_iᵀ r_e K_eᵀ from the edges it starts, -sqrt(kappa) R_jᵀ r_e[:, :d] from those it ends
-        tails = np.swapaxes(x.Ri, 1, 2) @ (x.r @ self._KT)
-        heads = self._minus_sk * (np.swapaxes(x.Rj, 1, 2) @ x.r[..., :d])
-        A = np.bincount(self._A_slots, np.concatenate([tails, heads]).reshape(-1), minlength=self._A_size)
+        ends_terms = np.swapaxes(x.R_ends, 1, 2) @ np.concatenate([x.r @ self._KT, self._minus_sk * x.r[..., :d]])
+        A = np.bincount(self._A_slots, ends_terms.reshape(-1), minlength=self._A_size)
         curvature = A.reshape(n, d * d) @ self._A_map[:, p:]
         return _Linearization(J, _Gradient(grad, curvature, norm))
 
