@@ -199,18 +199,17 @@ class _Point(NamedTuple):
 
 
 class _Gradient(NamedTuple):
-    """F's gradient at a point: ``g`` in local coordinates (N,), the exponential's curvature
-    blocks C_i (n, p, p) (:meth:`_Problem.hessian_parts`), ``norm`` = ||grad F|| over the poses
-    that are not fixed."""
+    """F's gradient at a point: ``g`` in local coordinates (N,), ``norm`` = ||grad F|| over the
+    poses that are not fixed."""
 
     g: np.ndarray
-    curvature: np.ndarray
     norm: float
 
 
 class _Linearization(NamedTuple):
-    """The residuals' transposed Jacobians J (m, 2b, d (d + 1)) at a point, and F's gradient there."""
+    """A point, the residuals' transposed Jacobians J (m, 2b, d (d + 1)) there, and F's gradient."""
 
+    point: _Point
     J: np.ndarray
     gradient: _Gradient
 
@@ -284,12 +283,11 @@ class _Problem:
 
     def linearization(self, x: _Point) -> _Linearization:
         """The Jacobians and F's gradient at the point x: in local coordinates g = Jᵀ r (anchors'
-        entries zero), the curvature blocks C_i,kl = <A_i, sym(E_k E_l)> with A_i = R_iᵀ ∂F/∂R_i
-        (the second derivative of the exponential, paired with the gradient), and ||grad F|| over
-        the poses that are not fixed: the Riemannian gradient's rotation part R_i skew(A_i) has
-        squared norm ||skew(A_i)||² = ½ Σ_k <A_i, E_k>² = ½ Σ_k g_ik² (the E_k are orthogonal,
+        entries zero), and ||grad F|| over the poses that are not fixed: with A_i = R_iᵀ ∂F/∂R_i,
+        g's rotation entries are <A_i, E_k>, and the Riemannian gradient's rotation part
+        R_i skew(A_i) has squared norm ||skew(A_i)||² = ½ Σ_k <A_i, E_k>² (the E_k are orthogonal,
         of squared norm 2); its translation parts are ∂F/∂t_i = g_i's last d entries."""
-        n, d, p, b = self.n, self.d, self.p, self.b
+        n, p, b = self.n, self.p, self.b
         m = self._T_tail.shape[0]
         rotation = (x.R_ends[:, None] @ self._K_ends).reshape(2, m, p, -1)
         J = np.concatenate([rotation[0], self._T_tail, rotation[1], self._T_head], 1)
@@ -303,18 +301,24 @@ class _Problem:
         else:
             grad = np.empty(self.b * n)
             grad[self.index] = local
-        # A_i: R_iᵀ r_e K_eᵀ from the edges it starts, -sqrt(kappa) R_jᵀ r_e[:, :d] from those it ends
+        return _Linearization(x, J, _Gradient(grad, norm))
+
+    def curvature(self, x: _Point) -> np.ndarray:
+        """The exponential's curvature blocks at x, C_i,kl = <A_i, sym(E_k E_l)> (n, p^2): the
+        second derivative of R_i Exp(omega), paired with A_i = R_iᵀ ∂F/∂R_i, summed from the
+        residuals: R_iᵀ r_e K_eᵀ over the edges pose i starts, -sqrt(kappa) R_jᵀ r_e[:, :d] over
+        those it ends."""
+        d, p = self.d, self.p
         ends_terms = np.swapaxes(x.R_ends, 1, 2) @ np.concatenate([x.r @ self._KT, self._minus_sk * x.r[..., :d]])
         A = np.bincount(self._A_slots, ends_terms.reshape(-1), minlength=self._A_size)
-        curvature = A.reshape(n, d * d) @ self._A_map[:, p:]
-        return _Linearization(J, _Gradient(grad, curvature, norm))
+        return A.reshape(self.n, d * d) @ self._A_map[:, p:]
 
     def gradient(self, R, t) -> _Gradient:
         """F's gradient at (R, t) (:meth:`linearization`)."""
         return self.linearization(self.evaluate(R, t)).gradient
 
     def _pattern(self):
-        """Where every entry :meth:`hessian_parts` assembles goes in the matrix's values: for each
+        """Where every entry :meth:`hessian` assembles goes in the matrix's values: for each
         edge, its (2b, 2b) block JᵀJ (pose-pair blocks (i, i), (i, j), (j, i), (j, j)); for each
         pose, its curvature block; plus the anchors' unit diagonal. One bincount per part then sums
         the duplicates into the CSC data of the Hessian's constant sparsity, or the row-major
@@ -407,19 +411,20 @@ class _Problem:
         """Gradient g (N,) and the Hessian's values (:meth:`matrix`) of the pulled-back F at
         (R, t), N = b n; the anchors' rows and columns are those of the identity, g = 0 there."""
         lin = self.linearization(self.evaluate(R, t))
-        gauss_newton, curvature = self.hessian_parts(lin)
-        return lin.gradient.g, gauss_newton + curvature
+        return lin.gradient.g, self.hessian(lin)
 
-    def hessian_parts(self, lin: _Linearization):
-        """The Hessian's two parts at a point (values, :meth:`matrix`), from its linearization: the
-        Gauss–Newton matrix JᵀJ (with the anchors' unit diagonal; positive semidefinite) and the
-        exponential's curvature C (block diagonal, zero at the anchors); the Hessian is their sum."""
+    def hessian(self, lin: _Linearization, curvature: bool = True) -> np.ndarray:
+        """The Hessian's values at a point (:meth:`matrix`), from its linearization: the
+        Gauss–Newton matrix JᵀJ (with the anchors' unit diagonal; positive semidefinite) plus, with
+        ``curvature``, the exponential's curvature C (block diagonal, zero at the anchors)."""
         size = self._size + 1  # the last slot collects what the anchors drop
         J = lin.J
-        gauss_newton = np.bincount(self._slot_pairs, (J @ np.swapaxes(J, 1, 2)).reshape(-1), minlength=size)[:-1]
-        gauss_newton[self._anchor_slots] = 1.0
-        curvature = np.bincount(self._slot_curvature, lin.gradient.curvature.reshape(-1), minlength=size)[:-1]
-        return gauss_newton, curvature
+        values = np.bincount(self._slot_pairs, (J @ np.swapaxes(J, 1, 2)).reshape(-1), minlength=size)
+        if curvature:
+            values += np.bincount(self._slot_curvature, self.curvature(lin.point).reshape(-1), minlength=size)
+        values = values[:-1]
+        values[self._anchor_slots] = 1.0
+        return values
 
     def retract(self, R, t, step: np.ndarray):
         """(R_i Exp(omega_i), t_i + delta_i) for the step (in nested-dissection order)."""
@@ -508,10 +513,9 @@ class _LM:
         lin = self.linearization()
         gradient = lin.gradient
         g = gradient.g
-        gauss_newton, curvature = pb.hessian_parts(lin)
         newton = self.iteration >= cfg.gauss_newton_steps
         self.iteration += 1
-        data = gauss_newton + curvature if newton else gauss_newton
+        data = pb.hessian(lin, curvature=newton)
         H = pb.matrix(data)
         g_norm = float(np.sqrt(g @ g))
         reuse = self.reuse is not None and newton and g_norm <= cfg.reuse_contraction * self.g_norm
