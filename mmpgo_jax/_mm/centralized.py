@@ -170,21 +170,21 @@ _EYE3.setflags(write=False)
 @functools.cache
 def _local_constants(d: int):
     """The constants of dimension d that the local coordinates need (read-only, built once): the
-    generators E_k; [E_k, 0] (pose j's rotation Jacobians); the map of A_i (flattened) to <A_i, E_k>
-    then <A_i, sym(E_k E_l)> (the rotation gradient, the curvature); the squared-norm weights of the
-    local gradient (1/2 per rotation coordinate, see :meth:`_Problem.gradient`); and the diagonal
-    of the translation rows in the residuals' d x (d + 1) layout, as (row, entry) index arrays."""
+    generators E_k; [E_k, 0] (pose j's rotation Jacobians); the map of A_i (flattened) to
+    <A_i, sym(E_k E_l)> (the curvature); the squared-norm weights of the local gradient (1/2 per
+    rotation coordinate, see :meth:`_Problem.linearization`); and the diagonal of the translation
+    rows in the residuals' d x (d + 1) layout, as (row, entry) index arrays."""
     E = _generators(d)
     p = E.shape[0]
     Ej = np.concatenate([E, np.zeros((p, d, 1))], 2)
     EE = E[:, None] @ E[None]  # (p, p, d, d): E_k E_l
     EE = 0.5 * (EE + np.swapaxes(EE, 0, 1))
-    A_map = np.concatenate([E.reshape(p, d * d), EE.reshape(p * p, d * d)]).T  # (d^2, p + p^2)
+    curvature_map = np.ascontiguousarray(EE.reshape(p * p, d * d).T)  # (d^2, p^2)
     weights = np.concatenate([np.full(p, 0.5), np.ones(d)])
     last_column = (np.arange(d), np.arange(d) * (d + 1) + d)
-    for array in (Ej, A_map, weights, *last_column):
+    for array in (Ej, curvature_map, weights, *last_column):
         array.setflags(write=False)
-    return E, Ej, A_map, weights, last_column
+    return E, Ej, curvature_map, weights, last_column
 
 
 class _Point(NamedTuple):
@@ -250,7 +250,7 @@ class _Problem:
         g, d = self.graph, self.d
         m, n, q = g.i.shape[0], self.n, d * (d + 1)
         sk, st = np.sqrt(g.kappa), np.sqrt(g.tau)
-        E, Ej, self._A_map, self._norm_weights, last_column = _local_constants(d)
+        E, Ej, self._curvature_map, self._norm_weights, last_column = _local_constants(d)
         self._ends = np.concatenate([g.i, g.j])  # each edge's tail, then each edge's head
         self._K = np.concatenate([sk[:, None, None] * g.R, (st[:, None] * g.t)[:, :, None]], 2)  # (m, d, d+1)
         self._KT = np.ascontiguousarray(np.swapaxes(self._K, 1, 2))
@@ -308,10 +308,10 @@ class _Problem:
         second derivative of R_i Exp(omega), paired with A_i = R_iᵀ ∂F/∂R_i, summed from the
         residuals: R_iᵀ r_e K_eᵀ over the edges pose i starts, -sqrt(kappa) R_jᵀ r_e[:, :d] over
         those it ends."""
-        d, p = self.d, self.p
+        d = self.d
         ends_terms = np.swapaxes(x.R_ends, 1, 2) @ np.concatenate([x.r @ self._KT, self._minus_sk * x.r[..., :d]])
         A = np.bincount(self._A_slots, ends_terms.reshape(-1), minlength=self._A_size)
-        return A.reshape(self.n, d * d) @ self._A_map[:, p:]
+        return A.reshape(self.n, d * d) @ self._curvature_map
 
     def gradient(self, R, t) -> _Gradient:
         """F's gradient at (R, t) (:meth:`linearization`)."""
