@@ -125,18 +125,16 @@ def edge_residuals(graph: PoseGraph, poses: Poses):
     return rot, trans
 
 
-def edge_costs(graph: PoseGraph, poses: Poses, residuals=None):
-    """Per-edge cost kappa ||rot||^2 + tau ||trans||^2 (the f = 2F convention); ``residuals``:
-    :func:`edge_residuals` at ``poses`` when the caller has them already."""
-    rot, trans = edge_residuals(graph, poses) if residuals is None else residuals
+def edge_costs(graph: PoseGraph, poses: Poses):
+    """Per-edge cost kappa ||rot||^2 + tau ||trans||^2 (the f = 2F convention)."""
+    rot, trans = edge_residuals(graph, poses)
     xp = _xp(rot)
     return graph.kappa * xp.sum(rot**2, axis=(-1, -2)) + graph.tau * xp.sum(trans**2, axis=-1)
 
 
-def cost(graph: PoseGraph, poses: Poses, residuals=None):
-    """f = 2F: the objective as reported in the paper's tables and by SE-Sync (``residuals``: as
-    for :func:`edge_costs`)."""
-    costs = edge_costs(graph, poses, residuals)
+def cost(graph: PoseGraph, poses: Poses):
+    """f = 2F: the objective as reported in the paper's tables and by SE-Sync."""
+    costs = edge_costs(graph, poses)
     return _xp(costs).sum(costs)
 
 
@@ -145,10 +143,9 @@ def objective(graph: PoseGraph, poses: Poses):
     return 0.5 * cost(graph, poses)
 
 
-def euclidean_gradient(graph: PoseGraph, poses: Poses, residuals=None) -> Poses:
-    """Euclidean gradient of F with respect to (R, t), as poses of the same shapes and type (a
-    :class:`HostPoses` stays one); ``residuals``: as for :func:`edge_costs`."""
-    rot, trans = edge_residuals(graph, poses) if residuals is None else residuals
+def euclidean_gradient(graph: PoseGraph, poses: Poses) -> Poses:
+    """Euclidean gradient of F with respect to (R, t), as a ``Poses`` of the same shapes."""
+    rot, trans = edge_residuals(graph, poses)
     xp = _xp(rot)
     wr = graph.kappa[:, None, None] * rot
     wt = graph.tau[:, None] * trans
@@ -158,8 +155,7 @@ def euclidean_gradient(graph: PoseGraph, poses: Poses, residuals=None) -> Poses:
     tails = _segment_sum(xp, xp.concatenate([gRi.reshape(-1, d * d), wt], 1), graph.i, n)
     heads = _segment_sum(xp, xp.concatenate([wr.reshape(-1, d * d), wt], 1), graph.j, n)
     g = tails - heads
-    # a host tuple stays one: building an equinox module costs more than this whole function on tiny graphs
-    return (HostPoses if isinstance(poses, HostPoses) else Poses)(g[:, : d * d].reshape(n, d, d), g[:, d * d :])
+    return Poses(g[:, : d * d].reshape(n, d, d), g[:, d * d :])
 
 
 def riemannian_gradient_from_euclidean(poses: Poses, egrad: Poses) -> Poses:
@@ -187,10 +183,7 @@ def riemannian_gradient_norm(graph: PoseGraph, poses: Poses):
 def host_graph(graph: PoseGraph) -> PoseGraph:
     """``graph`` with NumPy leaves (int64 indices, float64 values): the functions above then run on
     the host in float64, without JAX dispatch."""
-    return PoseGraph(i=np.asarray(graph.i, np.int64), j=np.asarray(graph.j, np.int64),
-                     R=np.asarray(graph.R, np.float64), t=np.asarray(graph.t, np.float64),
-                     kappa=np.asarray(graph.kappa, np.float64), tau=np.asarray(graph.tau, np.float64),
-                     num_poses=graph.num_poses)
+    return PoseGraph(**host_view(graph)._asdict())
 
 
 class HostGraph(NamedTuple):
@@ -220,11 +213,10 @@ class HostPoses(NamedTuple):
 
 
 def host_view(graph: PoseGraph) -> HostGraph:
-    """:func:`host_graph`'s arrays as a :class:`HostGraph`."""
-    g = graph
-    return HostGraph(np.asarray(g.i, np.int64), np.asarray(g.j, np.int64), np.asarray(g.R, np.float64),
-                     np.asarray(g.t, np.float64), np.asarray(g.kappa, np.float64), np.asarray(g.tau, np.float64),
-                     g.num_poses)
+    """``graph``'s arrays on the host (int64 indices, float64 values) as a :class:`HostGraph`."""
+    return HostGraph(np.asarray(graph.i, np.int64), np.asarray(graph.j, np.int64), np.asarray(graph.R, np.float64),
+                     np.asarray(graph.t, np.float64), np.asarray(graph.kappa, np.float64),
+                     np.asarray(graph.tau, np.float64), graph.num_poses)
 
 
 def poses_to_matrix(poses: Poses) -> np.ndarray:

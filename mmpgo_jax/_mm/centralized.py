@@ -249,6 +249,7 @@ class _Problem:
         """The constant parts of the residuals and their Jacobians (see the class docstring)."""
         g, d = self.graph, self.d
         m, n, q = g.i.shape[0], self.n, d * (d + 1)
+        self._m = m
         sk, st = np.sqrt(g.kappa), np.sqrt(g.tau)
         E, Ej, self._curvature_map, self._norm_weights, last_column = _local_constants(d)
         self._ends = np.concatenate([g.i, g.j])  # each edge's tail, then each edge's head
@@ -270,7 +271,7 @@ class _Problem:
 
     def evaluate(self, R, t) -> _Point:
         """The point (R, t) with its weighted residuals and f = 2F."""
-        m, d = self._T_tail.shape[0], self.d
+        m, d = self._m, self.d
         R_ends, t_ends = R[self._ends], t[self._ends]
         r = R_ends[:m] @ self._K
         r[..., :d] += self._minus_sk * R_ends[m:]
@@ -287,8 +288,7 @@ class _Problem:
         g's rotation entries are <A_i, E_k>, and the Riemannian gradient's rotation part
         R_i skew(A_i) has squared norm ||skew(A_i)||² = ½ Σ_k <A_i, E_k>² (the E_k are orthogonal,
         of squared norm 2); its translation parts are ∂F/∂t_i = g_i's last d entries."""
-        n, p, b = self.n, self.p, self.b
-        m = self._T_tail.shape[0]
+        n, p, b, m = self.n, self.p, self.b, self._m
         rotation = (x.R_ends[:, None] @ self._K_ends).reshape(2, m, p, -1)
         J = np.concatenate([rotation[0], self._T_tail, rotation[1], self._T_head], 1)
         local = np.bincount(self._end_slots, (J @ x.r.reshape(m, -1, 1)).reshape(-1),

@@ -358,10 +358,12 @@ def _solve(gamma, preconditioner, start, center, g, config: SubproblemConfig, fr
     egrad, value = evaluate(start)
     gnorm = _norm(tangent(start, egrad))
     stop_at = config.gradient_tolerance * gnorm
-    # The counters, radius and flag start as values computed from gnorm, so that under vmap (the
-    # robots) every carry is batched from the start: while_loop then traces its body once, not a
-    # second time after finding them batched (measured: a third less tracing of the chunk program)
-    zero = jnp.where(gnorm == gnorm, 0, 0).astype(jnp.int32)  # int32: the type of the CG count added to it
+    # The counters start as int32, the type the body returns (weakly typed ones made while_loop
+    # trace the whole body again with the promoted types), and counters, radius and flag are
+    # computed from gnorm so that under vmap (the robots) every carry is batched from the start
+    # (else the body, CG loop included, is batched a second time; jnp.zeros_like is not batched).
+    # Measured: 30-45 % less tracing of the chunk program, every result the same.
+    zero = jnp.where(gnorm == gnorm, 0, 0).astype(jnp.int32)
     init = _TrustRegionState(steps=zero, cg=zero, Y=start, egrad=egrad, value=value, gnorm=gnorm,
                              radius=jnp.where(gnorm == gnorm, jnp.inf, jnp.inf).astype(value.dtype), moved=zero > 0)
     return jax.lax.while_loop(cond, body, init)
