@@ -18,7 +18,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from .geometry import sym
-from .precision import default_float_dtype
+from .precision import default_float_dtype, to_device
 
 
 class Poses(eqx.Module):
@@ -82,17 +82,13 @@ class PoseGraph(eqx.Module):
         if num_poses is None:
             num_poses = int(max(i.max(initial=-1), j.max(initial=-1)) + 1)
         fdt = np.dtype(dtype or default_float_dtype())
-
-        def put(x, dt):  # host arrays to the device: a transfer, no JAX dispatch
-            return jax.device_put(np.asarray(x, dtype=dt))
-
         return PoseGraph(
-            i=put(i, np.int32),
-            j=put(j, np.int32),
-            R=put(R, fdt),
-            t=put(t, fdt),
-            kappa=put(kappa, fdt),
-            tau=put(tau, fdt),
+            i=to_device(i, np.int32),
+            j=to_device(j, np.int32),
+            R=to_device(R, fdt),
+            t=to_device(t, fdt),
+            kappa=to_device(kappa, fdt),
+            tau=to_device(tau, fdt),
             num_poses=int(num_poses),
         )
 

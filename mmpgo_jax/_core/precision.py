@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 
 def enable_float64() -> None:
@@ -24,3 +25,11 @@ def float64_enabled() -> bool:
 def default_float_dtype():
     """The float dtype new arrays get: float64 when enabled, else float32 (no JAX dispatch)."""
     return jax.dtypes.canonicalize_dtype(jnp.float64)
+
+
+def to_device(x, dtype=None) -> jax.Array:
+    """A host array (cast to ``dtype`` on the host) on the default device, with the dtype JAX's
+    precision setting gives it. ``jax.device_put`` is a plain transfer; ``jnp.asarray`` of a host
+    array compiles a small program the first time each shape is seen (1-15 ms per shape: a
+    dozen of them in the set-up of every run)."""
+    return jax.device_put(np.asarray(x, dtype))

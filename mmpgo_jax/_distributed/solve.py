@@ -254,7 +254,7 @@ def solve_sharded(
     out = drive(compile_chunk, state, start_record, termination, fetch=fetch, callback=callback,
                 agree=_agree if multiprocess else None, monitor=monitor)
     X = _to_host(out.state.X)
-    poses = output_frame(part.gather(unstack(jnp.asarray(X))), fixed, frame)
+    poses = output_frame(part.gather(unstack(X)), fixed, frame)  # sliced on the host
     final = out.state if problem.robust is None else eqx.tree_at(lambda st: st.weights, out.state,
                                                                  _to_host(out.state.weights))
     outcome, robust_stats = robust_fields(problem, graph, part, final, poses)

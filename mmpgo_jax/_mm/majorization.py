@@ -24,6 +24,7 @@ import numpy as np
 from .._core.geometry import bmm, mT
 from .._core.partition import RobotEdges
 from .._core.pose_graph import Poses
+from .._core.precision import to_device
 
 
 def global_soa(X):
@@ -279,11 +280,11 @@ def build_gamma_operator(edges: RobotEdges, xi: float, n_max: int, *, min_coupli
     blk[~valid] = 0.0
     fdt = np.asarray(edges.kappa).dtype
     return GammaOperator(
-        diag=jnp.asarray(diag, fdt),
-        band=jnp.asarray(band, fdt),
-        src=jnp.asarray(src, jnp.int32),
-        dst=jnp.asarray(dst, jnp.int32),
-        blocks=jnp.asarray(blk, fdt),
+        diag=to_device(diag, fdt),
+        band=to_device(band, fdt),
+        src=to_device(src, np.int32),
+        dst=to_device(dst, np.int32),
+        blocks=to_device(blk, fdt),
     )
 
 
@@ -328,10 +329,10 @@ def gamma_layout(edges: RobotEdges, n_max: int, *, min_couplings: int = 0) -> Ga
     band_slot = np.where(fwd, si, np.where(bwd, sj, n_max)).reshape(A, e_max)
     src, dst, edge, transposed, valid = _coupling_list(robot, si, sj, own & ~fwd & ~bwd, A, e_max, n_max,
                                                        min_couplings)
-    i32 = jnp.int32
-    return GammaLayout(band_slot=jnp.asarray(band_slot, i32), band_transposed=jnp.asarray(bwd.reshape(A, e_max)),
-                       src=jnp.asarray(src, i32), dst=jnp.asarray(dst, i32), coupling_edge=jnp.asarray(edge, i32),
-                       coupling_transposed=jnp.asarray(transposed), coupling_valid=jnp.asarray(valid))
+    i32 = np.int32
+    return GammaLayout(band_slot=to_device(band_slot, i32), band_transposed=to_device(bwd.reshape(A, e_max)),
+                       src=to_device(src, i32), dst=to_device(dst, i32), coupling_edge=to_device(edge, i32),
+                       coupling_transposed=to_device(transposed), coupling_valid=to_device(valid))
 
 
 def _off_diagonal_blocks(edges: RobotEdges):
@@ -362,8 +363,10 @@ def assemble_gamma(edges: RobotEdges, layout: GammaLayout, weights, xi, n_max: i
 
 
 def stack(P: Poses):
-    """Poses (..., n, d, d) + (..., n, d) -> stacked Y (..., n, d, d+1) = [t | R]."""
-    return jnp.concatenate([P.t[..., None], P.R], axis=-1)
+    """Poses (..., n, d, d) + (..., n, d) -> stacked Y (..., n, d, d+1) = [t | R]; numpy arrays stay
+    on the host (op by op on the device every new shape would compile a concatenation)."""
+    xp = np if isinstance(P.t, np.ndarray) and isinstance(P.R, np.ndarray) else jnp
+    return xp.concatenate([P.t[..., None], P.R], axis=-1)
 
 
 def unstack(Y) -> Poses:
@@ -450,7 +453,7 @@ def host_soa(gamma: GammaOperator) -> GammaSoA:
     """:func:`gamma_to_soa` of a batched operator, computed with numpy on the host (set-up runs once:
     op-by-op JAX would compile every transposition)."""
     def soa(x):
-        return jnp.asarray(np.moveaxis(np.asarray(x), -3, -1))
+        return to_device(np.moveaxis(np.asarray(x), -3, -1))
 
     band = np.asarray(gamma.band)
     return GammaSoA(diag=soa(gamma.diag), band=soa(band), band_T=soa(np.swapaxes(band, -1, -2)), src=gamma.src,

@@ -17,6 +17,7 @@ import numpy as np
 
 from .._core.partition import Partition
 from .._core.pose_graph import Poses
+from .._core.precision import to_device
 from .majorization import (
     GammaLayout,
     GammaOperator,
@@ -256,7 +257,8 @@ class MMProblem(eqx.Module):
             aggregate = config.subproblem.aggregate
         if preconditioner == "two-level":
             newton = build_newton_preconditioner(gamma.diag, gamma.band, gamma.src, gamma.dst, gamma.blocks,
-                                                 stack(poses), partition.pose_mask, dtype, aggregate=aggregate)
+                                                 stack(jax.tree.map(np.asarray, poses)), partition.pose_mask, dtype,
+                                                 aggregate=aggregate)
         else:
             newton = build_newton_preconditioner(gamma.diag, dtype=dtype)
         robust = None
@@ -270,7 +272,7 @@ class MMProblem(eqx.Module):
             mask = robust_edges(loss, gi.reshape(-1), gj.reshape(-1)).reshape(gi.shape)
             robust = RobustData(loss=loss.with_defaults(e.t.shape[-1]),
                                 layout=gamma_layout(e, n_max, min_couplings=min_couplings), coarse=coarse,
-                                robust_edge=jnp.asarray(mask))
+                                robust_edge=to_device(mask))
         del gamma  # the stacked-layout copy is not kept: the solver reads gamma_soa
         free = None  # no fixed pose: the solver runs without a mask (same compiled code as ever)
         if fixed is not None:
@@ -280,8 +282,8 @@ class MMProblem(eqx.Module):
             # padding slots count as free: they have no edges and never move anyway
             free = np.ones(partition.pose_mask.shape, dtype=bool)
             free[np.asarray(partition.robot_of_pose)[mask], np.asarray(partition.slot_of_pose)[mask]] = False
-            free = jnp.asarray(free)
-        return MMProblem(partition=partition, gamma_soa=soa, newton=newton, free=free, xi=jnp.asarray(xi, dtype),
+            free = to_device(free)
+        return MMProblem(partition=partition, gamma_soa=soa, newton=newton, free=free, xi=to_device(xi, dtype),
                          robust=robust)
 
 

@@ -45,6 +45,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._core.blas import one_blas_thread
+from .._core.precision import to_device
 from .majorization import soa_bmm, soa_T, tangent_soa
 
 MIN_AGGREGATE = 4  # slots per aggregate at least
@@ -297,9 +298,9 @@ def build_newton_preconditioner(diag, band=None, src=None, dst=None, blocks=None
         gamma00, g, schur = _fine_constants(diag, np)
 
     def soa(x):  # (A, n, ...) -> (A, ..., n)
-        return jnp.asarray(np.moveaxis(x, 1, -1), dtype)
+        return to_device(np.moveaxis(x, 1, -1), dtype)
 
-    fine = dict(gamma00=jnp.asarray(gamma00, dtype), coupling=soa(g), schur=soa(schur))
+    fine = dict(gamma00=to_device(gamma00, dtype), coupling=soa(g), schur=soa(schur))
     if X0 is None:
         return NewtonPreconditioner(**fine)
     band, blocks = np.asarray(band, np.float64), np.asarray(blocks, np.float64)
@@ -326,8 +327,8 @@ def build_newton_preconditioner(diag, band=None, src=None, dst=None, blocks=None
     # (this inverse took 0.5-2 s on intel's 10 robots with the default threads, 0.03 s with one)
     with one_blas_thread():
         inverse = _coarse_inverse(coarse)
-    return NewtonPreconditioner(**fine, frame=jnp.asarray(frame_soa, dtype), real=jnp.asarray(real, dtype),
-                                coarse_inverse=jnp.asarray(inverse, dtype), aggregate=b)
+    return NewtonPreconditioner(**fine, frame=to_device(frame_soa, dtype), real=to_device(real, dtype),
+                                coarse_inverse=to_device(inverse, dtype), aggregate=b)
 
 
 PINV_RCOND = 1e-13  # relative cut-off of the coarse matrix's pseudo-inverse (host and compiled)
@@ -379,10 +380,10 @@ def build_coarse_parts(edges, newton: NewtonPreconditioner, n_max: int) -> Coars
     slot_blocks = np.einsum("ansrc,antrc->anst", E, E)
     slot_index = np.broadcast_to(modes + (np.arange(n) // b)[:, None], (A, n, c))
     fdt = np.asarray(edges.kappa).dtype
-    return CoarseParts(edge_blocks=jnp.asarray(np.concatenate([top, bottom], axis=1).reshape(A, e_max, 2 * c, 2 * c),
-                                               fdt),
-                       edge_index=jnp.asarray(index.reshape(A, e_max, 2 * c), jnp.int32),
-                       slot_blocks=jnp.asarray(slot_blocks, fdt), slot_index=jnp.asarray(slot_index, jnp.int32))
+    return CoarseParts(edge_blocks=to_device(np.concatenate([top, bottom], axis=1).reshape(A, e_max, 2 * c, 2 * c),
+                                             fdt),
+                       edge_index=to_device(index.reshape(A, e_max, 2 * c), np.int32),
+                       slot_blocks=to_device(slot_blocks, fdt), slot_index=to_device(slot_index, np.int32))
 
 
 def _scaled_pseudo_inverse(M):

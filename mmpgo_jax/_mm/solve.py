@@ -243,7 +243,7 @@ def solve(
     out = drive(compile_chunk, state, (start.f, start.grad_norm, start.restarted), termination, fetch=fetch,
                 callback=callback,
                 monitor=monitor)
-    poses = output_frame(part.gather(unstack(out.state.X)), fixed, frame)
+    poses = output_frame(part.gather(unstack(np.asarray(out.state.X))), fixed, frame)  # sliced on the host
     outcome, robust_stats = robust_fields(problem, graph, part, out.state, poses)
     return SolveResult(
         poses=poses,
