@@ -23,6 +23,8 @@ import platform
 import subprocess
 import sys
 
+from mmpgo_jax._io.atomic import atomic_write
+
 FILES = ["MITb", "intel", "M3500", "city10000", "sphere2500", "torus3D", "garage"]
 AUTHORS_AMM_MS = {"MITb": 0.73, "intel": 1.39, "M3500": 3.53, "city10000": 12.5, "sphere2500": 4.9, "torus3D": 9.4,
                   "garage": 6.0}
@@ -87,10 +89,8 @@ def main() -> None:
     text = head + "\n" + "\n".join(rows) + "\n"
     print(text)
     if args.out:
-        tmp = f"{args.out}.tmp"
-        with open(tmp, "w") as f:
+        with atomic_write(args.out) as f:
             f.write(text)
-        os.replace(tmp, args.out)
 
 
 if __name__ == "__main__":

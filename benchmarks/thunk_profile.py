@@ -26,6 +26,8 @@ import os
 import subprocess
 import sys
 
+from mmpgo_jax._io.atomic import atomic_write
+
 CHILD = """
 import collections, glob, gzip, json, sys, tempfile
 import jax
@@ -90,12 +92,11 @@ def main() -> None:
             f"{args.iterations} --top {args.top}`; {datetime.datetime.now(datetime.UTC):%Y-%m-%d %H:%M} UTC, "
             f"{os.cpu_count()} cores, load average {load:.2f} at the start, {os.getloadavg()[0]:.2f} at the end.\n\n"
             + "\n\n".join(parts) + "\n")
-    print(text)
-    if args.out:
-        tmp = f"{args.out}.tmp"
-        with open(tmp, "w") as f:
-            f.write(text)
-        os.replace(tmp, args.out)
+    if not args.out:
+        print(text)
+        return
+    with atomic_write(args.out) as f:  # the tables went to stderr as they came
+        f.write(text)
 
 
 if __name__ == "__main__":
