@@ -253,17 +253,19 @@ def build_gamma_operator(edges: RobotEdges, xi: float, n_max: int, *, min_coupli
     d = np.asarray(edges.t).shape[-1]
     kappa = np.asarray(edges.kappa, np.float64).reshape(-1)
     tau = np.asarray(edges.tau, np.float64).reshape(-1)
-    Hii, Hjj, Hij = _edge_hessian_blocks(
-        np.asarray(edges.R, np.float64).reshape(-1, d, d), np.asarray(edges.t, np.float64).reshape(-1, d), kappa, tau
-    )
     robot, si, sj, li, lj = _edge_slots(edges)
     own = li & lj
     inter = li ^ lj
     w = np.where(inter, 2.0, 1.0)[:, None, None]
     diag = np.zeros((A, n_max, d + 1, d + 1))
-    np.add.at(diag, (robot[li], si[li]), (w * Hii)[li])
-    np.add.at(diag, (robot[lj], sj[lj]), (w * Hjj)[lj])
-    diag += xi * np.eye(d + 1)
+    # data float arithmetic cannot represent: no NumPy warning here, the run stops on f = inf with
+    # a one-line error of its own (NonFiniteError)
+    with np.errstate(over="ignore", invalid="ignore"):
+        Hii, Hjj, Hij = _edge_hessian_blocks(np.asarray(edges.R, np.float64).reshape(-1, d, d),
+                                             np.asarray(edges.t, np.float64).reshape(-1, d), kappa, tau)
+        np.add.at(diag, (robot[li], si[li]), (w * Hii)[li])
+        np.add.at(diag, (robot[lj], sj[lj]), (w * Hjj)[lj])
+        diag += xi * np.eye(d + 1)
     # Slots without edges (padding) would have a zero block when xi = 0: give them I instead.
     # Their gradient is zero, so they never move and no result changes.
     empty = ~np.any(diag != 0.0, axis=(-1, -2))
