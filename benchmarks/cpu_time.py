@@ -24,21 +24,21 @@ import subprocess
 import sys
 
 from mmpgo_jax._io.atomic import atomic_write
+from mmpgo_jax._io.datasets import benchmark_info
 
 FILES = ["MITb", "intel", "M3500", "city10000", "sphere2500", "torus3D", "garage"]
-AUTHORS_AMM_MS = {"MITb": 0.73, "intel": 1.39, "M3500": 3.53, "city10000": 12.5, "sphere2500": 4.9, "torus3D": 9.4,
-                  "garage": 6.0}
 
 CHILD = """
 import json, resource, sys, time
 import jax
 jax.config.update("jax_num_cpu_devices", 2)
 import mmpgo_jax as mg
+from mmpgo_jax.cli.sharded import AUTO_THREAD_POSES
 from mmpgo_jax.sharding import solve_sharded
 mg.enable_float64()
 name, short, long, repeats = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4])
 graph = mg.read_g2o(mg.find_benchmark(name)).graph
-threads = 2 if graph.num_poses >= 1000 else 1  # as mmpgo solve on a 2-core machine
+threads = 2 if graph.num_poses >= AUTO_THREAD_POSES else 1  # as mmpgo solve on a 2-core machine
 def run(k):
     if threads == 1:
         return mg.solve(graph, 10, method="amm", iterations=k)
@@ -76,7 +76,7 @@ def main() -> None:
     rows = []
     for name in args.files:
         m = measure(name, args.short, args.long, args.repeats)
-        authors = AUTHORS_AMM_MS[name]
+        authors = benchmark_info(name).code_ms_per_iter_amm  # the registry's same-run figure
         rows.append(f"| {name} | {m['threads']} | {m['wall']:.2f} | {m['cpu']:.2f} | {m['cpu'] / m['wall']:.2f} | "
                     f"{authors} | {m['wall'] / authors:.2f} | {m['cpu'] / authors:.2f} |")
         print(rows[-1], file=sys.stderr, flush=True)

@@ -21,6 +21,7 @@ import jax
 import numpy as np
 
 from .pose_graph import HostPoses, PoseGraph, Poses, component_labels
+from .precision import to_device
 
 __all__ = ["FixedPoses", "anchor_poses", "anchor_set", "express_in_frame"]
 
@@ -139,7 +140,7 @@ def express_in_frame(poses: Poses, frame: FixedPoses) -> Poses:
     dt = np.dtype(poses.R.dtype)
     if isinstance(poses, HostPoses):
         return HostPoses(R_new.astype(dt, copy=False), t_new.astype(dt, copy=False))
-    return Poses(jax.device_put(R_new.astype(dt)), jax.device_put(t_new.astype(dt)))
+    return Poses(to_device(R_new, dt), to_device(t_new, dt))
 
 
 def anchor_set(graph: PoseGraph, fixed: FixedPoses | None = None) -> FixedPoses:

@@ -84,7 +84,7 @@ from jax import lax
 from scipy import integrate, optimize, special
 
 from .._core.pose_graph import PoseGraph, Poses
-from .._core.precision import default_float_dtype
+from .._core.precision import default_float_dtype, to_device
 
 __all__ = [
     "SyntheticDataset",
@@ -534,7 +534,7 @@ def lattice_dataset(
         I, J, Rmeas, tmeas, np.full(m, kap_w), np.full(m, tau_w), num_poses=num_poses, dtype=dtype
     )
     fdt = np.dtype(dtype or default_float_dtype())
-    gt = Poses(jax.device_put(np.asarray(Rgt, fdt)), jax.device_put(np.asarray(tgt, fdt)))
+    gt = Poses(to_device(Rgt, fdt), to_device(tgt, fdt))
     if name is None:
         name = f"{'cube' if dim == 3 else 'grid2d'}_seed{seed}"
     return SyntheticDataset(name=name, graph=graph, ground_truth=gt, sigma_t=float(sigma_t),

@@ -26,13 +26,13 @@ import functools
 from collections.abc import Callable
 from pathlib import Path
 
-import jax
 import numpy as np
 import scipy.sparse as sp
 
 from .._core.gauge import FixedPoses, anchor_poses, anchor_set
 from .._core.geometry import project_to_so
 from .._core.pose_graph import HostPoses, PoseGraph, Poses, assemble_edge_blocks, edge_blocks
+from .._core.precision import to_device
 from .._core.sparse import block_order, pose_order, solve_spd
 
 __all__ = [
@@ -210,7 +210,7 @@ def _project_np(R: np.ndarray) -> np.ndarray:
 def _poses(graph: PoseGraph, R: np.ndarray, t: np.ndarray) -> Poses:
     """Host arrays as the graph's dtype, on the device (a transfer, no JAX dispatch)."""
     dt = _float_dtype(graph)
-    return Poses(jax.device_put(np.asarray(R, dt)), jax.device_put(np.asarray(t, dt)))
+    return Poses(to_device(R, dt), to_device(t, dt))
 
 
 def chordal_initialization(graph: PoseGraph, fixed: FixedPoses | None = None, *,

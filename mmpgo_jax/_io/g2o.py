@@ -94,13 +94,12 @@ import re
 import warnings
 from dataclasses import dataclass
 
-import jax
 import numpy as np
 
 from .._core.gauge import FixedPoses
 from .._core.geometry import angle_2d, rotation_to_quaternion
 from .._core.pose_graph import PoseGraph, Poses
-from .._core.precision import default_float_dtype
+from .._core.precision import default_float_dtype, to_device
 from .atomic import atomic_write
 
 __all__ = [
@@ -1103,7 +1102,7 @@ def _build(spath: str, p: _Parsed, fdt) -> G2OFile:
         np.minimum.at(vertex_line, k, np.asarray(vg.lines, dtype=np.int64))
     initial = None
     if has_vertex.all():
-        initial = Poses(jax.device_put(vertex_R.astype(fdt)), jax.device_put(vertex_t.astype(fdt)))
+        initial = Poses(to_device(vertex_R, fdt), to_device(vertex_t, fdt))
     return G2OFile(
         path=spath,
         dim=dim,

@@ -247,8 +247,10 @@ def gamma_couplings(edges: RobotEdges) -> int:
     return max(int(2 * np.bincount(robot[rest], minlength=A).max(initial=0)), 1)
 
 
-def build_gamma_operator(edges: RobotEdges, xi: float, n_max: int, *, min_couplings: int = 0) -> GammaOperator:
-    """Assemble the batched block-sparse Gamma^alpha of every robot from its incident edges (host)."""
+def build_gamma_operator(edges: RobotEdges, xi: float, n_max: int, *, min_couplings: int = 0,
+                         host: bool = False) -> GammaOperator:
+    """Assemble the batched block-sparse Gamma^alpha of every robot from its incident edges (on the
+    host; ``host=True`` keeps its arrays there, as NumPy, for a caller that converts them anyway)."""
     A, e_max = np.asarray(edges.kappa).shape
     d = np.asarray(edges.t).shape[-1]
     kappa = np.asarray(edges.kappa, np.float64).reshape(-1)
@@ -281,13 +283,9 @@ def build_gamma_operator(edges: RobotEdges, xi: float, n_max: int, *, min_coupli
     blk = np.where(transposed[..., None, None], np.swapaxes(Hij[flat], -1, -2), Hij[flat])
     blk[~valid] = 0.0
     fdt = np.asarray(edges.kappa).dtype
-    return GammaOperator(
-        diag=to_device(diag, fdt),
-        band=to_device(band, fdt),
-        src=to_device(src, np.int32),
-        dst=to_device(dst, np.int32),
-        blocks=to_device(blk, fdt),
-    )
+    put = np.asarray if host else to_device
+    return GammaOperator(diag=put(diag, fdt), band=put(band, fdt), src=put(src, np.int32), dst=put(dst, np.int32),
+                         blocks=put(blk, fdt))
 
 
 def _edge_slots(edges: RobotEdges):
@@ -452,14 +450,14 @@ def gamma_to_soa(gamma: GammaOperator) -> GammaSoA:
 
 
 def host_soa(gamma: GammaOperator) -> GammaSoA:
-    """:func:`gamma_to_soa` of a batched operator, computed with numpy on the host (set-up runs once:
-    op-by-op JAX would compile every transposition)."""
+    """:func:`gamma_to_soa` of a batched operator (NumPy or device arrays), computed with numpy on
+    the host (set-up runs once: op-by-op JAX would compile every transposition)."""
     def soa(x):
         return to_device(np.moveaxis(np.asarray(x), -3, -1))
 
     band = np.asarray(gamma.band)
-    return GammaSoA(diag=soa(gamma.diag), band=soa(band), band_T=soa(np.swapaxes(band, -1, -2)), src=gamma.src,
-                    dst=gamma.dst, blocks=soa(gamma.blocks))
+    return GammaSoA(diag=soa(gamma.diag), band=soa(band), band_T=soa(np.swapaxes(band, -1, -2)),
+                    src=to_device(gamma.src), dst=to_device(gamma.dst), blocks=soa(gamma.blocks))
 
 
 def soa_to_gamma(gamma: GammaSoA) -> GammaOperator:

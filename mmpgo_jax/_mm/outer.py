@@ -250,7 +250,7 @@ class MMProblem(eqx.Module):
         if preconditioner == "two-level" and poses is None:
             raise ValueError("MMProblem.build: the two-level preconditioner is made of the start poses: "
                              "give poses=partition.scatter(X0) (or preconditioner='block-jacobi')")
-        gamma = build_gamma_operator(partition.edges, xi, partition.max_poses, min_couplings=min_couplings)
+        gamma = build_gamma_operator(partition.edges, xi, partition.max_poses, min_couplings=min_couplings, host=True)
         soa = host_soa(gamma)
         dtype = soa.diag.dtype
         if aggregate is None and config is not None:
