@@ -11,8 +11,9 @@ one recording per machine fingerprint (``machine_fingerprint``), all from the sa
 recording of this machine's fingerprint the check is bit for bit (every f as hex, a SHA-256 of all
 final poses). Without one it compares with the closest recording (``fingerprint_distance``) to a
 tolerance instead, f's history and 64 stored final poses plus the sums of R and t over all poses, and
-says so in a warning and in any failure message (add the machine: make_solve_reference.py run on the
-recordings' commit). The tolerances (``CROSS_MACHINE``) come from the spread measured across machines:
+says so in any failure message (add the machine: make_solve_reference.py run on the recordings'
+commit); it warns of nothing, a pass within a stated tolerance being a pass on any CPU. The
+fingerprint includes NumPy's BLAS kernel (OPENBLAS_CORETYPE changes it on one CPU). The tolerances (``CROSS_MACHINE``) come from the spread measured across machines:
 MIT to 1e-9 (AMM, the default run's case) and 1e-8 (MM) where the spread is below 5e-10; sphere2500
 from the identity rotations amplifies rounding to 4e-4 relative after iteration 15, so off the
 recorded machines its first 15 iterations are held to 1e-6 and the rest only to 1e-2.
@@ -22,7 +23,6 @@ against the closest recording on every machine (spread across machines below 5e-
 """
 
 import sys
-import warnings
 from pathlib import Path
 
 import numpy as np
@@ -104,16 +104,13 @@ def test_solve_bit_for_bit_from_a_fixed_start(case, benchmark_file):
         assert poses_digest(res.poses) == case["poses_sha256"], f"recording of commit {EXACT['commit']}"
         return
     note = _tolerance_note(case)
-    warnings.warn(note, stacklevel=1)
     f_rtol, head, pose_tol = CROSS_MACHINE.get((case["file"], case["method"]), (1e-9, None, 1e-9))
     f, f_ref = np.asarray(res.history.f), _unhex(case["f"])
     assert f.shape == f_ref.shape, note
     if head is not None:
         np.testing.assert_allclose(f[:head[0]], f_ref[:head[0]], rtol=head[1], err_msg=note)
     np.testing.assert_allclose(f, f_ref, rtol=f_rtol, err_msg=note)
-    if "poses_probe" not in case:
-        warnings.warn("that recording stores no pose probes: the final poses went unchecked", stacklevel=1)
-        return
+    assert "poses_probe" in case, "the closest recording stores no pose probes: record this machine"
     idx, rows_ref, sums_ref = probe_arrays(case["poses_probe"])
     _, rows, sums = probe_arrays(poses_probe(res.poses))
     assert rows.shape == rows_ref.shape and np.array_equal(idx, probe_indices(len(res.poses.t))), note

@@ -86,15 +86,30 @@ def _cpu() -> tuple[str | None, list[str] | None]:
     return None, None
 
 
+def _blas_kernels() -> list[str] | None:
+    """NumPy's BLAS and the kernel family it runs (threadpoolctl's ``architecture``: OpenBLAS picks
+    it per CPU, and OPENBLAS_CORETYPE overrides it: on one AMD Zen 4 machine the SkylakeX and Zen
+    kernels give different last bits), sorted; None when threadpoolctl cannot tell."""
+    try:
+        from threadpoolctl import threadpool_info
+    except ImportError:
+        return None
+    blas = [f"{i.get('internal_api')} {i.get('version')} {i.get('architecture')}" for i in threadpool_info()
+            if i.get("user_api") == "blas"]
+    return sorted(blas) or None
+
+
 def machine_fingerprint() -> dict:
     """What decides the solver's last bits besides the code: CPU architecture, model and SIMD flags,
-    the XLA ISA cap (``--xla_cpu_max_isa`` in XLA_FLAGS, if set), jax, jaxlib and NumPy versions."""
+    the XLA ISA cap (``--xla_cpu_max_isa`` in XLA_FLAGS, if set), NumPy's BLAS kernels, jax, jaxlib
+    and NumPy versions. A recording made before a field existed has it unknown, so it never matches
+    exactly (the tolerance comparison applies until this machine is recorded again)."""
     import jaxlib
 
     cpu, flags = _cpu()
     isa = re.search(r"--xla_cpu_max_isa=(\S+)", os.environ.get("XLA_FLAGS", ""))
     return {"arch": platform.machine(), "cpu": cpu, "cpu_simd": flags,
-            "xla_cpu_max_isa": isa.group(1) if isa else "not set",
+            "xla_cpu_max_isa": isa.group(1) if isa else "not set", "blas": _blas_kernels(),
             "jax": jax.__version__, "jaxlib": jaxlib.__version__, "numpy": np.__version__}
 
 
