@@ -31,6 +31,8 @@ from importlib import resources
 from pathlib import Path
 from types import MappingProxyType
 
+from .._core.messages import join_items
+
 __all__ = [
     "BENCHMARKS",
     "ENV_VAR",
@@ -242,6 +244,15 @@ def _where(directory: Path | None, explicit) -> str:
     return f"searched {directory} ({how}{state})"
 
 
+def _holds(directory: Path | None) -> str:
+    """What the data folder holds: " (it holds a.g2o, b.g2o and 9 more)", or "" if it is not there."""
+    try:
+        files = sorted((p.name for p in directory.iterdir() if p.suffix.lower() == ".g2o"), key=str.lower)
+    except (AttributeError, OSError):  # no folder configured, or not readable
+        return ""
+    return f" (it holds {join_items(files, 70)})" if files else " (it holds no .g2o file)"
+
+
 def names_a_path(query: str | os.PathLike) -> bool:
     """Whether a file argument is a path (and nothing else) rather than a benchmark name.
 
@@ -307,9 +318,9 @@ def _find_in_data(query: str, data: str | os.PathLike | None) -> Path:
                f"Source: {source}" + (" (not available here)." if info.availability == "unavailable"
                                       else ".")]
     else:
-        known = ", ".join(sorted(BENCHMARKS, key=str.lower))
-        msg = [f"{query!r} is neither a file here nor a registered benchmark: {_where(directory, data)};",
-               f"registered: {known}."]
+        registered = join_items(sorted(BENCHMARKS, key=str.lower), 70)
+        msg = [f"{query!r} is neither a file here nor a registered benchmark: {_where(directory, data)}"
+               f"{_holds(directory)}; registered: {registered}."]
     raise DatasetNotFoundError(" ".join(msg))
 
 

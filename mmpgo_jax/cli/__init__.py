@@ -33,6 +33,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .._core.messages import shorten_words
+
 
 class CLIError(Exception):
     """An error to report to the user without a traceback."""
@@ -56,11 +58,12 @@ def _shorten(text: str, limit: int) -> str:
 
 def one_line(message, limit: int = MAX_MESSAGE) -> str:
     """``message`` as one line of at most ``limit`` characters: whitespace runs (newlines included)
-    become one space, control characters '?', words longer than :data:`MAX_TOKEN` and then the
-    whole text are shortened in the middle with "…"."""
+    become one space, control characters '?', words longer than :data:`MAX_TOKEN` are shortened in
+    the middle with "…", and then whole words are dropped from the middle of the text (never a cut
+    inside a name)."""
     text = str(message)
     words = [_shorten(_CONTROL.sub("?", w), MAX_TOKEN) for w in text.split()]
-    return _shorten(" ".join(words), limit)
+    return shorten_words(" ".join(words), limit)
 
 
 def print_error(message) -> None:
@@ -123,6 +126,36 @@ class _Parser(argparse.ArgumentParser):
     def error(self, message):
         print_error(f"{message} (see '{self.prog} --help')")
         self.exit(2)
+
+    def parse_args(self, args=None, namespace=None):
+        """As argparse's, but an unknown option is reported by the command it was given to, with
+        the closest option that command has (``--iters``: did you mean ``--iterations``?)."""
+        parsed, extra = self.parse_known_args(args, namespace)
+        if extra:
+            command = self._command_parser(getattr(parsed, "command", None))
+            print_error(f"unrecognized argument{'s' if len(extra) > 1 else ''} {' '.join(extra)}"
+                        f"{_suggestion(extra, command)} (see '{command.prog} --help')")
+            self.exit(2)
+        return parsed
+
+    def _command_parser(self, command: str | None) -> argparse.ArgumentParser:
+        for action in self._actions:
+            if isinstance(action, argparse._SubParsersAction) and command in action.choices:
+                return action.choices[command]
+        return self
+
+
+def _suggestion(extra: list[str], parser: argparse.ArgumentParser) -> str:
+    """" (did you mean --x?)" for the first unknown option that is close to one of ``parser``'s."""
+    import difflib
+
+    options = [o for o in parser._option_string_actions if o.startswith("--")]
+    for word in extra:
+        if word.startswith("--"):
+            close = difflib.get_close_matches(word.partition("=")[0], options, n=1, cutoff=0.6)
+            if close:
+                return f" (did you mean {close[0]}?)"
+    return ""
 
 
 def _range_text(low, high, *, strict_low: bool = False) -> str:
