@@ -2,8 +2,10 @@
 
 Everything is drawn on :class:`matplotlib.figure.Figure` objects with an explicit Agg canvas, so
 importing this module neither imports :mod:`matplotlib.pyplot` nor switches the process-wide
-backend (a Jupyter session keeps its own).  PNG files are rendered into memory and written with
-:func:`~mmpgo_jax._io.atomic.atomic_write`, so a reader never sees a half-written image.
+backend (a Jupyter session keeps its own).  Files are written in the format their extension
+names (any matplotlib writes: png, jpg, pdf, svg, ...; :func:`check_figure_path` refuses the
+others), rendered into memory and written with :func:`~mmpgo_jax._io.atomic.atomic_write`, so a
+reader never sees a half-written image.
 
 Objective values are f = 2F (the paper's Tables I/II, docs/conventions.md §2).  Relative suboptimality is
 (f - f*)/f*; values <= 0 (an iterate at or below the reference f*, which happens when f* is itself
@@ -13,8 +15,10 @@ decade below the smallest positive value, which the axis label says.
 
 from __future__ import annotations
 
+import functools
 import io
 import math
+import os
 from collections.abc import Mapping
 from typing import Any
 
@@ -28,12 +32,17 @@ from .._io.atomic import atomic_write
 
 __all__ = [
     "RELATIVE_FLOOR",
+    "check_figure_path",
+    "draw_trajectory",
     "plot_convergence",
     "plot_trajectory",
     "printed_half_unit",
     "robot_colors",
     "save_convergence_figure",
+    "save_figure",
     "save_solve_figure",
+    "solve_figure",
+    "solve_start",
 ]
 
 RELATIVE_FLOOR = 1e-12  # lowest level at which (f - f*)/f* <= 0 is drawn on the log axis
@@ -52,9 +61,44 @@ def _new_figure(figsize) -> Figure:
     return fig
 
 
-def _save_png(fig: Figure, path, dpi: int = 120) -> None:
+@functools.cache
+def _write_error(fmt: str) -> str | None:
+    """Why matplotlib cannot write ``fmt`` here (None: it can), found by rendering a small figure
+    with text: some formats need an outside tool (pgf: a LaTeX installation) that the list of
+    supported extensions does not check.  Cached: one probe per format and process."""
+    probe = _new_figure((1, 1))
+    probe.text(0.5, 0.5, "f*")
+    try:
+        probe.savefig(io.BytesIO(), format=fmt)
+    except Exception as err:  # whatever the backend raises (RuntimeError, OSError, ...) means "not here"
+        return str(err)
+    return None
+
+
+def check_figure_path(path, what: str = "figure") -> str:
+    """The format a figure is written to ``path`` in: its extension (any matplotlib writes, e.g.
+    png, jpg, pdf, svg), or png for a name without one.  Raises ValueError, one line starting
+    with ``what`` and ``path`` (e.g. "--plot x.xyz: ..."), for an extension matplotlib does not
+    know or cannot write here; call it before a long computation whose result it will draw."""
+    ext = os.path.splitext(os.fspath(path))[1][1:].lower()
+    if not ext:
+        return "png"
+    supported = sorted(FigureCanvasAgg.get_supported_filetypes())
+    if ext not in supported:
+        raise ValueError(f"{what} {os.fspath(path)}: unsupported extension '.{ext}' "
+                         f"(matplotlib writes {', '.join(supported)})")
+    reason = _write_error(ext)
+    if reason is not None:
+        raise ValueError(f"{what} {os.fspath(path)}: matplotlib cannot write .{ext} files here: {reason}")
+    return ext
+
+
+def save_figure(fig: Figure, path, dpi: int = 120) -> None:
+    """Write ``fig`` in the format of ``path``'s extension (:func:`check_figure_path`), atomically:
+    rendered into memory first, so that a reader never sees a half-written file."""
+    fmt = check_figure_path(path)
     buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=dpi)
+    fig.savefig(buf, format=fmt, dpi=dpi)
     with atomic_write(path, "wb") as fh:
         fh.write(buf.getvalue())
 
@@ -94,6 +138,13 @@ def _is_3d(ax) -> bool:
 # trajectory
 # --------------------------------------------------------------------------------------------
 
+# Edges other than odometry, drawn thin over the trajectories (under them, the short ones between
+# revisits of a place would be hidden); black for inter-robot edges, which no robot colour
+# (tab10/tab20/turbo) is.  (label, colour, line style, mask key)
+_EDGE_STYLES = (("loop closures", "0.45", "-", "loop"), ("inter-robot edges", "k", "--", "inter"),
+                ("rejected edges", "tab:red", "-", "rejected"))
+_RINGED_EDGES = 100
+
 
 def _draw_segments(ax, segs, three_d: bool, **style):
     """Line segments (k, 2, d) on a 2D or 3D axes."""
@@ -102,99 +153,135 @@ def _draw_segments(ax, segs, three_d: bool, **style):
 
         ax.add_collection3d(Line3DCollection(segs[..., :3], **style))
     else:
-        ax.add_collection(LineCollection(segs[..., :2], **style))
+        ax.add_collection(LineCollection(segs[..., :2], **style), autolim=False)
 
 
-def plot_trajectory(ax, graph, poses, robot_of_pose, *, inter_robot_edges: bool = True, legend: bool = True,
-                    outliers=None):
-    """Draw the positions of ``poses`` as one polyline per robot, coloured by robot.
+def _edge_masks(graph, rop: np.ndarray, outliers) -> dict[str, np.ndarray]:
+    """(m,) masks of the edges drawn as lines: loop closures (same robot, pose indices not
+    consecutive: consecutive ones are the odometry the trajectory line already draws),
+    inter-robot edges and the edges a robust loss rejected (drawn only as those)."""
+    i, j = np.asarray(graph.i), np.asarray(graph.j)
+    rejected = np.zeros(len(i), bool) if outliers is None else np.asarray(outliers, bool)
+    same = rop[i] == rop[j]
+    return {"loop": same & (np.abs(i - j) != 1) & ~rejected, "inter": ~same & ~rejected, "rejected": rejected}
 
-    ``ax`` is a 2D axes for d = 2 and a 3D axes (``projection="3d"``) for d = 3 (a 2D axes with 3D
-    poses shows the x-y top view).  Consecutive pose indices owned by the same robot are joined;
-    inter-robot edges (measurements between poses of different robots) are drawn as thin dashed
-    black lines.  ``outliers`` (m,) bool: edges a robust loss rejected, drawn as thin solid red
-    lines (and not among the inter-robot edges).  The legend lists at most 10 robots (then "…").
-    Axis units are metres.
-    """
-    t = np.asarray(poses.t, dtype=np.float64)
-    n, d = t.shape
-    rop = np.asarray(robot_of_pose).reshape(-1)
-    if rop.shape != (n,):
-        raise ValueError(f"robot_of_pose must have shape ({n},), got {rop.shape}")
-    three_d = _is_3d(ax) and d >= 3
+
+def _coords(t: np.ndarray, idx, three_d: bool) -> tuple:
+    """The x, y (and z on a 3D axes) columns of the positions ``t[idx]``, for ``ax.plot``."""
+    return tuple(t[idx, c] for c in range(3 if three_d else 2))
+
+
+def _draw_edges(ax, graph, t, rop, three_d, *, outliers, shown) -> list[Line2D]:
+    """The edges of the classes in ``shown`` (keys of :func:`_edge_masks`) as thin lines, fainter
+    the more there are (thousands, e.g. city10000's, would hide the trajectory); their legend items.
+    Up to :data:`_RINGED_EDGES` of a class get a small ring at each end too: an edge between two
+    visits of one place is shorter than the trajectory line is wide (MIT's), and the rings still
+    show where it is (more rings would bury the trajectory: sphere2500's 459 inter-robot edges)."""
+    i, j = np.asarray(graph.i), np.asarray(graph.j)
+    masks = _edge_masks(graph, rop, outliers)
+    handles = []
+    for label, color, ls, key in _EDGE_STYLES:
+        k = int(masks[key].sum())
+        if key not in shown or k == 0:
+            continue
+        alpha, lw = (0.8, 0.7) if k < 500 else (0.45, 0.5) if k < 2000 else (0.25, 0.35)
+        segs = np.stack([t[i[masks[key]]], t[j[masks[key]]]], axis=1)
+        _draw_segments(ax, segs, three_d, colors=color, linestyles=ls, linewidths=lw, alpha=alpha, zorder=3)
+        ring = dict(marker="o", ms=3.5, mfc="none", mec=color, mew=0.7) if k <= _RINGED_EDGES else {}
+        if ring:
+            ends = np.unique(np.concatenate([i[masks[key]], j[masks[key]]]))
+            ax.plot(*_coords(t, ends, three_d), ls="", alpha=alpha, zorder=3, **ring)
+        handles.append(Line2D([], [], color=color, ls=ls, lw=0.8, label=f"{label} ({k})", **ring))
+    return handles
+
+
+def _draw_robots(ax, t, rop, three_d) -> list[Line2D]:
+    """One polyline per run of consecutive pose indices of a robot (its odometry chain), coloured
+    by robot, and pose 0 as a black dot; the legend items (robots, then pose 0)."""
     robots = np.unique(rop)
     colors = robot_colors(int(robots.max()) + 1 if len(robots) else 0)
-    lw = 1.2 if n < 2000 else 0.8
-
+    lw = 1.2 if len(t) < 2000 else 0.8
     handles = []
     for a in robots:
         idx = np.flatnonzero(rop == a)
         for run in _runs(idx):
-            if len(run) == 1:
-                pts = t[run]
-                if three_d:
-                    ax.plot(pts[:, 0], pts[:, 1], pts[:, 2], ".", color=colors[a], ms=5)
-                else:
-                    ax.plot(pts[:, 0], pts[:, 1], ".", color=colors[a], ms=5)
-            elif three_d:
-                ax.plot(t[run, 0], t[run, 1], t[run, 2], "-", color=colors[a], lw=lw)
-            else:
-                ax.plot(t[run, 0], t[run, 1], "-", color=colors[a], lw=lw)
-        label = f"robot {a} ({len(idx)} pose{'' if len(idx) == 1 else 's'})"
-        handles.append(Line2D([], [], color=colors[a], lw=2, label=label))
-
-    # start pose
+            ax.plot(*_coords(t, run, three_d), "." if len(run) == 1 else "-", color=colors[a], lw=lw, ms=5, zorder=2)
+        poses = f"{len(idx)} pose{'s' * (len(idx) != 1)}"
+        handles.append(Line2D([], [], color=colors[a], lw=2, label=f"robot {a} ({poses})"))
     if three_d:
-        ax.scatter(t[:1, 0], t[:1, 1], t[:1, 2], marker="o", s=30, color="k", zorder=5)
+        ax.scatter(*_coords(t, slice(0, 1), three_d), marker="o", s=30, color="k", zorder=5)
     else:
-        ax.plot(t[:1, 0], t[:1, 1], "o", color="k", ms=5, zorder=5)
-    start = Line2D([], [], marker="o", color="k", ls="", ms=5, label="pose 0")
+        ax.plot(*_coords(t, slice(0, 1), three_d), "o", color="k", ms=5, zorder=5)
+    return [*handles, Line2D([], [], marker="o", color="k", ls="", ms=5, label="pose 0")]
 
-    inter_handle = outlier_handle = None
-    rejected = np.zeros(0 if graph is None else graph.num_edges, bool) if outliers is None else np.asarray(outliers)
-    if inter_robot_edges and graph is not None:
-        i = np.asarray(graph.i)
-        j = np.asarray(graph.j)
-        inter = (rop[i] != rop[j]) & ~rejected
-        k = int(inter.sum())
-        if k:
-            # many inter-robot edges (e.g. city10000) would hide the trajectory: draw them fainter
-            alpha, ew = (0.6, 0.5) if k < 500 else (0.35, 0.5) if k < 2000 else (0.2, 0.3)
-            _draw_segments(ax, np.stack([t[i[inter]], t[j[inter]]], axis=1), three_d, colors="k", linestyles="--",
-                           linewidths=ew, alpha=alpha)
-            inter_handle = Line2D([], [], color="k", ls="--", lw=0.8, label=f"inter-robot edges ({k})")
-    if graph is not None and rejected.any():
-        i, j = np.asarray(graph.i)[rejected], np.asarray(graph.j)[rejected]
-        _draw_segments(ax, np.stack([t[i], t[j]], axis=1), three_d, colors="tab:red", linewidths=0.5, alpha=0.5)
-        outlier_handle = Line2D([], [], color="tab:red", lw=0.8, label=f"rejected edges ({int(rejected.sum())})")
 
-    ax.set_xlabel("x [m]")
+def _fit_axes(ax, t, three_d) -> None:
+    """Limits from the positions with a small margin, equal scale on every axis; 3D poses on a 2D
+    axes are seen from above, which the x label says."""
+    ax.set_xlabel("x [m]" if three_d or t.shape[1] < 3 else "x [m]   (x-y top view of the 3D poses)")
     ax.set_ylabel("y [m]")
     if three_d:
         ax.set_zlabel("z [m]")
-        # true proportions, except that no axis is squashed below 30% of the longest one
         lo, hi = t.min(0)[:3], t.max(0)[:3]
         span = hi - lo
+        # true proportions, except that no axis is squashed below 30% of the longest one
         span = np.maximum(span * 1.04, 0.3 * span.max()) if span.max() > 0 else np.ones(3)
         mid = 0.5 * (lo + hi)
         ax.set_xlim(mid[0] - span[0] / 2, mid[0] + span[0] / 2)
         ax.set_ylim(mid[1] - span[1] / 2, mid[1] + span[1] / 2)
         ax.set_zlim(mid[2] - span[2] / 2, mid[2] + span[2] / 2)
         ax.set_box_aspect(tuple(span), zoom=0.9)
-    else:
-        ax.set_aspect("equal", adjustable="datalim")
-        ax.grid(True, lw=0.3, alpha=0.5)
+        return
+    # autoscaled to the positions (the lines drawn) with a small margin; fixed limits would fight the
+    # equal aspect, which widens the shorter side to the box's shape
+    ax.margins(0.03)
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.grid(True, lw=0.3, alpha=0.5)
 
-    if legend:
-        shown = handles
-        if len(handles) > MAX_LEGEND_ROBOTS:
-            rest = len(handles) - (MAX_LEGEND_ROBOTS - 1)
-            shown = [*handles[:MAX_LEGEND_ROBOTS - 1], Line2D([], [], ls="", label=f"… (+{rest} more robots)")]
-        extra = [start] + [h for h in (inter_handle, outlier_handle) if h is not None]
-        items = shown + extra
-        # below the axes, so that it never hides the trajectory
-        ax.legend(handles=items, fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.06 if three_d else -0.1),
-                  ncol=min(4, len(items)), framealpha=0.85)
+
+def _legend_items(handles: list[Line2D]) -> list[Line2D]:
+    """Robots first, at most :data:`MAX_LEGEND_ROBOTS` of them (then "…"), then the rest."""
+    robots = [h for h in handles if h.get_label().startswith("robot ")]
+    rest = [h for h in handles if h not in robots]
+    if len(robots) > MAX_LEGEND_ROBOTS:
+        more = len(robots) - (MAX_LEGEND_ROBOTS - 1)
+        robots = [*robots[: MAX_LEGEND_ROBOTS - 1], Line2D([], [], ls="", label=f"… (+{more} more robots)")]
+    return robots + rest
+
+
+def draw_trajectory(ax, graph, poses, robot_of_pose, *, inter_robot_edges: bool = True,
+                    loop_closures: bool = True, outliers=None) -> list[Line2D]:
+    """:func:`plot_trajectory` without the legend; returns its items (for a legend of its own)."""
+    t = np.asarray(poses.t, dtype=np.float64)
+    rop = np.asarray(robot_of_pose).reshape(-1)
+    if rop.shape != (len(t),):
+        raise ValueError(f"robot_of_pose must have shape ({len(t)},), got {rop.shape}")
+    three_d = _is_3d(ax) and t.shape[1] >= 3
+    handles = _draw_robots(ax, t, rop, three_d)
+    if graph is not None:
+        shown = {"rejected"} | ({"inter"} if inter_robot_edges else set()) | ({"loop"} if loop_closures else set())
+        handles += _draw_edges(ax, graph, t, rop, three_d, outliers=outliers, shown=shown)
+    _fit_axes(ax, t, three_d)
+    return _legend_items(handles)
+
+
+def plot_trajectory(ax, graph, poses, robot_of_pose, *, inter_robot_edges: bool = True, legend: bool = True,
+                    outliers=None, loop_closures: bool = True):
+    """Draw the positions of ``poses`` as one polyline per robot, coloured by robot.
+
+    ``ax`` is a 2D axes for d = 2 and a 3D axes (``projection="3d"``) for d = 3 (a 2D axes with 3D
+    poses shows the x-y top view, and its x label says so).  Consecutive pose indices owned by the
+    same robot are joined (the odometry); the other edges of ``graph`` are thin lines over them
+    (with rings at their ends when there are few): loop closures (within a robot) grey,
+    inter-robot edges (measurements between poses of different robots) dashed black.  ``outliers``
+    (m,) bool: edges a robust loss rejected, drawn as thin red lines (and not among the others).
+    The legend, below the axes, lists at most 10 robots (then "…").  Axis units are metres; limits fit the positions.
+    """
+    handles = draw_trajectory(ax, graph, poses, robot_of_pose, inter_robot_edges=inter_robot_edges,
+                              loop_closures=loop_closures, outliers=outliers)
+    if legend:  # below the axes, so that it never hides the trajectory
+        ax.legend(handles=handles, fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.06 if _is_3d(ax) else -0.1),
+                  ncol=min(4, len(handles)), framealpha=0.85)
     return ax
 
 
@@ -256,6 +343,15 @@ def _reference_series(label, ks, fs, last, fstar, floor, relative, digits):
     return label, name, ks, y, yerr
 
 
+def _draw_tolerances(ax) -> None:
+    """The 1e-2 / 1e-3 / 1e-4 levels of (f − f*)/f*, each labelled at its left end, where the
+    curves, which start high, seldom are."""
+    for tol in _TOLERANCES:
+        ax.axhline(tol, color="0.5", lw=0.7, ls=":", zorder=0)
+        ax.text(0.01, tol, f"{tol:.0e}".replace("e-0", "e-"), transform=ax.get_yaxis_transform(), ha="left",
+                va="bottom", fontsize=8, color="0.3", bbox=dict(fc="white", ec="none", alpha=0.7, pad=0.5))
+
+
 def plot_convergence(
     ax,
     histories: Mapping[str, Any],
@@ -268,7 +364,8 @@ def plot_convergence(
 ):
     """Plot convergence curves on ``ax``, one per ``label -> History`` (or f array) in ``histories``.
 
-    * ``fstar`` given, ``relative=True``: (f - f*)/f* on a log axis, with the 1e-2/1e-3/1e-4 levels;
+    * ``fstar`` given, ``relative=True``: (f - f*)/f* on a log axis, with the 1e-2/1e-3/1e-4 levels
+      (labelled; ``tolerances=False``: without them);
     * ``fstar`` given, ``relative=False``: f - f* on a log axis;
     * ``fstar`` None: f itself (log axis when all values are positive).
 
@@ -331,8 +428,7 @@ def plot_convergence(
         if relative:
             ax.set_ylabel("relative suboptimality (f − f*) / f*" + floor_note)
             if tolerances:
-                for tol in _TOLERANCES:
-                    ax.axhline(tol, color="0.6", lw=0.6, ls=":", zorder=0)
+                _draw_tolerances(ax)
         else:
             ax.set_ylabel("suboptimality f − f*" + floor_note)
     ax.grid(True, which="major", lw=0.3, alpha=0.5)
@@ -351,7 +447,8 @@ def save_convergence_figure(
     fstar_label: str | None = None,
     printed_digits: int | None = None,
 ) -> None:
-    """PNG comparing convergence curves (e.g. MM vs AMM): f − f* and (f − f*)/f*, log scale.
+    """A figure comparing convergence curves (e.g. MM vs AMM): f − f* and (f − f*)/f*, log scale;
+    in the format of ``path``'s extension (:func:`check_figure_path`).
 
     Without ``fstar`` a single panel shows f.  ``references``, ``printed_digits``: see
     :func:`plot_convergence`.
@@ -377,53 +474,100 @@ def save_convergence_figure(
         sup = f"{title}  —  {fstar_label}" if title else fstar_label
     if sup:
         fig.suptitle(sup)
-    _save_png(fig, path)
+    save_figure(fig, path)
 
 
-def save_solve_figure(path, graph, result, *, fstar: float | None = None, title: str = "",
-                      fstar_label: str = "f*") -> None:
-    """One PNG for a :class:`~mmpgo_jax.SolveResult`: trajectory (left), convergence (right).
+def solve_start(graph, robot_of_pose, *, init=None, initial=None, fixed=None, frame=None, loss="l2",
+                loss_scale=None, gnc=None, **_solver_options):
+    """The poses a ``solve(graph, robot_of_pose, **options)`` starts from, in the frame of its result
+    (``solve`` keeps no copy of its start, so it is computed again: with the default chordal start,
+    one sparse solve).  Takes ``solve``'s keyword arguments; those that do not choose the start
+    (method, iterations, ...) are ignored."""
+    from .._init.start import initialize
+    from .._mm.robust import as_loss
+    from .._mm.solve import output_frame, start_for
 
-    Left: the estimate's positions coloured by robot (top view for 2D, 3D axes for 3D) with the
-    inter-robot edges, and in red the edges a robust loss rejected.  Right: f vs iteration and,
-    when ``fstar`` is given, (f − f*)/f* below it.
-    ``fstar_label`` names the reference in the legend and the gap's title (e.g. "certified f*",
-    :attr:`~mmpgo_jax.FStarReference.label`).
-    """
-    d = int(np.asarray(result.poses.t).shape[-1])
-    rop = np.asarray(result.partition.robot_of_pose)
-    fig = _new_figure((13, 6.2))
-    gs = fig.add_gridspec(2, 2, width_ratios=(1.25, 1.0))
-    if d >= 3:
-        import mpl_toolkits.mplot3d  # noqa: F401  (registers the 3d projection)
+    method, options = start_for(init, as_loss(loss, loss_scale, gnc))
+    start = initialize(graph, method, initial=initial, robots=np.asarray(robot_of_pose), fixed=fixed, **options)
+    return output_frame(start, fixed, frame)
 
-        ax_t = fig.add_subplot(gs[:, 0], projection="3d")
-    else:
-        ax_t = fig.add_subplot(gs[:, 0])
-    plot_trajectory(ax_t, graph, result.poses, rop, outliers=getattr(result, "outliers", None))
+
+def _benchmark_name(name: str, graph) -> str:
+    """``name`` (a file name) with the registered benchmark's name, e.g. "MITb (MIT.g2o)", when the
+    registry knows the file and the graph has its size; ``name`` itself otherwise."""
+    from .._io.datasets import benchmark_info
+
+    info = benchmark_info(name) if name else None
+    if info is None or info.num_poses != graph.num_poses:
+        return name
+    return info.name if info.name.lower() == os.path.splitext(os.path.basename(name))[0].lower() \
+        else f"{info.name} ({name})"
+
+
+def _method_label(result) -> str:
     cfg = getattr(result, "config", None)
-    method = f"{cfg.method.upper()}-PGO" if cfg is not None else "estimate"
-    A = getattr(result.partition, "num_robots", len(np.unique(rop)))
-    ax_t.set_title(f"{method} estimate, {A} robots, {result.poses.t.shape[0]} poses")
+    if cfg is None:
+        return "estimate"
+    method = f"{cfg.method.upper()}-PGO"
+    return method if cfg.method != "amm" else f"{method} (restart={cfg.restart})"
 
-    label = method if cfg is None or cfg.method != "amm" else f"{method} (restart={cfg.restart})"
+
+def _fit_gap_limits(ax, f: np.ndarray, fstar: float) -> None:
+    """y limits of the relative gap panel: the curve and the three tolerance levels, with room."""
+    g = _raw_gap(f, fstar, True)
+    g = np.maximum(g, _floor([g], fstar, True))
+    lo, hi = min(float(g.min()), _TOLERANCES[-1]), max(float(g.max()), _TOLERANCES[0])
+    ax.set_ylim(lo / 3, hi * 3)
+
+
+def _convergence_panel(ax, result, fstar, fstar_label) -> None:
+    """(f − f*)/f* against the iteration, with the tolerance levels; f itself without ``fstar``."""
     f = _f_array(result)
-    ax_f = fig.add_subplot(gs[:, 1]) if fstar is None else fig.add_subplot(gs[0, 1])
-    plot_convergence(ax_f, {label: f}, None)
-    ax_f.set_yscale("linear")
-    if fstar is not None:
-        ax_f.axhline(fstar, color="k", ls="--", lw=0.8, label=f"{fstar_label} = {fstar:.10g}")
-        ax_f.legend(fontsize=8, loc="best")
-        lo = min(float(fstar), float(f.min()))
-        hi = float(f.max())
-        pad = 0.05 * (hi - lo if hi > lo else max(abs(hi), 1.0))
-        ax_f.set_ylim(lo - pad, hi + pad)
-    ax_f.set_title(f"objective f = 2F: {f[0]:.6g} → {f[-1]:.6g} in {len(f) - 1} iterations")
-    if fstar is not None:
-        ax_g = fig.add_subplot(gs[1, 1], sharex=ax_f)
-        plot_convergence(ax_g, {label: f}, fstar, relative=True)
-        gap = (f[-1] - fstar) / abs(fstar)
-        ax_g.set_title(f"relative gap to the {fstar_label} after {len(f) - 1} iterations: {gap:.3e}")
-    if title:
-        fig.suptitle(title)
-    _save_png(fig, path)
+    plot_convergence(ax, {_method_label(result): f}, fstar, relative=True)
+    k = len(f) - 1
+    if fstar is None:
+        ax.set_title(f"objective f = 2F: {f[0]:.6g} → {f[-1]:.6g} in {k} iterations\n(no reference f* for this file)",
+                     fontsize=10)
+        return
+    _fit_gap_limits(ax, f, fstar)
+    gap = (f[-1] - fstar) / abs(fstar)
+    ax.set_title(f"relative gap to the {fstar_label} = {fstar:.10g}\n{gap:.3e} after {k} iterations", fontsize=10)
+
+
+def solve_figure(graph, result, *, start=None, fstar: float | None = None, title: str = "",
+                 fstar_label: str = "f*") -> Figure:
+    """The figure of :func:`save_solve_figure` (drawn, not written)."""
+    f = _f_array(result)
+    rop = np.asarray(result.partition.robot_of_pose)
+    panels = [("start", start, f[0])] if start is not None else []
+    panels.append(("result", result.poses, f[-1]))
+    fig = _new_figure((5.6 * len(panels) + 5.8, 6.4))
+    gs = fig.add_gridspec(1, len(panels) + 1)
+    outliers = getattr(result, "outliers", None)
+    for col, (name, poses, value) in enumerate(panels):
+        ax = fig.add_subplot(gs[0, col])
+        handles = draw_trajectory(ax, graph, poses, rop, outliers=outliers)
+        ax.set_title(f"{name}: f = {value:.7g}", fontsize=10)
+    _convergence_panel(fig.add_subplot(gs[0, -1]), result, fstar, fstar_label)
+    fig.legend(handles=handles, loc="outside lower center", ncol=min(7, len(handles)), fontsize=8, framealpha=0.85)
+    A = getattr(result.partition, "num_robots", len(np.unique(rop)))
+    sub = f"{_method_label(result)}, {A} robots, {graph.num_poses} poses, {graph.num_edges} edges"
+    head = _benchmark_name(title, graph)
+    fig.suptitle(f"{head}\n{sub}" if head else sub)
+    return fig
+
+
+def save_solve_figure(path, graph, result, *, start=None, fstar: float | None = None, title: str = "",
+                      fstar_label: str = "f*") -> None:
+    """One figure of a :class:`~mmpgo_jax.SolveResult`, written in the format of ``path``'s
+    extension (:func:`check_figure_path`: png, jpg, pdf, svg, ...).
+
+    Side by side: the ``start`` poses (when given, e.g. :func:`solve_start`), the result, both
+    coloured by robot with the loop closures, the inter-robot edges and, in red, the edges a robust
+    loss rejected (2D: the plane; 3D: the x-y top view); then (f − f*)/f* against the iteration
+    with the 1e-2 / 1e-3 / 1e-4 levels when ``fstar`` is given, else f.  ``fstar_label`` names the
+    reference (e.g. "certified f*", :attr:`~mmpgo_jax.FStarReference.label`).  ``title``: the
+    file's name (the registered benchmark's name is added when the registry knows it) or any text.
+    """
+    check_figure_path(path)  # before drawing
+    save_figure(solve_figure(graph, result, start=start, fstar=fstar, title=title, fstar_label=fstar_label), path)
