@@ -33,6 +33,13 @@ processes' devices, each process materializes only its own robots' arrays, and e
 the gathered result (write files from process 0 only). :func:`run_multiprocess` launches P local
 CPU processes on a loopback coordinator; ``python -m mmpgo_jax.sharding <mmpgo solve arguments>
 --coordinator HOST:PORT --num-processes P --process-id I`` is one process of such a run on any host.
+
+A process that dies ends the run: :func:`run_multiprocess` stops the others as soon as one exits
+with an error or a signal and says which one and how in one line (``ProcessRun.failure``); on
+several hosts a process whose peer is gone fails in its next collective, and JAX's heartbeat
+(``initialize_distributed(heartbeat_timeout_s=30)``) ends the others when a host stops answering
+(docs/scaling.md). ``solve_sharded(..., checkpoint=FILE, resume=FILE)`` saves and continues long
+runs as :func:`mmpgo_jax.solve` does.
 """
 
 

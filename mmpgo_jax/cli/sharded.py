@@ -37,9 +37,16 @@ def add_cli_options(p) -> None:
                    help="CPU devices per process, >= 1 (with JAX_PLATFORMS=cpu)")
     g.add_argument("--timeout", type=finite_float(0.0, strict=True), default=600.0,
                    help="seconds before launched processes are killed, > 0 (default 600)")
+    g.add_argument("--heartbeat-timeout", metavar="S", type=int_in(1, 3600), default=HEARTBEAT_TIMEOUT_S,
+                   help="multi-process runs: a process silent for S seconds is declared dead and the run ends, "
+                        f"1..3600 (default {HEARTBEAT_TIMEOUT_S}; --processes also notices a dead process at once)")
     g.add_argument("--exchange", choices=("halo", "all_gather"), default="halo",
                    help="per-iteration pose exchange between devices: neighbour poses only (default) or all poses")
 
+
+# Defaults of the library, not imported at parse time (see above; tests check they agree):
+HEARTBEAT_TIMEOUT_S = 30  # = mmpgo_jax._distributed.launcher.HEARTBEAT_TIMEOUT_S
+CHECKPOINT_EVERY = 1  # = mmpgo_jax._mm.checkpoint.DEFAULT_EVERY
 
 # A solve splits its robots over the CPU cores (one JAX CPU device each) from this many poses on:
 # measured on this project's 2-core machine (benchmarks/profile_step.md), MIT (808 poses) ran at the
@@ -53,6 +60,27 @@ def add_threads_option(p) -> None:
     p.add_argument("--threads", type=int_in(1), default=None,
                    help="CPU threads: split the robots over this many CPU devices, >= 1 (default: one per core "
                         f"for graphs of {AUTO_THREAD_POSES} poses or more, else 1; ignored on a GPU)")
+
+
+def add_checkpoint_options(p) -> None:
+    """``--checkpoint FILE``, ``--checkpoint-every N`` and ``--resume FILE`` of ``mmpgo solve``."""
+    from . import int_in
+
+    g = p.add_argument_group("checkpoints (long runs)")
+    g.add_argument("--checkpoint", metavar="FILE",
+                   help="write the run's state to FILE (.npz, replaced atomically) every --checkpoint-every chunks")
+    g.add_argument("--checkpoint-every", metavar="N", type=int_in(1), default=CHECKPOINT_EVERY,
+                   help=f"chunks (of --chunk iterations) between checkpoints, >= 1 (default {CHECKPOINT_EVERY})")
+    g.add_argument("--resume", metavar="FILE",
+                   help="continue the run saved in FILE (same input and options; --iterations may be larger); "
+                        "may be the --checkpoint file")
+
+
+def checkpoint_options(args) -> dict:
+    """``solve`` / ``solve_sharded`` keyword arguments of the checkpoint options (none when unset)."""
+    if getattr(args, "checkpoint", None) is None and getattr(args, "resume", None) is None:
+        return {}
+    return dict(checkpoint=args.checkpoint, checkpoint_every=args.checkpoint_every, resume=args.resume)
 
 
 def cpu_cores() -> int:
@@ -106,7 +134,7 @@ def cli_solve(args, argv: Sequence[str] | None = None) -> int:
     import jax
 
     from .._distributed.launcher import initialize_distributed, run_multiprocess
-    from . import CLIError, _resolve_file, check_outputs
+    from . import CLIError, _resolve_file, check_outputs, print_error
 
     if args.process_id in (None, 0):  # the process that writes (or launches the one that does)
         check_outputs(args)
@@ -115,26 +143,96 @@ def cli_solve(args, argv: Sequence[str] | None = None) -> int:
             raise CLIError(f"--processes must be >= 1, got {args.processes}")
         if args.processes > 1:
             _resolve_file(args.file, args.data, announce=False)  # fail before launching; process 0 announces
+            if args.resume is not None and not os.path.isfile(args.resume):
+                raise CLIError(f"checkpoint {args.resume}: no such file")
             argv = list(sys.argv[1:] if argv is None else argv)
+            # every process's stderr is captured (a lost peer makes JAX's runtime abort the others
+            # with C++ stack traces): a failure is reported here in one line
             run = run_multiprocess(argv, args.processes, local_devices=args.local_devices or 1, timeout_s=args.timeout,
-                                   capture=False)
+                                   console=True)
             if run.timed_out:
                 raise CLIError(
                     f"the {args.processes} processes did not finish within {args.timeout:g} s and were stopped"
                 )
-            return max((abs(rc) for rc in run.returncodes), default=0)
+            if run.failure is not None:
+                if sys.stderr.isatty():  # the line of process 0's progress bar, left as it was drawn
+                    sys.stderr.write("\r\x1b[K")
+                print_error(run.failure)
+            return run.exit_status
     if args.num_processes is not None or args.coordinator is not None:
         if args.num_processes is None or args.process_id is None or args.coordinator is None:
             raise CLIError("a multi-process run needs --coordinator HOST:PORT, --num-processes P and --process-id I")
         if not 0 <= args.process_id < args.num_processes:
             raise CLIError(f"--process-id must be between 0 and {args.num_processes - 1}, got {args.process_id}")
         initialize_distributed(args.coordinator, args.num_processes, args.process_id, local_devices=args.local_devices,
-                               timeout_s=max(1, int(min(args.timeout, 600))))
+                               timeout_s=max(1, int(min(args.timeout, 600))),
+                               heartbeat_timeout_s=getattr(args, "heartbeat_timeout", HEARTBEAT_TIMEOUT_S))
+        _sigterm_exits()  # a stopped process still removes its half-written files (atomic_write)
         try:
-            return _cli_solve_sharded(args)
-        finally:
-            jax.distributed.shutdown()
+            status = _cli_solve_sharded(args)
+        except BaseException as exc:  # every way out of a failed process is the same
+            _leave_run(exc)
+        jax.distributed.shutdown()  # waits for the others (process 0 may still be writing)
+        return status
     return _cli_solve_sharded(args)
+
+
+def _leave_run(exc: BaseException):
+    """End this process of a multi-process run after ``exc``: report it as the command line does
+    (one line, or a traceback for an unexpected error) on this process's own stderr, then exit at
+    once. Not through JAX's shutdown barrier, where it would wait (up to the shutdown timeout) for
+    processes that may be waiting in a collective for this one: they notice this one gone instead
+    (the launcher at once, else the heartbeat)."""
+    import traceback
+
+    import jax
+
+    from . import print_error, run_reported
+
+    def again():
+        raise exc
+
+    status = 1
+    with contextlib.redirect_stderr(sys.__stderr__ or sys.stderr):
+        try:
+            if isinstance(exc, SystemExit):
+                status = exc.code if isinstance(exc.code, int) else 1
+            elif isinstance(exc, jax.errors.JaxRuntimeError):  # e.g. a collective whose peer is gone
+                first = next((x for x in str(exc).splitlines() if x.strip()), type(exc).__name__)
+                print_error(f"process {jax.process_index()} of {jax.process_count()}: {first}")
+            else:
+                status = run_reported(again)
+        except BaseException:  # not one of the command line's errors: a traceback
+            traceback.print_exception(exc)
+    for stream in (sys.stdout, sys.stderr, sys.__stderr__):
+        with contextlib.suppress(Exception):
+            stream.flush()
+    os._exit(status)
+
+
+def _sigterm_exits() -> None:
+    """SIGTERM raises SystemExit(143) in this process (the launcher stops its processes so)."""
+    import signal
+
+    def handler(signum, frame):
+        raise SystemExit(128 + signum)
+
+    with contextlib.suppress(ValueError):  # not the main thread
+        signal.signal(signal.SIGTERM, handler)
+
+
+def _console():
+    """The stream a launched process 0 draws its progress bar and warnings on (its own stderr is
+    captured by the launcher), or None."""
+    from .._distributed.launcher import CONSOLE_ENV
+
+    fd = os.environ.pop(CONSOLE_ENV, None)
+    if fd is None:
+        return None
+    try:
+        return os.fdopen(int(fd), "w", buffering=1)
+    except (OSError, ValueError):
+        return None
 
 
 def _cli_solve_sharded(args) -> int:
@@ -203,8 +301,21 @@ def main(argv: Sequence[str] | None = None) -> int:
         import jax
 
         jax.config.update("jax_enable_x64", True)
+    from .._distributed.launcher import die_with_launcher
+
+    die_with_launcher()
+    console = _console()
+
+    def command():
+        if console is None:
+            return cli_solve(args, argv)
+        # the progress bar and warnings on the launcher's terminal; errors (reported after this
+        # block) and the runtime's messages stay in the stderr the launcher captures
+        with contextlib.redirect_stderr(console):
+            return cli_solve(args, argv)
+
     with cli_warnings():
-        return run_reported(lambda: cli_solve(args, argv))
+        return run_reported(command)
 
 
 if __name__ == "__main__":
