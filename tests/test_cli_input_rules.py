@@ -230,6 +230,8 @@ BAD_OPTIONS = [
     (["info", _F, "--robots", "0"], "--robots/-A", ">= 1"),
     (["info", _F, "-A", "x"], "--robots/-A", ">= 1"),
     (["solve", _F, "--robots", "0"], "--robots/-A", ">= 1"),
+    (["solve", _F, "--checkpoint-every", "0"], "--checkpoint-every", ">= 1"),
+    (["solve", _F, "--heartbeat-timeout", "0"], "--heartbeat-timeout", "between 1 and 3600"),
     (["solve", _F, "--iterations", "-1"], "--iterations/-n", "between 0 and"),
     (["solve", _F, "-n", "1.5"], "--iterations/-n", "between 0 and"),
     (["solve", _F, "--iterations", str(2**31)], "--iterations/-n", "between 0 and 2147483647"),
@@ -320,7 +322,7 @@ def _numeric_actions():
 def test_every_numeric_option_is_validated_and_swept():
     """No option parses with a bare int/float, and the sweep above covers every typed option."""
     swept = {(a[0], opt.split("/")[0]) for a, opt, _ in BAD_OPTIONS}
-    assert len(swept) == 29  # info 1, solve 14, optimum 2, demo 4, bench 3, sweep 5
+    assert len(swept) == 31  # info 1, solve 16, optimum 2, demo 4, bench 3, sweep 5
     for name, action in _numeric_actions():
         assert action.type not in (int, float), f"{name} {action.option_strings}: unchecked {action.type}"
         assert action.type.__name__ in ("integer", "number", "host_port"), (name, action.option_strings)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+import os
 import time
 from collections.abc import Callable, Sequence
 from typing import Literal
@@ -18,6 +19,8 @@ from .._core.gauge import FixedPoses
 from .._core.partition import Partition, partition
 from .._core.pose_graph import PoseGraph, Poses
 from .._experiments.metrics import trajectory_accuracy
+from .._mm.checkpoint import DEFAULT_EVERY, Checkpointer, restore_state
+from .._mm.checkpoint import load as load_checkpoint
 from .._mm.driver import RESULTS, Monitor, Termination, compile_once, drive
 from .._mm.majorization import unstack
 from .._mm.outer import (
@@ -28,7 +31,7 @@ from .._mm.outer import (
     step,
 )
 from .._mm.robust import GNCConfig, RobustLoss, as_loss
-from .._mm.solve import SolveResult, output_frame, robust_fields, start_for
+from .._mm.solve import SolveResult, output_frame, robust_fields, run_identity, start_for
 from .._mm.subproblem import SubproblemConfig
 from .collectives import (
     _SHARD_MAP_NO_CHECK,
@@ -154,6 +157,7 @@ def solve_sharded(
     grad_tol: float | None = None,
     f_target: float | None = None,
     rel_decrease_tol: float | None = None,
+    stop_when_stalled: bool = True,
     callback: Callable[[int, np.ndarray], bool | None] | None = None,
     reorder: bool | None = None,
     exchange: Literal["halo", "all_gather"] = "halo",
@@ -164,6 +168,9 @@ def solve_sharded(
     loss: str | RobustLoss = "l2",
     loss_scale: float | None = None,
     gnc: GNCConfig | None = None,
+    checkpoint: str | os.PathLike | None = None,
+    checkpoint_every: int = DEFAULT_EVERY,
+    resume: str | os.PathLike | None = None,
 ) -> SolveResult:
     """:func:`mmpgo_jax.solve` with the robots sharded over the devices of a 1-D mesh.
 
@@ -176,8 +183,14 @@ def solve_sharded(
     the sharded (renumbered, padded) partition. A second call with the same shapes and
     configuration structure does not compile again. In a multi-process run every process must call
     this with the same arguments; the callback's stop decision is taken from process 0.
+
+    ``checkpoint`` / ``checkpoint_every`` / ``resume``: as for :func:`~mmpgo_jax.solve`; the state is
+    saved in the sharded layout, so a checkpoint resumes only on the same number of devices with the
+    same ``exchange`` (and is refused otherwise). In a multi-process run every process gathers
+    the state for a checkpoint and process 0 writes it; to resume, every process reads the file (on
+    several hosts it must be readable on each, e.g. a shared file system).
     """
-    termination = Termination(iterations, chunk_size, grad_tol, f_target, rel_decrease_tol)
+    termination = Termination(iterations, chunk_size, grad_tol, f_target, rel_decrease_tol, stop_when_stalled)
     if mesh is None:
         mesh = make_mesh(devices)
     elif devices is not None:
@@ -204,12 +217,30 @@ def solve_sharded(
             part = user_part
         else:
             part = partition(graph, plan.sharded_robot_of_pose, num_robots=plan.padded_robots)
-        X0 = _initial_poses(graph, *start_for(init, robust), initial, user_part, multiprocess, fixed)
+        start_method, start_options = start_for(init, robust)
+        key = snapshot = saver = None
+        if checkpoint is not None or resume is not None:
+            layout = ("sharded", num_devices, exchange, plan.padded_robots, np.asarray(plan.sharded_robot_of_pose))
+            key = run_identity(graph, user_part, (start_method, start_options, initial), config, robust, fixed,
+                               chunk_size, layout)
+        if resume is not None:  # every process reads the file: the same start everywhere
+            snapshot = load_checkpoint(resume)
+            snapshot.check(key, iterations)
+            X0 = Poses(*(jnp.asarray(x) for x in snapshot.X0))
+        else:
+            X0 = _initial_poses(graph, start_method, start_options, initial, user_part, multiprocess, fixed)
+        if checkpoint is not None:
+            saver = Checkpointer(checkpoint, checkpoint_every, key, jax.device_get(X0), chunk_size=chunk_size,
+                                 to_host=lambda st: [_to_host(x) for x in jax.tree.leaves(st)],
+                                 write=jax.process_index() == 0)
+        start_poses = X0
         X0 = part.scatter(X0)
         monitor.phase("building")
         problem = MMProblem.build(part, xi, config=config, fixed=fixed, poses=X0, loss=robust)
         state0, start = start_state(problem, X0, config)
         start = jax.device_get(start)
+        if snapshot is not None:  # the checkpoint's state, sharded as the fresh one
+            state0 = restore_state(snapshot, state0)
     problem_specs = _problem_specs(problem)
     state_specs = _specs(state0, part.num_robots)
     problem = _shard(problem, problem_specs, mesh)
@@ -252,7 +283,8 @@ def solve_sharded(
 
     start_record = (start.f, start.grad_norm, user_restarts(np.asarray(start.restarted)[None])[0])
     out = drive(compile_chunk, state, start_record, termination, fetch=fetch, callback=callback,
-                agree=_agree if multiprocess else None, monitor=monitor)
+                agree=_agree if multiprocess else None, monitor=monitor, checkpoint=saver,
+                history=None if snapshot is None else snapshot.history)
     X = _to_host(out.state.X)
     poses = output_frame(part.gather(unstack(X)), fixed, frame)  # sliced on the host
     final = out.state if problem.robust is None else eqx.tree_at(lambda st: st.weights, out.state,
@@ -278,6 +310,7 @@ def solve_sharded(
             **robust_stats,
         },
         termination=termination,
+        start=output_frame(Poses(*jax.device_get((start_poses.R, start_poses.t))), fixed, frame),
         **outcome,
     )
 

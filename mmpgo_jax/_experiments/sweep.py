@@ -163,7 +163,8 @@ class SweepResult:
     ``axes`` names the optional components the keys have (``()``, ``("xi",)``, ``("loss",)`` or
     ``("xi", "loss")``); with one xi and one loss, keys and columns are (graph, robots, method).
     ``configs``: one dict per configuration (final f and gap, ``bytes`` of its problem + state
-    pytrees as run (padded), ``seconds`` (its share of the batch's run time, compilation excluded),
+    pytrees as run (padded), ``seconds`` and ``ms_per_iteration`` (its share of the batch's run time,
+    compilation excluded), ``batch_ms_per_iteration`` (the whole batch's, ``batch_size`` configurations), the
     batch index, and, with a ground truth, ``ate`` / ``rpe_translation`` / ``rpe_rotation_deg``;
     with a robust loss ``loss``, ``rejected`` (edges outside the inlier mask), ``weight_updates``,
     ``gnc_stages``, and for a graph with a known outlier mask ``outlier_rate``, ``precision`` and
@@ -659,7 +660,8 @@ def sweep(
                                gap=None if fs_ is None else float(f[-1] - fs_),
                                relative_gap=None if fs_ is None else float((f[-1] - fs_) / fs_),
                                fstar=fs_, bytes=per_config, seconds=run_s / real,
-                               ms_per_iteration=1e3 * run_s / real / max(iterations, 1), batch=b,
+                               ms_per_iteration=1e3 * run_s / real / max(iterations, 1),
+                               batch_ms_per_iteration=1e3 * run_s / max(iterations, 1), batch=b,
                                batch_size=real)
                     if name in gts:
                         row["ate"] = absolute_trajectory_error(poses, gts[name])

@@ -88,7 +88,7 @@ def gnc_chordal_initialization(
     g = host_graph(graph)
     c2 = float(chi2_scale(g.dim) if scale is None else scale) ** 2
     robust = np.abs(g.i - g.j) != 1 if trust_odometry else np.ones(g.num_edges, bool)
-    termination = Termination(200, 1, grad_tol)
+    termination = Termination(200, 1, grad_tol, stop_when_stalled=False)  # each stage to grad_tol, as before
     w = np.ones(g.num_edges)
     X = _stage_solution(g, w, fixed, termination)
     s = np.asarray(edge_costs(g, X))

@@ -122,6 +122,21 @@ def _first_by_line(mask: np.ndarray, lines: np.ndarray) -> int:
 # ------------------------------------------------------------------------------------------------
 
 
+def symbol_names(ids) -> list[str] | None:
+    """GTSAM's names of symbol keys ("a67" for ``Symbol('a', 67)``), or None unless every id is a
+    symbol key whose character is an ASCII letter or digit."""
+    ids = np.asarray(ids, dtype=np.int64)
+    code = ids >> SYMBOL_INDEX_BITS
+    if not np.all(_symbol_character(code)):
+        return None
+    return [f"{chr(c)}{k}" for c, k in zip(code.tolist(), (ids & _INDEX_MASK).tolist(), strict=True)]
+
+
+def _symbol_character(code: np.ndarray) -> np.ndarray:
+    return (((code >= ord("0")) & (code <= ord("9"))) | ((code >= ord("A")) & (code <= ord("Z")))
+            | ((code >= ord("a")) & (code <= ord("z"))))
+
+
 def robots_from_symbols(g2o: G2OFile) -> G2OFile:
     """``g2o`` with its robots read from GTSAM symbol keys (robot names: the characters).
 
@@ -130,8 +145,7 @@ def robots_from_symbols(g2o: G2OFile) -> G2OFile:
     """
     ids = np.asarray(g2o.vertex_ids, dtype=np.int64)
     code = ids >> SYMBOL_INDEX_BITS
-    ok = ((code >= ord("0")) & (code <= ord("9"))) | ((code >= ord("A")) & (code <= ord("Z"))) | (
-        (code >= ord("a")) & (code <= ord("z")))
+    ok = _symbol_character(code)
     if not ok.all():
         lines = g2o.vertex_line if g2o.vertex_line is not None else np.zeros(len(ids), np.int64)
         k = _first_by_line(~ok, lines)

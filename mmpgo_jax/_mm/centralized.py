@@ -584,7 +584,7 @@ def newton_optimum(
         return chunk
 
     one_by_one = Termination(termination.iterations, 1, termination.grad_tol, termination.f_target,
-                             termination.rel_decrease_tol)
+                             termination.rel_decrease_tol, termination.stop_when_stalled)
     # One BLAS thread for all the numerical work, the start's included: the iterations are small or
     # memory-bound NumPy / SuperLU operations, where OpenBLAS's threads only add synchronization
     # (measured: 1.8x faster on sphere2500, 2-core machine), and OpenBLAS threads woken by a large

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -25,6 +26,8 @@ from .._core.precision import float64_enabled
 from .._experiments.metrics import TrajectoryAccuracy, trajectory_accuracy
 from .._init.start import initialize
 from .centralized import NewtonConfig, newton_optimum
+from .checkpoint import DEFAULT_EVERY, Checkpointer, identity, restore_state
+from .checkpoint import load as load_checkpoint
 from .driver import RESULTS, History, Monitor, NonFiniteError, Termination, compile_once, drive
 from .majorization import unstack
 from .outer import IterationRecord, MMConfig, MMProblem, MMState, check_consistent, run, start_state
@@ -56,6 +59,7 @@ class SolveResult:
     loss: RobustLoss | None = None  # the robust loss (its numbers filled in), None for least squares
     weights: np.ndarray | None = None  # (m,) final edge weights (robust losses), graph edge order
     inliers: np.ndarray | None = None  # (m,) bool: final residual within the scale (robust losses)
+    start: Poses | None = None  # the start X^0 in the frame of ``poses`` (None for the centralized solver)
 
     @property
     def partition(self) -> Partition:
@@ -158,6 +162,7 @@ def solve(
     grad_tol: float | None = None,
     f_target: float | None = None,
     rel_decrease_tol: float | None = None,
+    stop_when_stalled: bool = True,
     callback: Callable[[int, np.ndarray], bool | None] | None = None,
     ground_truth: Poses | None = None,
     fixed: FixedPoses | None = None,
@@ -166,6 +171,9 @@ def solve(
     loss: str | RobustLoss = "l2",
     loss_scale: float | None = None,
     gnc: GNCConfig | None = None,
+    checkpoint: str | os.PathLike | None = None,
+    checkpoint_every: int = DEFAULT_EVERY,
+    resume: str | os.PathLike | None = None,
 ) -> SolveResult:
     """Run MM-PGO (``method="mm"``) or AMM-PGO (``"amm"``) on ``graph`` split among ``robots``.
 
@@ -176,11 +184,14 @@ def solve(
     ``restart``: AMM's restart rule, ``"adaptive"`` (default), ``"average"`` or ``"paper"`` (see
     :class:`MMConfig`; measured in benchmarks/restart_rules.md). Stops after ``iterations`` or,
     checked after each chunk of ``chunk_size`` iterations, when
-    ||grad F|| <= ``grad_tol``, f <= ``f_target``, or the relative decrease of f over the last chunk
-    is below ``rel_decrease_tol``. ``callback(k, f_chunk)`` is called after each chunk (k = total
-    iterations so far); returning True stops the run. ``monitor`` (a :class:`Monitor`, e.g. a
-    progress bar) is told when each phase begins and of every chunk's f and ||grad F||. With
-    ``ground_truth`` (synthetic data), the result's ``accuracy`` holds ATE / RPE of the final
+    ||grad F|| <= ``grad_tol``, f <= ``f_target``, the relative decrease of f over the last chunk
+    is below ``rel_decrease_tol``, or (``stop_when_stalled``, default) f moved only by rounding over
+    the last chunk (:class:`~mmpgo_jax._mm.driver.Termination`): ``iterations`` is an upper bound,
+    ``stop_when_stalled=False`` runs all of them (fixed-length histories). ``callback(k, f_chunk)``
+    is called after each chunk (k = total iterations so far); returning True stops the run.
+    ``monitor`` (a :class:`Monitor`, e.g. a progress bar) is told when each phase begins and of
+    every chunk's f and ||grad F||. With ``ground_truth`` (synthetic data), the result's
+    ``accuracy`` holds ATE / RPE of the final
     estimate after rigid alignment.
 
     ``fixed`` (e.g. :attr:`G2OFile.fixed_poses`): poses held at their values by the start and by
@@ -200,12 +211,21 @@ def solve(
     f and the history are then f = 2 F_rho, and the result holds the final edge ``weights`` and the
     ``inliers`` (edges whose final residual is within the scale).
 
+    ``checkpoint``: a file to which the state, the history so far and the start are written
+    (atomically: the file is always a whole checkpoint) after every ``checkpoint_every``-th chunk
+    the run goes on from (:mod:`~mmpgo_jax._mm.checkpoint`). ``resume``: such a file; the run
+    continues from it exactly as the interrupted run would have (same f history and poses, bit for
+    bit on the same machine), with the same other arguments except ``iterations`` (which may be
+    larger); a checkpoint of another problem (graph, robots, start, method, settings, loss, fixed
+    poses, chunk size, precision) is refused with a :class:`~mmpgo_jax._mm.checkpoint.CheckpointError`
+    naming what differs. Both may name the same file.
+
     Raises :class:`NonFiniteError` when f or its gradient stops being finite (data whose weights or
     residuals float arithmetic cannot represent). Numbers are checked (ValueError naming the
     parameter). A second call with the same shapes and configuration structure does not compile
     again (:func:`~mmpgo_jax._mm.driver.compile_once`).
     """
-    termination = Termination(iterations, chunk_size, grad_tol, f_target, rel_decrease_tol)
+    termination = Termination(iterations, chunk_size, grad_tol, f_target, rel_decrease_tol, stop_when_stalled)
     config = MMConfig(method=method, restart=restart, xi=xi, subproblem=subproblem or SubproblemConfig())
     robust = as_loss(loss, loss_scale, gnc)
     monitor = monitor or Monitor()
@@ -213,7 +233,19 @@ def solve(
     monitor.phase("initializing")
     part = robots if isinstance(robots, Partition) else partition(graph, robots)
     start_method, start_options = start_for(init, robust)
-    X0 = initialize(graph, start_method, initial=initial, robots=part, fixed=fixed, **start_options)
+    key = snapshot = None
+    if checkpoint is not None or resume is not None:
+        key = run_identity(graph, part, (start_method, start_options, initial), config, robust, fixed, chunk_size,
+                           "one device")
+    if resume is not None:
+        snapshot = load_checkpoint(resume)
+        snapshot.check(key, iterations)
+        X0 = Poses(*snapshot.X0)  # the start the checkpointed run was built from
+    else:
+        X0 = initialize(graph, start_method, initial=initial, robots=part, fixed=fixed, **start_options)
+    saver = None if checkpoint is None else Checkpointer(checkpoint, checkpoint_every, key, jax.device_get(X0),
+                                                         chunk_size=chunk_size)
+    start_poses = X0
     X0 = jax.block_until_ready(part.scatter(X0))
     clock.lap("initialize")
     monitor.phase("building")
@@ -225,6 +257,8 @@ def solve(
     monitor.phase("building")
     state, start = start_fn(problem, X0, config)
     start = jax.device_get(start)
+    if snapshot is not None:  # the checkpoint's state, placed as the fresh one
+        state = jax.tree.map(lambda a, b: jax.device_put(a, b.sharding), restore_state(snapshot, state), state)
     clock.lap("build")
 
     check_consistent(problem, config)  # (the exported program below skips run()'s own check)
@@ -241,8 +275,8 @@ def solve(
         return jax.device_get((rec.f, rec.grad_norm, rec.restarted, *extra))
 
     out = drive(compile_chunk, state, (start.f, start.grad_norm, start.restarted), termination, fetch=fetch,
-                callback=callback,
-                monitor=monitor)
+                callback=callback, monitor=monitor, checkpoint=saver,
+                history=None if snapshot is None else snapshot.history)
     poses = output_frame(part.gather(unstack(np.asarray(out.state.X))), fixed, frame)  # sliced on the host
     outcome, robust_stats = robust_fields(problem, graph, part, out.state, poses)
     return SolveResult(
@@ -254,8 +288,17 @@ def solve(
         stats={**clock.stats(out), **robust_stats},
         accuracy=None if ground_truth is None else trajectory_accuracy(poses, ground_truth),
         termination=termination,
+        start=output_frame(start_poses, fixed, frame),
         **outcome,
     )
+
+
+def run_identity(graph: PoseGraph, part: Partition, start, config: MMConfig, loss, fixed, chunk_size: int,
+                 layout) -> dict:
+    """The :func:`~mmpgo_jax._mm.checkpoint.identity` of a run (what a resume must match)."""
+    return identity(graph=graph, robot_of_pose=part.robot_of_pose, num_robots=part.num_robots, start=start,
+                    config=config, loss=loss, fixed=fixed, chunk_size=chunk_size, precision=graph.R.dtype,
+                    layout=layout)
 
 
 def _start_export(problem: MMProblem):
@@ -369,7 +412,8 @@ def centralized_optimum(
 
 def _newton_optimum(graph, init, initial, grad_tol, max_iterations, xi, fixed, frame, callback, monitor) -> SolveResult:
     """:func:`centralized_optimum` by the host Newton solver."""
-    termination = Termination(max_iterations, 1, grad_tol)
+    # Newton's own rule: ||grad F|| <= grad_tol or the cap (the certificate needs a critical point)
+    termination = Termination(max_iterations, 1, grad_tol, stop_when_stalled=False)
     config = NewtonConfig() if xi is None else NewtonConfig(initial_damping=xi)
     monitor = monitor or Monitor()
     clock = _Clock()

@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .._core.messages import shorten_words
+from .._core.messages import join_items, shorten_words
 
 
 class CLIError(Exception):
@@ -234,7 +234,11 @@ def _add_solver_options(p: argparse.ArgumentParser) -> None:
                         "random; default 10)")
     add_robots_from(p)
     p.add_argument("--method", choices=("amm", "mm"), default="amm", help="AMM-PGO (default) or MM-PGO")
-    p.add_argument("--iterations", "-n", type=ITERATIONS, default=1000, help="outer iterations, >= 0 (default 1000)")
+    p.add_argument("--iterations", "-n", type=ITERATIONS, default=1000,
+                   help="at most this many outer iterations, >= 0 (default 1000); the run stops earlier when f "
+                        "moves only by rounding (see --all-iterations) or at --grad-tol")
+    p.add_argument("--all-iterations", action="store_true",
+                   help="run every one of --iterations even once f moves only by rounding (fixed-length histories)")
     p.add_argument(
         "--init",
         default=None,
@@ -319,8 +323,9 @@ def build_parser() -> argparse.ArgumentParser:
     _add_robust_options(p)
     _add_strict(p)
     _add_common(p)
-    from .sharded import add_cli_options, add_threads_option
+    from .sharded import add_checkpoint_options, add_cli_options, add_threads_option
 
+    add_checkpoint_options(p)
     add_threads_option(p)
     add_cli_options(p)
 
@@ -510,7 +515,7 @@ def read_input(path, args=None):
 
 
 _OUTPUTS = (("out", "--out"), ("tum", "--tum"), ("history", "--history"), ("plot", "--plot"),
-            ("edge_weights", "--edge-weights"))
+            ("edge_weights", "--edge-weights"), ("checkpoint", "--checkpoint"))
 def check_outputs(args) -> None:
     """Refuse unusable output paths before any work: for each of --out, --tum, --history, --plot
     that is set, its folder must exist and be writable, the path must not be a directory (nor a
@@ -549,6 +554,10 @@ def check_outputs(args) -> None:
             if key in seen:
                 raise CLIError(f"{seen[key]} and {shown}: the same file")
             seen[key] = shown
+    if getattr(args, "plot", None):  # an image format matplotlib cannot write is refused before the solve
+        from .._experiments.plots import check_figure_path
+
+        check_figure_path(args.plot, "--plot")
 
 
 def _describe_components(graph, vertex_ids=None) -> tuple[list[np.ndarray], str]:
@@ -564,7 +573,7 @@ def _describe_components(graph, vertex_ids=None) -> tuple[list[np.ndarray], str]
 
 
 def _cmd_info(args) -> int:
-    from .robots import print_robot_table, print_symbol_hint, robot_split
+    from .robots import DEFAULT_ROBOTS, print_robot_table, print_symbol_hint, robot_split
 
     path = _resolve_file(args.file, args.data)
     g2o = read_input(path, args)
@@ -583,11 +592,15 @@ def _cmd_info(args) -> int:
     print(f"tau         {tau.min():.6g} .. {tau.max():.6g}")
     print(f"graph       {conn}")
     print(f"vertices    {int(g2o.has_vertex.sum())} VERTEX lines, {int(g2o.fixed.sum())} fixed")
+    dtype = np.float32 if args.precision == "float32" else np.float64
     if args.robots or args.robots_from or args.labels or g2o.robot_names is not None:
         rop, names, label = robot_split(args, g2o)
-        print_robot_table(g, rop, names, label, np.float32 if args.precision == "float32" else np.float64)
-    else:
+        print_robot_table(g, rop, names, label, dtype)
+    else:  # the split `mmpgo solve FILE` would run, so that info describes what solve does
         print_symbol_hint(g2o)
+        if g.num_poses >= DEFAULT_ROBOTS:
+            rop, names, label = robot_split(args, g2o)
+            print_robot_table(g, rop, names, f"{label}, the default of mmpgo solve", dtype)
     return 0
 
 
@@ -750,13 +763,15 @@ def solve_options(args, data: LoadedInput) -> dict:
     """The keyword arguments of ``solve`` / ``solve_sharded`` from ``mmpgo solve``'s options (the
     start resolved, FIX poses and the input's frame; the robots are ``data.robot_of_pose``)."""
     from .._mm.robust import GNCConfig
+    from .sharded import checkpoint_options
 
     robust = {} if getattr(args, "loss", "l2") == "l2" else dict(loss=args.loss, loss_scale=args.loss_scale)
     if robust and getattr(args, "gnc", False):
         robust["gnc"] = GNCConfig()
     return dict(method=args.method, iterations=args.iterations, init=data.start(args.init, _SOLVE_STARTS),
                 initial=data.initial, xi=args.xi, restart=args.restart, chunk_size=args.chunk,
-                grad_tol=args.grad_tol, fixed=data.fixed, frame=data.frame, **robust)
+                grad_tol=args.grad_tol, stop_when_stalled=not args.all_iterations, fixed=data.fixed,
+                frame=data.frame, **robust, **checkpoint_options(args))
 
 
 def _print_certificate(data: LoadedInput, poses, *, hint: bool) -> None:
@@ -818,10 +833,12 @@ def finish_solve(args, data: LoadedInput, result, fstar) -> None:
             write_history_csv(args.history, result)
             written.append(args.history)
         if args.plot:
-            from .._experiments.plots import save_solve_figure
+            from .._experiments.plots import save_solve_figure, solve_start
 
             save_solve_figure(args.plot, data.graph, result, fstar=None if fstar is None else fstar.value,
-                              fstar_label="f*" if fstar is None else fstar.label, title=data.path.name)
+                              fstar_label="f*" if fstar is None else fstar.label, title=data.path.name,
+                              start=result.start if result.start is not None
+                              else solve_start(data.graph, data.robot_of_pose, **solve_options(args, data)))
             written.append(args.plot)
     for path in written:  # only now are they in place
         print(f"wrote {path}")
@@ -861,12 +878,22 @@ def _cmd_optimum(args) -> int:
     return 0
 
 
+def _rejected_lines(result, data: LoadedInput | None) -> str:
+    """"; lines 12, 40 and 3 more of FILE" for the rejected edges, when they come from one file as read."""
+    lines = None if data is None or data.keep is not None else getattr(data.g2o, "edge_line", None)
+    rejected = np.flatnonzero(~np.asarray(result.inliers))
+    if lines is None or len(rejected) == 0 or len(lines) != len(result.inliers):
+        return ""
+    which = "line" if len(rejected) == 1 else "lines"
+    return f"; {which} {join_items(lines[rejected].tolist(), 60)} of {data.path.name}"
+
+
 def _print_summary(result, fstar, data: LoadedInput | None = None) -> None:
     """The result of a solve; ``fstar``: the :class:`~mmpgo_jax.FStarReference` of its gap, or None."""
     h = result.history
     split = f" ({data.robots_label})" if data is not None and data.robots_label else ""
-    print(f"method      {result.config.method.upper()}-PGO, {result.partition.num_robots} robots{split}, "
-          f"restart={result.config.restart}")
+    restart = f", restart={result.config.restart}" if result.config.method == "amm" else ""  # MM has none
+    print(f"method      {result.config.method.upper()}-PGO, {result.partition.num_robots} robots{split}{restart}")
     print(f"iterations  {h.iterations} ({result.stop_description})")
     print(f"f = 2F      {h.f[0]:.6f} -> {h.f[-1]:.6f}")
     if fstar is not None:
@@ -877,7 +904,7 @@ def _print_summary(result, fstar, data: LoadedInput | None = None) -> None:
         rejected = int((~result.inliers).sum())
         gnc = f", GNC {result.stats['gnc_stages']} stages" if bool(result.loss.use_gnc) else ""
         print(f"loss        {result.loss.name} (c = {float(result.loss.scale):.4g}{gnc}): {rejected} of "
-              f"{len(result.inliers)} edges rejected (f = sum of rho(r^2))")
+              f"{len(result.inliers)} edges rejected (f = sum of rho(r^2)){_rejected_lines(result, data)}")
     if result.accuracy is not None:
         a = result.accuracy
         print(f"ATE         {a.ate:.6g} RMSE, {a.ate_max:.6g} max (positions after rigid alignment); "
@@ -897,15 +924,21 @@ def print_timing(result, *, read: float, write: float) -> None:
 
 
 def write_edge_weights_csv(path, data: LoadedInput, result) -> None:
-    """One line per edge of a robust solve: original ids i, j, final weight, inlier 0/1."""
+    """One line per edge of a robust solve: original ids i, j, final weight, inlier 0/1; for GTSAM
+    symbol keys also their names (i_symbol, j_symbol: "a67" for Symbol('a', 67))."""
     from .._io.atomic import atomic_write
+    from .._io.multi_robot import symbol_names
 
     ids = np.asarray(data.vertex_ids)
-    i, j = ids[np.asarray(data.graph.i)], ids[np.asarray(data.graph.j)]
+    i, j = np.asarray(data.graph.i), np.asarray(data.graph.j)
+    names = symbol_names(ids)
+    rows = zip(ids[i].tolist(), ids[j].tolist(), result.weights, result.inliers, strict=True)
+    lines = [f"{a},{b},{float(w)!r},{int(k)}" for a, b, w, k in rows]
+    if names is not None:
+        lines = [f"{line},{names[a]},{names[b]}" for line, a, b in zip(lines, i.tolist(), j.tolist(), strict=True)]
     with atomic_write(path) as fh:
-        fh.write("i,j,weight,inlier\n")
-        fh.writelines(f"{a},{b},{float(w)!r},{int(k)}\n" for a, b, w, k in zip(i.tolist(), j.tolist(), result.weights,
-                                                                                result.inliers, strict=True))
+        fh.write("i,j,weight,inlier" + (",i_symbol,j_symbol" if names is not None else "") + "\n")
+        fh.writelines(line + "\n" for line in lines)
 
 
 def write_history_csv(path, result) -> None:
