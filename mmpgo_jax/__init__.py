@@ -13,7 +13,12 @@ Public API (the private modules are implementation details):
   :func:`symbol_keys`; TORO: :func:`read_toro`, :func:`write_toro`
 * starts: :func:`initialize`, :func:`chordal_initialization`, :func:`distributed_chordal_initialization`
 * robust losses (outlier loop closures): ``solve(..., loss=, loss_scale=, gnc=)``, :class:`RobustLoss`,
-  :class:`GNCConfig`, :func:`chi2_scale`, :data:`LOSSES`
+  :class:`GNCConfig`, :func:`chi2_scale`, :data:`LOSSES`, the kernels :func:`loss_rho` (rho(s)) and
+  :func:`loss_weight` (the edge weight rho'(s)) of a kernel by name (or code, :func:`loss_code`), at scale c
+* outlier experiments: :func:`add_outlier_loop_closures` (seeded wrong loop closures, a
+  :class:`CorruptedGraph`), :func:`outlier_scores` (precision / recall of rejected edges, :class:`OutlierScores`)
+* consistency pre-filter: :func:`pcm_filter` (PCM: the maximum pairwise-consistent set of inter-robot loop
+  closures per robot pair, a :class:`PCMResult`)
 * solvers: :func:`solve`, :func:`centralized_optimum`, :func:`certify` (global optimality check), and the
   jittable core :class:`MMConfig`, :class:`MMProblem`, :func:`init_state`, :func:`run`, :func:`step`,
   :class:`SubproblemConfig`
@@ -66,6 +71,7 @@ if TYPE_CHECKING:  # the same names, eagerly, for type checkers and IDEs
         rigid_alignment,
         trajectory_accuracy,
     )
+    from ._experiments.outliers import CorruptedGraph, OutlierScores, add_outlier_loop_closures, outlier_scores
     from ._experiments.sweep import SweepResult, reference_optimum, sweep
     from ._experiments.synthetic import SyntheticDataset, cube_dataset, grid_2d_dataset
     from ._init.chordal import (
@@ -106,7 +112,7 @@ if TYPE_CHECKING:  # the same names, eagerly, for type checkers and IDEs
     )
     from ._mm.driver import RESULTS, Monitor, Termination
     from ._mm.outer import MMConfig, MMProblem, MMState, init_state, run, step
-    from ._mm.robust import LOSSES, GNCConfig, RobustLoss, chi2_scale
+    from ._mm.robust import LOSSES, GNCConfig, RobustLoss, chi2_scale, loss_code, loss_rho, loss_weight
     from ._mm.solve import (
         History,
         NonFiniteError,
@@ -116,6 +122,7 @@ if TYPE_CHECKING:  # the same names, eagerly, for type checkers and IDEs
         solve,
     )
     from ._mm.subproblem import SubproblemConfig
+    from ._robust.pcm import PCMResult, pcm_filter
 
 _LAZY = {  # public name -> the private module that defines it (imported on first use)
     "enable_compilation_cache": "._core.compilation_cache",
@@ -156,6 +163,12 @@ _LAZY = {  # public name -> the private module that defines it (imported on firs
     "relative_pose_error": "._experiments.metrics",
     "rigid_alignment": "._experiments.metrics",
     "trajectory_accuracy": "._experiments.metrics",
+    "CorruptedGraph": "._experiments.outliers",
+    "OutlierScores": "._experiments.outliers",
+    "PCMResult": "._robust.pcm",
+    "pcm_filter": "._robust.pcm",
+    "add_outlier_loop_closures": "._experiments.outliers",
+    "outlier_scores": "._experiments.outliers",
     "SweepResult": "._experiments.sweep",
     "reference_optimum": "._experiments.sweep",
     "sweep": "._experiments.sweep",
@@ -203,6 +216,9 @@ _LAZY = {  # public name -> the private module that defines it (imported on firs
     "LOSSES": "._mm.robust",
     "RobustLoss": "._mm.robust",
     "chi2_scale": "._mm.robust",
+    "loss_code": "._mm.robust",
+    "loss_rho": "._mm.robust",
+    "loss_weight": "._mm.robust",
     "History": "._mm.solve",
     "NonFiniteError": "._mm.solve",
     "SolveResult": "._mm.solve",
@@ -235,6 +251,7 @@ __all__ = [
     "BENCHMARKS",
     "LOSSES",
     "RESULTS",
+    "CorruptedGraph",
     "DatasetNotFoundError",
     "FStarReference",
     "FixedPoses",
@@ -250,6 +267,8 @@ __all__ = [
     "Monitor",
     "NonFiniteError",
     "OptimalityCertificate",
+    "OutlierScores",
+    "PCMResult",
     "Partition",
     "PoseGraph",
     "Poses",
@@ -262,6 +281,7 @@ __all__ = [
     "Termination",
     "TrajectoryAccuracy",
     "absolute_trajectory_error",
+    "add_outlier_loop_closures",
     "align_poses",
     "available_benchmarks",
     "benchmark_info",
@@ -289,13 +309,18 @@ __all__ = [
     "init_state",
     "initialize",
     "load_poses",
+    "loss_code",
+    "loss_rho",
+    "loss_weight",
     "matrix_to_poses",
     "metis_robots",
     "objective",
     "odometry_initialization",
+    "outlier_scores",
     "output_frame",
     "partition",
     "partition_stats",
+    "pcm_filter",
     "poses_to_matrix",
     "project_to_so",
     "quaternion_to_rotation",

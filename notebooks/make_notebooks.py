@@ -1,22 +1,52 @@
-"""Generate the example notebooks (without outputs) so that they are reproducible:
+"""Generate the example notebooks so that they are reproducible:
 
-    python notebooks/make_notebooks.py
+    python notebooks/make_notebooks.py             # sources only (no outputs)
+    python notebooks/make_notebooks.py --execute   # and run them, keeping the outputs (as committed)
 
 Writes ``01_quickstart.ipynb``, ``02_reproduce_tables.ipynb``, ``03_robot_sweeps.ipynb`` and
 ``04_outliers.ipynb`` next to this file. Every notebook reads the data folder from ``MMPGO_DATA`` (through
 ``mmpgo_jax.find_benchmark`` / ``available_benchmarks``) and its iteration budget from
 ``MMPGO_NOTEBOOK_ITERATIONS`` (small by default, so that each runs in well under two minutes on a
 2-core machine; ``tests/test_notebooks.py`` runs them with an even smaller value).
+
+The notebooks are committed executed, so that a reader on a code host sees the tables and figures.
+``--execute`` runs each in a fresh Jupyter kernel (nbclient) with the settings of
+:data:`EXECUTE_SETTINGS` (small: all four take a few minutes on 2 cores) and the benchmark files of
+``MMPGO_DATA``, keeps the outputs (figures as PNG) and drops what changes from run to run without
+meaning (cell timings, the kernel's version strings), so that regenerating rewrites only the outputs.
+Only the notebook code uses public names of the package (``tests/test_notebooks.py`` checks it).
 """
 
 from __future__ import annotations
 
+import argparse
+import os
+import sys
+import time
 from pathlib import Path
 
 import nbformat
 from nbformat.v4 import new_code_cell, new_markdown_cell, new_notebook
 
 HERE = Path(__file__).resolve().parent
+REPO = HERE.parent
+
+# The settings the committed outputs were made with (``--execute``), per notebook: environment
+# variables the notebooks read, on top of their defaults. Small, so that executing all four takes a
+# few minutes on 2 cores, yet large enough to show what each notebook teaches.
+EXECUTE_SETTINGS: dict[str, dict[str, str]] = {
+    "01_quickstart.ipynb": {},
+    "02_reproduce_tables.ipynb": {"MMPGO_NOTEBOOK_DATASETS": "intel,MITb,garage"},  # one row of plots
+    "03_robot_sweeps.ipynb": {"MMPGO_NOTEBOOK_ITERATIONS": "100"},
+    "04_outliers.ipynb": {"MMPGO_NOTEBOOK_ITERATIONS": "300"},
+}
+
+
+def outputs_note(name: str) -> str:
+    """The sentence on the committed outputs, at the end of a notebook's first cell."""
+    settings = " ".join(f"`{k}={v}`" for k, v in EXECUTE_SETTINGS[name].items())
+    return ("\n\nThe outputs shown were made by `python notebooks/make_notebooks.py --execute` "
+            + (f"with {settings} (else the defaults)." if settings else "with the defaults."))
 
 # The first code cell of every notebook: its imports (stdlib, third party, this package, as ruff's
 # isort rules want them), then the common set-up.
@@ -123,7 +153,7 @@ def quickstart() -> nbformat.NotebookNode:
             'print(f"centralized: {ref.iterations} iterations, f = {ref.f:.10g}")\n'
             'print(cert.summary())'),
     ]
-    return _notebook(cells)
+    return _notebook(cells, "01_quickstart.ipynb")
 
 
 def reproduce_tables() -> nbformat.NotebookNode:
@@ -183,7 +213,8 @@ def reproduce_tables() -> nbformat.NotebookNode:
             '    cells = []\n'
             '    for k in cols:\n'
             '        ref = paper.get(k if cps else 100) if paper else None\n'
-            '        cells += [f"{r.history.f[k]:.6g}", "–" if ref is None else f"{ref:.6g}"]\n'
+            '        f = r.history.f[min(k, len(r.history.f) - 1)]  # stopped early (f stalled): its last f\n'
+            '        cells += [f"{f:.6g}", "–" if ref is None else f"{ref:.6g}"]\n'
             '    ref = info.fstar_reference\n'
             '    fs = "–" if ref is None else f"{ref.value:.10g} ({ref.label})"\n'
             '    lines.append(f"| {name} | {method.upper()}-PGO | {fs} | " + " | ".join(cells) + " |")\n'
@@ -216,7 +247,7 @@ def reproduce_tables() -> nbformat.NotebookNode:
             '    fig.tight_layout()\n'
             '    plt.show()'),
     ]
-    return _notebook(cells)
+    return _notebook(cells, "02_reproduce_tables.ipynb")
 
 
 def robot_sweeps() -> nbformat.NotebookNode:
@@ -232,8 +263,7 @@ def robot_sweeps() -> nbformat.NotebookNode:
             "(default `5,10,20`) and number of Cube datasets `MMPGO_NOTEBOOK_CUBES` (default 3)."),
         setup_cell(150, stdlib=("os", "tempfile", "time"),
                    third_party="from IPython.display import Markdown, display",
-                   first_party="from mmpgo_jax import reference_optimum, sweep\n"
-                               "from mmpgo_jax._experiments.sweep import TRACE_COUNTS  # counts compilations",
+                   first_party="from mmpgo_jax import reference_optimum, sweep",
                    after='ROBOTS = [int(a) for a in os.environ.get("MMPGO_NOTEBOOK_ROBOTS", "5,10,20").split(",")]\n'
                          'NUM_DATASETS = int(os.environ.get("MMPGO_NOTEBOOK_CUBES", "3"))'),
         new_code_cell(
@@ -244,18 +274,19 @@ def robot_sweeps() -> nbformat.NotebookNode:
         new_markdown_cell(
             "## One compilation per method\nWith the default `group_by=\"method\"` all robot counts of a "
             "method share one padded shape (robot axis padded to the largest count; padded robots own "
-            "nothing), so the sweep compiles the run chunk once per method. `TRACE_COUNTS` counts the "
-            "traces of the batched chunk."),
+            "nothing), so the sweep compiles the run chunk once per method. A sweep result's `groups` has one "
+            "row per compiled group; its `traces` counts how often JAX traced the batched chunk (1: one "
+            "compilation; 0: JAX had it already)."),
         new_code_cell(
-            'before = dict(TRACE_COUNTS)\n'
             'one = sweep({"cube0": datasets["cube0"]}, ROBOTS, ("mm", "amm"), min(ITERATIONS, 20),\n'
             '            fstar={"cube0": fstar["cube0"]}, chunk_size=10)\n'
-            'traces = {m: TRACE_COUNTS[m] - before.get(m, 0) for m in ("mm", "amm")}\n'
-            'print("traces per method during this sweep:", traces)\n'
+            'groups = {m: sum(g["method"] == m for g in one.groups) for m in one.methods}\n'
+            'print("compiled groups per method:", groups)\n'
             'for g in one.groups:\n'
             '    print(f"{g[\'method\']}: {g[\'configs\']} configs padded to A={g[\'A\']} x n_max={g[\'n_max\']} "\n'
             '          f"(x{g[\'padding_factor\']:.1f} slots), {g[\'bytes_per_config\'] / 2**20:.1f} MiB/config, "\n'
-            '          f"compile {g[\'compile_seconds\']:.1f} s, run {g[\'run_seconds\']:.1f} s")'),
+            '          f"traced {g[\'traces\']}x, compile {g[\'compile_seconds\']:.1f} s, "\n'
+            '          f"run {g[\'run_seconds\']:.1f} s")'),
         new_markdown_cell(
             "## The Fig. 1 study at small settings\nPadding 5 robots to 20 multiplies the work; "
             "`group_by=\"robots\"` stacks only configurations with the same robot count (one "
@@ -307,7 +338,7 @@ def robot_sweeps() -> nbformat.NotebookNode:
             '        "rpe_rotation_deg")\n'
             'print({k: res.configs[0][k] for k in keys})'),
     ]
-    return _notebook(cells)
+    return _notebook(cells, "03_robot_sweeps.ipynb")
 
 
 def outliers() -> nbformat.NotebookNode:
@@ -315,7 +346,7 @@ def outliers() -> nbformat.NotebookNode:
         new_markdown_cell(
             "# Outlier loop closures and robust losses\n\n"
             "Wrong loop closures (perceptual aliasing) bend a least-squares estimate. Here: a Cube "
-            "dataset with seeded outlier loop closures (`mmpgo_jax._experiments.outliers.add_outliers`), "
+            "dataset with seeded outlier loop closures (`mm.add_outlier_loop_closures`), "
             "the least-squares solve bent by them, the robust kernels huber, cauchy and tls (truncated "
             "least squares through graduated non-convexity, GNC) with `mm.solve(..., loss=...)`, the "
             "trajectories with the rejected edges in red, and ATE against the outlier rate from one "
@@ -324,10 +355,7 @@ def outliers() -> nbformat.NotebookNode:
             "(default 200); outlier rates in percent `MMPGO_NOTEBOOK_OUTLIER_RATES` (default `0,20,40,60`)."),
         setup_cell(1500,
                    third_party="from IPython.display import Markdown, display",
-                   first_party="from mmpgo_jax._experiments.outliers import add_outliers, outlier_scores\n"
-                               "from mmpgo_jax._experiments.sweep import TRACE_COUNTS  # counts compilations\n"
-                               "from mmpgo_jax._mm.robust import LOSSES, rho, weight\n"
-                               "from mmpgo_jax.plotting import plot_trajectory",
+                   first_party="from mmpgo_jax.plotting import plot_trajectory",
                    after='POSES = int(os.environ.get("MMPGO_NOTEBOOK_OUTLIER_POSES", "200"))\n'
                          'RATES = [float(p) for p in os.environ.get("MMPGO_NOTEBOOK_OUTLIER_RATES", "0,20,40,60")'
                          '.split(",")]\n'
@@ -347,16 +375,17 @@ def outliers() -> nbformat.NotebookNode:
             "`init=\"gnc-chordal\"`: graduated non-convexity with TLS (Yang et al., RA-L 2020), a sequence "
             "of surrogate kernels from least squares to TLS with the weights set in closed form after each "
             "stage, every stage solved from scratch (chordal relaxation of the weighted graph, then Newton). "
-            "Odometry edges (consecutive poses) keep weight 1. Details: `docs/conventions.md` §10."),
+            "Odometry edges (consecutive poses) keep weight 1. Details: `docs/conventions.md` §10. "
+            "The kernels are `mm.loss_rho` and `mm.loss_weight` (ρ and ρ' of a kernel by name, "
+            "at scale c; `mm.LOSSES` lists the names)."),
         new_code_cell(
             'c = mm.chi2_scale(3)\n'
             'print(f"default scale: c = {mm.chi2_scale(2):.3f} (2D), {c:.3f} (3D)")\n'
             'r = np.linspace(0.0, 4.0 * c, 400)\n'
             'fig, axes = plt.subplots(1, 2, figsize=(12, 4))\n'
-            'for name in LOSSES:\n'
-            '    code = LOSSES.index(name)\n'
-            '    axes[0].plot(r / c, np.asarray(rho(code, r**2, c * c)) / c**2, label=name)\n'
-            '    axes[1].plot(r / c, np.asarray(weight(code, r**2, c * c)), label=name)\n'
+            'for name in mm.LOSSES:\n'
+            '    axes[0].plot(r / c, np.asarray(mm.loss_rho(name, r**2, c)) / c**2, label=name)\n'
+            '    axes[1].plot(r / c, np.asarray(mm.loss_weight(name, r**2, c)), label=name)\n'
             'axes[0].set_ylim(0, 4)\n'
             'axes[0].set_ylabel("ρ(s) / c²")\n'
             'axes[1].set_ylabel("weight ρ\'(s)")\n'
@@ -368,14 +397,16 @@ def outliers() -> nbformat.NotebookNode:
             'plt.show()'),
         new_markdown_cell(
             "## A graph with outliers\n"
-            "`add_outliers(graph, rate, reference=..., seed=...)` appends wrong loop closures: uniform "
+            "`mm.add_outlier_loop_closures(graph, rate, reference=..., seed=...)` appends wrong loop "
+            "closures: uniform "
             "random pose pairs not already joined, a Haar-random rotation, a translation uniform within the "
             "map's extent, the median information of the graph's loop closures. The rate is the fraction "
-            "of outliers among all loop closures after the addition; `bad.outlier` marks them."),
+            "of outliers among all loop closures after the addition; the result is a `CorruptedGraph` "
+            "whose `outlier` marks them."),
         new_code_cell(
             'data = mm.cube_dataset(0, grid=4, num_poses=POSES)\n'
             'truth = data.ground_truth\n'
-            'bad = add_outliers(data.graph, 0.3, reference=truth, seed=1)\n'
+            'bad = mm.add_outlier_loop_closures(data.graph, 0.3, reference=truth, seed=1)\n'
             'robots = mm.contiguous_robots(data.num_poses, ROBOTS)\n'
             'print(f"{data.name}: n={data.num_poses}, m={data.num_edges} -> {bad.graph.num_edges} edges "\n'
             '      f"({bad.num_outliers} outlier loop closures, 30 % of the loop closures)")'),
@@ -383,7 +414,8 @@ def outliers() -> nbformat.NotebookNode:
             "## Least squares and robust kernels\n`loss=` picks the kernel (default scale; `loss_scale=` sets "
             "c, `gnc=` a `GNCConfig`). The result holds the final edge `weights` and the `inliers` (final "
             "residual within the scale); precision / recall score the rejected edges against the true "
-            "outliers, ATE is against the ground truth after rigid alignment. Least squares runs here as "
+            "outliers (`mm.outlier_scores`), ATE is against the ground truth after rigid alignment. Least "
+            "squares runs here as "
             "`RobustLoss(\"l2\")`: the same objective through the weighted program (every weight 1), so that "
             "the four runs share one compilation; its \"rejected\" edges are those whose final residual "
             "lies beyond the scale (it starts from the chordal start, the robust kernels from the GNC "
@@ -398,7 +430,7 @@ def outliers() -> nbformat.NotebookNode:
             'lines = ["| kernel | ATE [m] | rejected | precision | recall | GNC stages |",\n'
             '         "|---|---|---|---|---|---|"]\n'
             'for kernel, r in runs.items():\n'
-            '    sc = outlier_scores(r.inliers, bad.outlier)\n'
+            '    sc = mm.outlier_scores(r.inliers, bad.outlier)\n'
             '    lines.append(f"| {kernel} | {r.accuracy.ate:.4f} | {sc.rejected} | {sc.precision:.3f} | "\n'
             '                 f"{sc.recall:.3f} | {r.stats.get(\'gnc_stages\', 0)} |")\n'
             'display(Markdown("\\n".join(lines)))'),
@@ -422,12 +454,12 @@ def outliers() -> nbformat.NotebookNode:
             "precision and recall. From the command line: `mmpgo sweep FILE --losses huber cauchy tls "
             "--outlier-rates 0 20 40`."),
         new_code_cell(
-            'graphs = {f"{p:g}%": add_outliers(data.graph, p / 100.0, reference=truth, seed=1) for p in RATES}\n'
-            'before = TRACE_COUNTS["amm"]\n'
+            'graphs = {f"{p:g}%": mm.add_outlier_loop_closures(data.graph, p / 100.0, reference=truth, seed=1)\n'
+            '          for p in RATES}\n'
             'res = mm.sweep(graphs, [ROBOTS], "amm", ITERATIONS, loss=["l2", *KERNELS],\n'
             '               ground_truth={name: truth for name in graphs})\n'
-            'traces = TRACE_COUNTS["amm"] - before\n'
-            'print(f"{len(res.configs)} configurations, traces of the batched chunk: {traces}")\n'
+            'print(f"{len(res.configs)} configurations in {len(res.groups)} compiled group(s), "\n'
+            '      f"traces of the batched chunk: {[g[\'traces\'] for g in res.groups]}")\n'
             'ate = {(row["graph"], row["loss"]): row for row in res.configs}\n'
             'lines = ["| outlier rate | " + " | ".join(res.losses) + " |", "|---" * (len(res.losses) + 1) + "|"]\n'
             'for name in graphs:\n'
@@ -452,10 +484,11 @@ def outliers() -> nbformat.NotebookNode:
             "The full study (more rates, all kernels, benchmark files, GNC from other starts) is "
             "`benchmarks/robust.py` (results in `benchmarks/robust.md`)."),
     ]
-    return _notebook(cells)
+    return _notebook(cells, "04_outliers.ipynb")
 
 
-def _notebook(cells) -> nbformat.NotebookNode:
+def _notebook(cells, name: str) -> nbformat.NotebookNode:
+    cells[0].source += outputs_note(name)
     nb = new_notebook(cells=cells)
     nb.metadata["kernelspec"] = {"display_name": "Python 3", "language": "python", "name": "python3"}
     nb.metadata["language_info"] = {"name": "python"}
@@ -471,12 +504,51 @@ NOTEBOOKS = {
 }
 
 
-def main() -> None:
-    for name, build in NOTEBOOKS.items():
-        nb = build()
-        # stable cell ids, so that regenerating gives byte-identical files
-        for k, cell in enumerate(nb.cells):
-            cell["id"] = f"cell-{k:02d}"
+def build(name: str) -> nbformat.NotebookNode:
+    """Notebook ``name`` as generated (no outputs), with stable cell ids, so that regenerating gives
+    byte-identical files."""
+    nb = NOTEBOOKS[name]()
+    for k, cell in enumerate(nb.cells):
+        cell["id"] = f"cell-{k:02d}"
+    return nb
+
+
+def execute(nb: nbformat.NotebookNode, env: dict[str, str] | None = None, timeout: int = 900) -> nbformat.NotebookNode:
+    """Run ``nb`` in place in a fresh ``python3`` kernel started in this folder, with environment ``env``
+    (default: this process's), this checkout first on ``PYTHONPATH``; raises ``CellExecutionError``
+    on the first failing cell. Drops what changes from run to run without meaning: the cells'
+    timing metadata and the kernel's ``language_info`` (Python version); a cell's consecutive prints
+    are one output (as Jupyter shows them)."""
+    import nbclient  # here: writing the sources needs only nbformat
+
+    env = dict(os.environ if env is None else env)
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(REPO), env.get("PYTHONPATH")]))
+    client = nbclient.NotebookClient(nb, timeout=timeout, kernel_name="python3", record_timing=False,
+                                     coalesce_streams=True, resources={"metadata": {"path": str(HERE)}})
+    client.execute(env=env)
+    nb.metadata["language_info"] = {"name": "python"}
+    for cell in nb.cells:
+        cell.metadata.pop("execution", None)
+    nbformat.validate(nb)
+    return nb
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description="Write the example notebooks (and optionally run them).")
+    parser.add_argument("names", nargs="*", metavar="NAME",
+                        help=f"notebooks to write (default: all): {', '.join(NOTEBOOKS)}")
+    parser.add_argument("--execute", action="store_true",
+                        help="run each notebook (EXECUTE_SETTINGS, MMPGO_DATA) and keep its outputs")
+    args = parser.parse_args(argv)
+    unknown = [name for name in args.names if name not in NOTEBOOKS]
+    if unknown:
+        parser.error(f"unknown notebook {unknown[0]!r}: choose from {', '.join(NOTEBOOKS)}")
+    for name in args.names or NOTEBOOKS:
+        nb = build(name)
+        if args.execute:
+            t = time.perf_counter()
+            execute(nb, {**os.environ, **EXECUTE_SETTINGS[name]})
+            print(f"executed {name} in {time.perf_counter() - t:.0f} s", file=sys.stderr)
         nbformat.write(nb, HERE / name)
         print("wrote", HERE / name)
 

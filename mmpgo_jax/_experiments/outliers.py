@@ -26,7 +26,7 @@ import numpy as np
 from .._core.pose_graph import PoseGraph, Poses
 from .synthetic import sample_langevin
 
-__all__ = ["CorruptedGraph", "OutlierScores", "add_outliers", "outlier_scores"]
+__all__ = ["CorruptedGraph", "OutlierScores", "add_outlier_loop_closures", "add_outliers", "outlier_scores"]
 
 
 @dataclass(frozen=True)
@@ -107,6 +107,9 @@ def add_outliers(graph: PoseGraph, rate: float, *, reference: Poses, seed: int =
         np.concatenate([np.asarray(graph.tau, np.float64), tau]), num_poses=n, dtype=dt)
     outlier = np.concatenate([np.zeros(graph.num_edges, bool), np.ones(count, bool)])
     return CorruptedGraph(graph=out, outlier=outlier, rate=float(rate), seed=int(seed))
+
+
+add_outlier_loop_closures = add_outliers  # its public name: mmpgo_jax.add_outlier_loop_closures
 
 
 @dataclass(frozen=True)

@@ -113,6 +113,17 @@ def weight(kernel, s, c2):
     return jnp.select([kernel == k for k in range(len(LOSSES))], branches, one)
 
 
+def loss_rho(loss, s, c):
+    """rho_c(s) of the kernel named ``loss`` (a name of :data:`LOSSES` or its code), residual
+    s = r^2 and scale ``c`` (residual units): the public, checked form of :func:`rho`."""
+    return rho(loss_code(loss), jnp.asarray(s), jnp.asarray(c) ** 2)
+
+
+def loss_weight(loss, s, c):
+    """rho_c'(s), the majorizer's edge weight, of the kernel named ``loss`` (see :func:`loss_rho`)."""
+    return weight(loss_code(loss), jnp.asarray(s), jnp.asarray(c) ** 2)
+
+
 def _tls_band(mu, c2):
     """(lo, hi): rho_mu of TLS is s below lo, c^2 above hi (lo = hi = c^2 for mu = inf)."""
     ratio = jnp.where(jnp.isinf(mu), 1.0, mu / (mu + 1.0))
