@@ -222,3 +222,48 @@ def bmm(a, b):
 def mT(a):
     """Transpose of the last two axes."""
     return jnp.swapaxes(a, -1, -2)
+
+
+# --- log maps (host-side NumPy, vectorised; added for mmpgo_jax/_robust/pcm.py) -------------------
+
+
+def so_log(R) -> np.ndarray:
+    """Rotation vectors of rotations (..., d, d), d = 2 or 3: the angle (..., 1) in 2D, the axis times
+    the angle (..., 3) in 3D (|omega| in [0, pi]; near pi the axis comes from the symmetric part)."""
+    R = np.asarray(R, np.float64)
+    if R.shape[-1] == 2:
+        return np.arctan2(R[..., 1, 0] - R[..., 0, 1], R[..., 0, 0] + R[..., 1, 1])[..., None]
+    v = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1)
+    s, c = 0.5 * np.linalg.norm(v, axis=-1), 0.5 * (np.trace(R, axis1=-2, axis2=-1) - 1.0)
+    theta = np.arctan2(s, c)
+    # small and moderate angles: omega = theta / (2 sin theta) v (the ratio -> 1/2 as theta -> 0)
+    ratio = np.where(s > 1e-12, theta / np.maximum(2.0 * s, 1e-300), 0.5 + theta**2 / 12.0)
+    omega = ratio[..., None] * v
+    # theta near pi: a a^T = (sym(R) - cos theta I) / (1 - cos theta), the column of the largest diagonal
+    big = c < -0.5
+    if np.any(big):
+        A = (sym(R[big]) - c[big][:, None, None] * np.eye(3)) / (1.0 - c[big])[:, None, None]
+        k = np.argmax(np.diagonal(A, axis1=-2, axis2=-1), axis=-1)
+        col = np.take_along_axis(A, k[:, None, None], axis=-1)[..., 0]
+        axis = col / np.linalg.norm(col, axis=-1, keepdims=True)
+        axis *= np.where(np.sum(axis * v[big], -1) < 0, -1.0, 1.0)[:, None]
+        omega[big] = theta[big][:, None] * axis
+    return omega
+
+
+def se_log(R, t) -> tuple[np.ndarray, np.ndarray]:
+    """Log of rigid motions (R (..., d, d), t (..., d)), d = 2 or 3: (rho (..., d), omega) with
+    Exp(rho, omega) = (exp(hat omega), V(omega) rho), omega = :func:`so_log` (R); rho = V^-1 t."""
+    omega = so_log(R)
+    t = np.asarray(t, np.float64)
+    theta = np.linalg.norm(omega, axis=-1)
+    half = 0.5 * theta
+    safe = np.where(theta > 1e-6, half, 1.0)
+    a = np.where(theta > 1e-6, safe * np.cos(safe) / np.sin(safe), 1.0 - theta**2 / 12.0)  # (theta/2) cot(theta/2)
+    if R.shape[-1] == 2:  # V^-1 = a I - (theta/2) J, J = [[0, -1], [1, 0]]
+        w = 0.5 * omega[..., 0]
+        return np.stack([a * t[..., 0] + w * t[..., 1], a * t[..., 1] - w * t[..., 0]], -1), omega
+    # V^-1 = I - W/2 + (1 - a) / theta^2 W^2, W = hat(omega); W t = omega x t
+    b = np.where(theta > 1e-6, (1.0 - a) / np.where(theta > 1e-6, theta, 1.0) ** 2, 1.0 / 12.0)
+    wt = np.cross(omega, t)
+    return t - 0.5 * wt + b[..., None] * np.cross(omega, wt), omega

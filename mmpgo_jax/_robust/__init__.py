@@ -1,0 +1,1 @@
+"""Outlier rejection before the solve: pairwise consistency maximization (:mod:`.pcm`)."""
