@@ -17,6 +17,7 @@ Public API (the private modules are implementation details):
   :func:`loss_weight` (the edge weight rho'(s)) of a kernel by name (or code, :func:`loss_code`), at scale c
 * outlier experiments: :func:`add_outlier_loop_closures` (seeded wrong loop closures, a
   :class:`CorruptedGraph`), :func:`outlier_scores` (precision / recall of rejected edges, :class:`OutlierScores`)
+* baselines: :func:`dgs` (distributed Gauss–Seidel, the paper's DGS column, a :class:`DGSResult`)
 * consistency pre-filter: :func:`pcm_filter` (PCM: the maximum pairwise-consistent set of inter-robot loop
   closures per robot pair, a :class:`PCMResult`)
 * solvers: :func:`solve`, :func:`centralized_optimum`, :func:`certify` (global optimality check), and the
@@ -34,6 +35,7 @@ import importlib
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:  # the same names, eagerly, for type checkers and IDEs
+    from ._baselines.dgs import DGSResult, dgs
     from ._core.compilation_cache import enable_compilation_cache
     from ._core.gauge import FixedPoses, express_in_frame
     from ._core.geometry import project_to_so, quaternion_to_rotation, rotation_2d
@@ -166,6 +168,8 @@ _LAZY = {  # public name -> the private module that defines it (imported on firs
     "CorruptedGraph": "._experiments.outliers",
     "OutlierScores": "._experiments.outliers",
     "PCMResult": "._robust.pcm",
+    "DGSResult": "._baselines.dgs",
+    "dgs": "._baselines.dgs",
     "pcm_filter": "._robust.pcm",
     "add_outlier_loop_closures": "._experiments.outliers",
     "outlier_scores": "._experiments.outliers",
@@ -252,6 +256,7 @@ __all__ = [
     "LOSSES",
     "RESULTS",
     "CorruptedGraph",
+    "DGSResult",
     "DatasetNotFoundError",
     "FStarReference",
     "FixedPoses",
@@ -297,6 +302,7 @@ __all__ = [
     "data_dir",
     "data_matrix",
     "default_float_dtype",
+    "dgs",
     "distributed_chordal_initialization",
     "edge_costs",
     "enable_compilation_cache",

@@ -583,8 +583,10 @@ def newton_optimum(
 
         return chunk
 
+    # no stall rule: near the optimum Newton's f changes by O(||grad||^2), below rounding while the
+    # gradient still falls quadratically to grad_tol (which the certificate needs)
     one_by_one = Termination(termination.iterations, 1, termination.grad_tol, termination.f_target,
-                             termination.rel_decrease_tol, termination.stop_when_stalled)
+                             termination.rel_decrease_tol, stop_when_stalled=False)
     # One BLAS thread for all the numerical work, the start's included: the iterations are small or
     # memory-bound NumPy / SuperLU operations, where OpenBLAS's threads only add synchronization
     # (measured: 1.8x faster on sphere2500, 2-core machine), and OpenBLAS threads woken by a large
