@@ -442,8 +442,9 @@ def sweep(
     geman-mcclure). Robust configurations report their final ``weights`` and ``inliers``.
 
     Equivalent, configuration by configuration, to ``solve(graph, robots, method=..., iterations,
-    init, xi, restart, subproblem, fixed, loss, loss_scale, gnc)`` (for ``"l2"`` swept among robust
-    losses: ``loss=RobustLoss("l2", loss_scale)``).
+    init, xi, restart, subproblem, fixed, loss, loss_scale, gnc, stop_when_stalled=False)`` (for
+    ``"l2"`` swept among robust losses: ``loss=RobustLoss("l2", loss_scale)``): a batch runs every
+    iteration, since one configuration cannot stop alone.
     """
     if iterations < 0:
         raise ValueError(f"iterations must be >= 0, got {iterations}")
