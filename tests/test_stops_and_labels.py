@@ -56,7 +56,7 @@ def test_solve_from_a_critical_point_stops_after_one_chunk(at_optimum):
 
 def test_cli_stops_when_stalled_and_all_iterations_runs_them(tmp_path, at_optimum, capsys):
     graph, optimum = at_optimum
-    path, start = tmp_path / "g.g2o", tmp_path / "opt.g2o"
+    path = tmp_path / "g.g2o"
     mm.write_g2o(path, graph, optimum)
     assert main(["solve", str(path), "-A", "3", "--init", str(path), "-n", "100", "--chunk", "10", "--no-progress"]) == 0
     out = capsys.readouterr().out
@@ -66,7 +66,6 @@ def test_cli_stops_when_stalled_and_all_iterations_runs_them(tmp_path, at_optimu
     out = capsys.readouterr().out
     assert re.search(r"^iterations  30 \(budget of 30 iterations reached\)", out, re.M)
     assert re.search(r"^method      MM-PGO, 3 robots \(contiguous blocks\)$", out, re.M)  # MM has no restart rule
-    del start
 
 
 def test_amm_summary_names_its_restart_rule(tmp_path, at_optimum, capsys):

@@ -479,10 +479,9 @@ def save_convergence_figure(
 
 def solve_start(graph, robot_of_pose, *, init=None, initial=None, fixed=None, frame=None, loss="l2",
                 loss_scale=None, gnc=None, **_solver_options):
-    """The poses a ``solve(graph, robot_of_pose, **options)`` starts from, in the frame of its result
-    (``solve`` keeps no copy of its start, so it is computed again: with the default chordal start,
-    one sparse solve).  Takes ``solve``'s keyword arguments; those that do not choose the start
-    (method, iterations, ...) are ignored."""
+    """The poses a ``solve(graph, robot_of_pose, **options)`` starts from, in the frame of its result,
+    computed without solving (a solve's own start is ``SolveResult.start``).  Takes ``solve``'s
+    keyword arguments; those that do not choose the start (method, iterations, ...) are ignored."""
     from .._init.start import initialize
     from .._mm.robust import as_loss
     from .._mm.solve import output_frame, start_for

@@ -833,12 +833,11 @@ def finish_solve(args, data: LoadedInput, result, fstar) -> None:
             write_history_csv(args.history, result)
             written.append(args.history)
         if args.plot:
-            from .._experiments.plots import save_solve_figure, solve_start
+            from .._experiments.plots import save_solve_figure
 
             save_solve_figure(args.plot, data.graph, result, fstar=None if fstar is None else fstar.value,
                               fstar_label="f*" if fstar is None else fstar.label, title=data.path.name,
-                              start=result.start if result.start is not None
-                              else solve_start(data.graph, data.robot_of_pose, **solve_options(args, data)))
+                              start=result.start)
             written.append(args.plot)
     for path in written:  # only now are they in place
         print(f"wrote {path}")
