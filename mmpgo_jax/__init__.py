@@ -64,7 +64,7 @@ if TYPE_CHECKING:  # the same names, eagerly, for type checkers and IDEs
     )
     from ._core.precision import default_float_dtype, enable_float64, float64_enabled
     from ._experiments.certificate import OptimalityCertificate, certificate_matrix, certify
-    from ._experiments.metrics import (
+    from ._core.metrics import (
         RelativePoseError,
         TrajectoryAccuracy,
         absolute_trajectory_error,
@@ -158,13 +158,13 @@ _LAZY = {  # public name -> the private module that defines it (imported on firs
     "OptimalityCertificate": "._experiments.certificate",
     "certificate_matrix": "._experiments.certificate",
     "certify": "._experiments.certificate",
-    "RelativePoseError": "._experiments.metrics",
-    "TrajectoryAccuracy": "._experiments.metrics",
-    "absolute_trajectory_error": "._experiments.metrics",
-    "align_poses": "._experiments.metrics",
-    "relative_pose_error": "._experiments.metrics",
-    "rigid_alignment": "._experiments.metrics",
-    "trajectory_accuracy": "._experiments.metrics",
+    "RelativePoseError": "._core.metrics",
+    "TrajectoryAccuracy": "._core.metrics",
+    "absolute_trajectory_error": "._core.metrics",
+    "align_poses": "._core.metrics",
+    "relative_pose_error": "._core.metrics",
+    "rigid_alignment": "._core.metrics",
+    "trajectory_accuracy": "._core.metrics",
     "CorruptedGraph": "._experiments.outliers",
     "OutlierScores": "._experiments.outliers",
     "PCMResult": "._robust.pcm",

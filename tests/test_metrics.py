@@ -10,7 +10,7 @@ import pytest
 
 import mmpgo_jax as mm
 from mmpgo_jax._core.geometry import rotation_2d
-from mmpgo_jax._experiments.metrics import (
+from mmpgo_jax._core.metrics import (
     absolute_trajectory_error,
     relative_pose_error,
     rigid_alignment,

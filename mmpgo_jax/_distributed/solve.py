@@ -18,7 +18,7 @@ from jax.sharding import PartitionSpec as P
 from .._core.gauge import FixedPoses
 from .._core.partition import Partition, partition
 from .._core.pose_graph import PoseGraph, Poses
-from .._experiments.metrics import trajectory_accuracy
+from .._core.metrics import trajectory_accuracy
 from .._mm.checkpoint import DEFAULT_EVERY, Checkpointer, restore_state
 from .._mm.checkpoint import load as load_checkpoint
 from .._mm.driver import RESULTS, Monitor, Termination, compile_once, drive

@@ -79,7 +79,7 @@ from .._mm.preconditioner import aggregate_size
 from .._mm.robust import GNC_LOSSES, GNCConfig, RobustLoss, as_loss, loss_code, robust_outcome
 from .._mm.solve import output_frame, start_for
 from .._mm.subproblem import SubproblemConfig
-from .metrics import absolute_trajectory_error, relative_pose_error
+from .._core.metrics import absolute_trajectory_error, relative_pose_error
 from .outliers import outlier_scores
 
 __all__ = ["TRACE_COUNTS", "SweepResult", "default_max_batch_bytes", "reference_optimum", "sweep"]

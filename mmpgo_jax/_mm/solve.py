@@ -23,7 +23,7 @@ from .._core.gauge import FixedPoses, express_in_frame
 from .._core.partition import Partition, partition
 from .._core.pose_graph import HostPoses, PoseGraph, Poses
 from .._core.precision import float64_enabled
-from .._experiments.metrics import TrajectoryAccuracy, trajectory_accuracy
+from .._core.metrics import TrajectoryAccuracy, trajectory_accuracy
 from .._init.start import initialize
 from .centralized import NewtonConfig, newton_optimum
 from .checkpoint import DEFAULT_EVERY, Checkpointer, identity, restore_state

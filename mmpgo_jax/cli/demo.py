@@ -53,7 +53,7 @@ def run_demo(args) -> int:
     from .._core.pose_graph import cost
     from .._core.precision import float64_enabled
     from .._experiments.certificate import certify
-    from .._experiments.metrics import align_poses, trajectory_accuracy
+    from .._core.metrics import align_poses, trajectory_accuracy
     from .._experiments.plots import save_convergence_figure, save_solve_figure
     from .._experiments.synthetic import cube_dataset
     from .._init.start import initialize

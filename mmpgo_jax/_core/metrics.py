@@ -20,7 +20,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .._core.pose_graph import Poses
+from .pose_graph import Poses
 
 __all__ = [
     "RelativePoseError",
