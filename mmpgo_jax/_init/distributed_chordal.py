@@ -105,6 +105,7 @@ from .._core.partition import Partition
 from .._core.partition import partition as make_partition
 from .._core.pose_graph import PoseGraph, Poses, edge_hessian_blocks
 from .._core.resources import available_memory_bytes
+from .._core.validate import check_count, check_real
 
 __all__ = [
     "DEFAULT_ROTATION_ITERATIONS",
@@ -376,18 +377,13 @@ def _as_partition(graph: PoseGraph, robots) -> Partition:
 
 
 def _check_iters(name, value) -> int:
-    if isinstance(value, bool) or int(value) != value or value < 0:
-        raise ValueError(f"{name} must be a non-negative integer, got {value!r}")
+    check_count(None, name, value, 0, scalar=True)
     return int(value)
 
 
 def _check_tol(tol) -> float | None:
-    if tol is None:
-        return None
-    value = float(tol)
-    if not value >= 0.0:
-        raise ValueError(f"tol must be None or a non-negative number, got {tol!r}")
-    return value
+    check_real(None, "tol", tol, 0.0, optional=True, scalar=True)
+    return None if tol is None else float(tol)
 
 
 def _tol_value(tol, dt):

@@ -42,9 +42,9 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from .._core.geometry import bmm, mT, nearest_rotations, sym
+from .._core.validate import check_choice, check_count, check_real, concrete_value  # noqa: F401 (outer, robust)
 from .majorization import (
     GammaOperator,
     GammaSoA,
@@ -56,50 +56,6 @@ from .majorization import (
     tangent_soa,
     to_soa,
 )
-
-# --- config validation (shared with MMConfig) ------------------------------------------------
-
-
-def concrete_value(x):
-    """``x`` as a numpy array, or None when it is traced (under jit / vmap: not checkable)."""
-    try:
-        return np.asarray(x)
-    except (jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError):
-        return None
-
-
-def check_choice(owner: str, name: str, value, allowed) -> None:
-    if not isinstance(value, str) or value not in allowed:
-        options = " or ".join(repr(a) for a in allowed)
-        raise ValueError(f"{owner}.{name}: unknown {name} {value!r}: use {options}")
-
-
-def check_count(owner: str, name: str, value, low: int) -> None:
-    """A Python (or numpy) integer >= low; traced values are accepted unchecked."""
-    v = concrete_value(value)
-    if v is None:
-        return
-    if isinstance(value, bool) or v.dtype.kind not in "iu" or v.size == 0 or np.any(v < low):
-        raise ValueError(f"{owner}.{name} must be an integer >= {low}, got {value!r}")
-
-
-def check_real(owner: str, name: str, value, low: float, high: float | None = None, *,
-               low_open: bool = False, high_open: bool = False) -> None:
-    """A finite real number in [low, high] (open at an end with ``low_open`` / ``high_open``);
-    arrays are checked elementwise; traced values (under jit / vmap) are accepted unchecked."""
-    v = concrete_value(value)
-    if v is None:
-        return
-    ok = not isinstance(value, bool) and v.dtype.kind in "iuf" and v.size > 0
-    if ok:
-        v = v.astype(np.float64)
-        ok = bool(np.all(np.isfinite(v)) and np.all(v > low if low_open else v >= low))
-        ok = ok and (high is None or bool(np.all(v < high if high_open else v <= high)))
-    if not ok:
-        lo, hi = "(" if low_open else "[", ")" if high_open else "]"
-        rng = f"in {lo}{low:g}, {high:g}{hi}" if high is not None else (f"> {low:g}" if low_open else f">= {low:g}")
-        raise ValueError(f"{owner}.{name} must be a finite number {rng}, got {value!r}")
-
 
 PRECONDITIONERS = ("two-level", "block-jacobi")
 
