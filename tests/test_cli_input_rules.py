@@ -20,15 +20,17 @@ from pathlib import Path
 import pytest
 
 import mmpgo_jax._io.g2o as g2o_mod
-from mmpgo_jax import cli
 from mmpgo_jax._io.atomic import atomic_group, atomic_write
-from mmpgo_jax.cli import main
+from mmpgo_jax.cli import main, outputs
+from mmpgo_jax.cli.app import build_parser
+from mmpgo_jax.cli.commands import info
+from mmpgo_jax.cli.errors import MAX_MESSAGE, CLIError, one_line
 
 DATA = Path(__file__).resolve().parent / "data"
 TINY = DATA / "tiny2d.g2o"  # 4 poses
 TINY3 = DATA / "tiny3d.g2o"
 BAD = DATA / "bad"
-MAX_LINE = len("mmpgo: error: ") + cli.MAX_MESSAGE
+MAX_LINE = len("mmpgo: error: ") + MAX_MESSAGE
 
 
 def _error_line(capsys, rc, *, status=2) -> str:
@@ -141,9 +143,9 @@ def test_unknown_bare_name(capsys, data):
 
 @pytest.mark.parametrize("command", ["info", "solve", "optimum"])
 def test_strict_information_is_an_option(command):
-    args = cli.build_parser().parse_args([command, "x.g2o", "--strict-information"])
+    args = build_parser().parse_args([command, "x.g2o", "--strict-information"])
     assert args.strict_information is True
-    assert cli.build_parser().parse_args([command, "x.g2o"]).strict_information is False
+    assert build_parser().parse_args([command, "x.g2o"]).strict_information is False
 
 
 @pytest.mark.parametrize("command", ["info", "solve", "optimum"])
@@ -311,7 +313,7 @@ def test_issue_cases(capsys):
 
 def _numeric_actions():
     """(subcommand, action) of every option of every subcommand that takes a value with a type."""
-    parser = cli.build_parser()
+    parser = build_parser()
     sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
     for name, p in sub.choices.items():
         for action in p._actions:
@@ -339,7 +341,7 @@ def test_every_numeric_option_is_validated_and_swept():
     ["info", _F, "--robots", "1"],
 ])
 def test_boundary_values_are_accepted(argv):
-    cli.build_parser().parse_args(argv)
+    build_parser().parse_args(argv)
 
 
 def test_info_robots_more_than_poses(capsys):
@@ -359,16 +361,16 @@ def test_help_returns_zero(capsys):
 
 
 def test_one_line_shortens():
-    assert cli.one_line("a\nb\r\n\tc  d") == "a b c d"
+    assert one_line("a\nb\r\n\tc  d") == "a b c d"
     long = "x" * 1000
-    out = cli.one_line(f"file.g2o:3: bad token {long} here")
+    out = one_line(f"file.g2o:3: bad token {long} here")
     assert out.startswith("file.g2o:3: bad token x") and out.endswith("x here") and "…" in out
-    assert len(out) <= cli.MAX_MESSAGE
-    out = cli.one_line("word " * 500)
-    assert len(out) <= cli.MAX_MESSAGE and "…" in out
-    assert cli.one_line("bell\x07 and esc\x1b[31m") == "bell? and esc?[31m"
-    huge = cli.one_line("y" * 3_000_000)
-    assert len(huge) <= cli.MAX_MESSAGE
+    assert len(out) <= MAX_MESSAGE
+    out = one_line("word " * 500)
+    assert len(out) <= MAX_MESSAGE and "…" in out
+    assert one_line("bell\x07 and esc\x1b[31m") == "bell? and esc?[31m"
+    huge = one_line("y" * 3_000_000)
+    assert len(huge) <= MAX_MESSAGE
 
 
 def test_three_megabyte_token_in_a_g2o_file(capsys, tmp_path):
@@ -397,9 +399,9 @@ def test_three_megabyte_argument(capsys, tmp_path):
 
 def test_multi_line_error_becomes_one_line(capsys, monkeypatch):
     def boom(args):
-        raise cli.CLIError("first line\nsecond line\n" + "/very/long/" * 40 + "path.g2o")
+        raise CLIError("first line\nsecond line\n" + "/very/long/" * 40 + "path.g2o")
 
-    monkeypatch.setattr(cli, "_cmd_info", boom)
+    monkeypatch.setattr(info, "run", boom)
     line = _error_line(capsys, main(["info", _F]))
     assert line.startswith("mmpgo: error: first line second line /very/long/") and "…" in line
 
@@ -504,7 +506,7 @@ def test_failure_in_last_writer_leaves_nothing_new(capsys, work, monkeypatch):
             fh.write("iteration,f\n")
             raise OSError(5, "Input/output error")
 
-    monkeypatch.setattr(cli, "write_history_csv", fail)
+    monkeypatch.setattr(outputs, "write_history_csv", fail)
     (work / "old.tum").write_text("old\n")
     line = _error_line(capsys, main([*SOLVE, "--out", "new.g2o", "--tum", "old.tum", "--history", "h.csv"]))
     assert "Input/output error" in line

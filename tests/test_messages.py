@@ -9,7 +9,8 @@ from hypothesis import strategies as st
 
 from mmpgo_jax._core.messages import join_items, shorten_words
 from mmpgo_jax._io.datasets import BENCHMARKS, DatasetNotFoundError, find_benchmark
-from mmpgo_jax.cli import MAX_MESSAGE, main, one_line
+from mmpgo_jax.cli import main
+from mmpgo_jax.cli.errors import MAX_MESSAGE, one_line
 
 NAMES = st.lists(st.text(st.characters(categories=("L", "N"), max_codepoint=0x7F), min_size=1, max_size=12),
                  min_size=0, max_size=40)

@@ -16,9 +16,9 @@ import numpy as np
 import pytest
 from matplotlib.collections import LineCollection
 
-from mmpgo_jax import cli, cube_dataset, read_g2o, solve
+from mmpgo_jax import cube_dataset, read_g2o, solve
 from mmpgo_jax._experiments.plots import check_figure_path, save_solve_figure, solve_figure, solve_start
-from mmpgo_jax.cli import main
+from mmpgo_jax.cli import inputs, main
 
 DATA = Path(__file__).resolve().parent / "data"
 TINY = DATA / "tiny2d.g2o"
@@ -64,7 +64,7 @@ def test_unsupported_extension_is_refused_before_reading(tmp_path, capsys, monke
     def must_not_run(*args, **kwargs):
         raise AssertionError("the input was read before the --plot extension was checked")
 
-    monkeypatch.setattr(cli, "_load_for_solve", must_not_run)
+    monkeypatch.setattr(inputs, "load_for_solve", must_not_run)
     path = tmp_path / "plot.xyz"
     rc = main([*SOLVE, "--plot", str(path)])
     cap = capsys.readouterr()

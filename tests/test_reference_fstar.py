@@ -19,7 +19,8 @@ from matplotlib.figure import Figure
 import mmpgo_jax as mm
 from mmpgo_jax import BENCHMARKS, FStarReference
 from mmpgo_jax._experiments.plots import plot_convergence, printed_half_unit
-from mmpgo_jax.cli import main, reference_fstar
+from mmpgo_jax.cli import main
+from mmpgo_jax.cli.inputs import reference_fstar
 
 SHIPPED = [b for b in BENCHMARKS.values() if b.availability == "shipped"]
 

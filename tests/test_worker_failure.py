@@ -134,7 +134,8 @@ def test_last_error_of_a_worker():
 
 def test_cli_defaults_are_the_library_defaults():
     from mmpgo_jax._mm.checkpoint import DEFAULT_EVERY
-    from mmpgo_jax.cli import build_parser, sharded
+    from mmpgo_jax.cli import sharded
+    from mmpgo_jax.cli.app import build_parser
 
     assert sharded.HEARTBEAT_TIMEOUT_S == HEARTBEAT_TIMEOUT_S == 30
     assert sharded.CHECKPOINT_EVERY == DEFAULT_EVERY

@@ -307,15 +307,15 @@ def _gtsam_reference(graph, X0) -> dict:
 
 
 def _bench_one(job: _Job, args, iterations: int, no_progress: bool) -> _Result:
+    from .. import centralized_optimum, solve
     from .._core.partition import split_robots
     from .._core.pose_graph import connected_components, cost
     from .._core.precision import float64_enabled
-    from .._distributed.solve import solve_sharded
     from .._experiments.certificate import certify
     from .._init.start import initialize
     from .._io.g2o import read_g2o
-    from .._mm.solve import centralized_optimum, solve
-    from .sharded import thread_devices
+    from ..sharding import solve_sharded
+    from .devices import thread_devices
 
     if job.synthetic is not None:
         graph = job.synthetic.graph
@@ -650,7 +650,7 @@ def run_bench(args) -> int:
 
     meta = {
         "command": command_line(),
-        "arguments": {k: v for k, v in vars(args).items() if k != "func"},
+        "arguments": {k: v for k, v in vars(args).items() if not callable(v)},  # not the command's run, ...
         "date": _dt.datetime.now().astimezone().isoformat(timespec="seconds"),
         "machine": machine_info(),
         "robots": int(args.robots),

@@ -50,17 +50,17 @@ def _fmt_iters(k) -> str:
 
 
 def run_demo(args) -> int:
+    from .. import centralized_optimum, solve
+    from .._core.metrics import align_poses, trajectory_accuracy
     from .._core.pose_graph import cost
     from .._core.precision import float64_enabled
     from .._experiments.certificate import certify
-    from .._core.metrics import align_poses, trajectory_accuracy
     from .._experiments.plots import save_convergence_figure, save_solve_figure
     from .._experiments.synthetic import cube_dataset
     from .._init.start import initialize
     from .._io.atomic import atomic_write
     from .._io.datasets import FStarReference
     from .._io.g2o import write_g2o
-    from .._mm.solve import centralized_optimum, solve
 
     n, A, iters = int(args.poses), int(args.robots), int(args.iterations)
     if n < 2:

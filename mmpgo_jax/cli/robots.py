@@ -9,7 +9,7 @@ import os
 
 import numpy as np
 
-from . import CLIError
+from .errors import CLIError
 
 FILE_HELP = ("g2o file, TORO .graph file, folder with one g2o file per robot, or a benchmark name "
              "(e.g. MITb, city10000)")

@@ -10,7 +10,8 @@ import argparse
 import math
 import time
 
-from . import CLIError, int_in
+from ..options import INT_MAX, ROBOTS, add_common, int_in
+from ..robots import FILE_HELP, add_robots_from
 
 
 def percent(text: str) -> float:
@@ -27,17 +28,15 @@ def percent(text: str) -> float:
 percent.__name__ = "number"
 
 
-def add_sweep_parser(sub, *, add_common, robots_type, iterations_type) -> None:
-    from .robots import FILE_HELP, add_robots_from
-
+def register(sub) -> None:
     p = sub.add_parser("sweep", help="MM / AMM over several robot counts in one compiled computation per shape")
     p.add_argument("files", nargs="+", metavar="FILE", help=FILE_HELP + " (one or more, same dimension)")
-    p.add_argument("--robots", "-A", type=robots_type, nargs="+", default=[5, 10, 50],
+    p.add_argument("--robots", "-A", type=ROBOTS, nargs="+", default=[5, 10, 50],
                    help="robot counts, each >= 1 and at most the poses of every file (default 5 10 50)")
     add_robots_from(p, ("blocks", "metis", "random"))
     p.add_argument("--methods", nargs="+", choices=("mm", "amm"), default=["mm", "amm"],
                    help="methods (default mm amm)")
-    p.add_argument("--iterations", "-n", type=iterations_type, default=1000, help="outer iterations (default 1000)")
+    p.add_argument("--iterations", "-n", type=int_in(1, INT_MAX), default=1000, help="outer iterations (default 1000)")
     p.add_argument("--restart", choices=("adaptive", "paper", "average"), default="adaptive",
                    help="AMM restart rule (default adaptive)")
     p.add_argument("--fstar", choices=("registry", "centralized", "none"), default="registry",
@@ -45,7 +44,7 @@ def add_sweep_parser(sub, *, add_common, robots_type, iterations_type) -> None:
                         "benchmark, else the centralized optimum (registry, default); always the centralized "
                         "optimum (centralized); no gaps (none)")
     p.add_argument("--seed", type=int_in(0), default=0, help="seed of --robots-from random (default 0)")
-    from .._mm.robust import LOSSES
+    from ..._mm.robust import LOSSES
 
     p.add_argument("--losses", nargs="+", choices=LOSSES, metavar="KERNEL", default=None,
                    help=f"robust kernels to sweep ({', '.join(LOSSES)}; default: least squares only), all in the "
@@ -60,13 +59,16 @@ def add_sweep_parser(sub, *, add_common, robots_type, iterations_type) -> None:
     p.add_argument("--configs", help="write the per-configuration table as CSV (time, memory, final f and gap)")
     p.add_argument("--no-progress", action="store_true", help="do not print a line per compiled batch")
     add_common(p)
+    p.set_defaults(run=run)
 
 
-def run_sweep(args: argparse.Namespace, resolve_file) -> int:
-    from .._experiments.sweep import reference_optimum, sweep
-    from .._io.atomic import atomic_group
-    from .._io.datasets import benchmark_info
-    from .robots import read_input
+def run(args: argparse.Namespace) -> int:
+    from ... import reference_optimum, sweep
+    from ..._io.atomic import atomic_group
+    from ..._io.datasets import benchmark_info
+    from ..errors import CLIError
+    from ..inputs import resolve_file
+    from ..robots import read_input
 
     rates = None if args.outlier_rates is None else list(dict.fromkeys(args.outlier_rates))
     robust = args.losses is not None and any(k != "l2" for k in args.losses)
@@ -111,8 +113,8 @@ def run_sweep(args: argparse.Namespace, resolve_file) -> int:
 def _with_outliers(key: str, graph, rates, seed: int) -> dict:
     """name -> CorruptedGraph of ``graph`` at each rate (percent); the map's extent is read from the
     chordal initialization of the clean graph (no ground truth in a g2o file)."""
-    from .._experiments.outliers import add_outliers
-    from .._init.start import initialize
+    from ..._experiments.outliers import add_outliers
+    from ..._init.start import initialize
 
     reference = initialize(graph, "chordal")
     return {f"{key}@{rate:g}%": add_outliers(graph, rate / 100.0, reference=reference, seed=seed) for rate in rates}

@@ -1,0 +1,86 @@
+"""The options several commands share, and the argparse types that check every number when it is
+parsed (range in the message, exit status 2). Light: a command's parser is built before its
+command runs, so nothing here imports JAX."""
+
+from __future__ import annotations
+
+import argparse
+import math
+
+INT_MAX = 2**31 - 1  # iteration counts end up in int32 arrays in float32 mode
+
+
+def _range_text(low, high, *, strict_low: bool = False) -> str:
+    if high is None:
+        return f"{'>' if strict_low else '>='} {low:g}" if isinstance(low, float) else f">= {low}"
+    return f"between {low} and {high}"
+
+
+def int_in(low: int, high: int | None = None):
+    """argparse ``type``: an integer with ``low <= value (<= high)``."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text, 10)
+        except (TypeError, ValueError):
+            value = None
+        if value is None or value < low or (high is not None and value > high):
+            raise argparse.ArgumentTypeError(f"must be an integer {_range_text(low, high)}, got {text!r}")
+        return value
+
+    parse.__name__ = "integer"
+    return parse
+
+
+def finite_float(low: float, *, strict: bool = False):
+    """argparse ``type``: a finite number ``>= low`` (``> low`` with ``strict``)."""
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except (TypeError, ValueError):
+            value = math.nan
+        if not math.isfinite(value) or value < low or (strict and value == low):
+            raise argparse.ArgumentTypeError(
+                f"must be a finite number {_range_text(float(low), None, strict_low=strict)}, got {text!r}")
+        return value
+
+    parse.__name__ = "number"
+    return parse
+
+
+def host_port(text: str) -> str:
+    """argparse ``type``: ``HOST:PORT`` with a port between 1 and 65535."""
+    host, sep, port = text.rpartition(":")
+    ok = bool(sep and host.strip("[]") and port.isdigit() and 1 <= int(port) <= 65535)
+    if not ok:
+        raise argparse.ArgumentTypeError(f"must be HOST:PORT with PORT between 1 and 65535, got {text!r}")
+    return text
+
+
+ROBOTS = int_in(1)
+ITERATIONS = int_in(0, INT_MAX)
+
+
+def add_common(p: argparse.ArgumentParser) -> None:
+    """--data, --precision and the compilation cache: every command has them (``main`` acts on them
+    before the command runs)."""
+    p.add_argument("--data", help="folder with benchmark g2o files (default: $MMPGO_DATA, else ../shared/datasets)")
+    p.add_argument(
+        "--precision",
+        choices=("float64", "float32"),
+        default="float64",
+        help="floating-point precision (default float64, as the paper and SE-Sync)",
+    )
+    cache = p.add_mutually_exclusive_group()
+    cache.add_argument("--compilation-cache", metavar="DIR",
+                       help="folder of JAX's persistent compilation cache (default: $MMPGO_COMPILATION_CACHE, "
+                            "else ~/.cache/mmpgo-jax/jax): a second run of the same shapes skips compilation")
+    cache.add_argument("--no-compilation-cache", action="store_true",
+                       help="compile afresh, write no cache (also: MMPGO_COMPILATION_CACHE=off)")
+
+
+def add_strict(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--strict-information", action="store_true",
+                   help="refuse information matrices that are not positive definite (default: warn and use "
+                        "SE-Sync's isotropic weights)")

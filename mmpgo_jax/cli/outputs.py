@@ -1,0 +1,212 @@
+"""What a solve prints and writes, shared by ``solve``, ``optimum`` and the sharded solve.
+
+The output files (--out, --tum, --history, --plot, ...) are checked before anything is read or
+solved (:func:`check_outputs`: folder exists and is writable, not a directory, no two the same
+file), and written all-or-none: each to a temporary file, renamed into place only when all
+succeeded. Writing through a symbolic link replaces the link's target and keeps the link.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from .._core.messages import join_items
+from .errors import CLIError
+
+if TYPE_CHECKING:
+    from .inputs import LoadedInput
+
+_OUTPUTS = (("out", "--out"), ("tum", "--tum"), ("history", "--history"), ("plot", "--plot"),
+            ("edge_weights", "--edge-weights"), ("checkpoint", "--checkpoint"))
+
+
+def check_outputs(args) -> None:
+    """Refuse unusable output paths before any work: for each of --out, --tum, --history, --plot
+    that is set, its folder must exist and be writable, the path must not be a directory (nor a
+    device or other non-regular file), and no two may be the same file (symbolic links resolved)."""
+    from .._io.atomic import resolve_target
+    from .robots import check_output_dirs
+
+    check_output_dirs(args)
+    seen: dict = {}
+    for attr, flag in _OUTPUTS:
+        value = getattr(args, attr, None)
+        if value is None:
+            continue
+        value = os.fspath(value)
+        if value == "":
+            raise CLIError(f"{flag}: empty file name")
+        target = resolve_target(value)
+        shown = f"{flag} {value}"
+        if os.path.isdir(target):
+            raise CLIError(f"{shown}: is a directory")
+        if os.path.exists(target) and not os.path.isfile(target):
+            raise CLIError(f"{shown}: not a regular file (outputs replace the file as a whole)")
+        folder = os.path.dirname(target)
+        named = folder if os.path.islink(value) else (os.path.dirname(value) or ".")
+        if not os.path.exists(folder):
+            raise CLIError(f"{shown}: folder {named!r} does not exist")
+        if not os.path.isdir(folder):
+            raise CLIError(f"{shown}: {named!r} is not a folder")
+        if not os.access(folder, os.W_OK | os.X_OK):
+            raise CLIError(f"{shown}: folder {named!r} is not writable")
+        keys = [target]
+        with contextlib.suppress(OSError):
+            st = os.stat(target)
+            keys.append((st.st_dev, st.st_ino))  # hard links to one file
+        for key in keys:
+            if key in seen:
+                raise CLIError(f"{seen[key]} and {shown}: the same file")
+            seen[key] = shown
+    if getattr(args, "plot", None):  # an image format matplotlib cannot write is refused before the solve
+        from .._experiments.plots import check_figure_path
+
+        check_figure_path(args.plot, "--plot")
+
+
+def print_certificate(data: LoadedInput, poses, *, hint: bool) -> None:
+    from .._experiments.certificate import certify
+
+    if data.fixed is not None and len(data.fixed) > 1:
+        print(f"certificate not applicable: {len(data.fixed)} FIX poses constrain the problem "
+              "(the dual certificate covers PGO with at most one fixed pose)")
+        return
+    cert = certify(data.graph, poses)
+    print(f"certificate {cert.summary()}")
+    if hint and not cert.certified:
+        print("            (the certificate decides only at a critical point: run to a tight --grad-tol, "
+              "e.g. --robots 1)")
+
+
+def write_estimate(args, data: LoadedInput, poses, inliers=None) -> list[str]:
+    """--out (g2o, with the FIX lines), --tum, --tum-dir and --out-dir files of an estimate; returns
+    the paths written. ``inliers`` (m,) bool: the edges to write (all when None)."""
+    from .._io.g2o import write_g2o, write_tum
+    from .._io.multi_robot import write_robot_folder, write_robot_tum
+
+    written = []
+    robots = dict(robot_of_pose=data.robot_of_pose, robot_names=data.robot_names, vertex_ids=data.vertex_ids)
+    graph, information = data.graph, data.information
+    if inliers is not None:  # --drop-outliers
+        graph = graph.select_edges(inliers)
+        information = None if information is None else np.asarray(information)[inliers]
+    if getattr(args, "tum_dir", None):
+        written += write_robot_tum(args.tum_dir, poses, **robots)
+    if getattr(args, "out_dir", None):
+        written += write_robot_folder(args.out_dir, graph, poses, information=information,
+                                      fixed=data.fixed_mask, **robots)
+    if args.out:
+        write_g2o(args.out, graph, poses, vertex_ids=data.vertex_ids, information=information,
+                  fixed=data.fixed_mask)
+        written.append(args.out)
+    if args.tum:
+        write_tum(args.tum, poses, vertex_ids=data.vertex_ids)
+        written.append(args.tum)
+    return written
+
+
+def finish_solve(args, data: LoadedInput, result, fstar) -> None:
+    """After a solve (single- or multi-device): --certify, then the --out/--tum/--history/--plot
+    files, all or none (:func:`~mmpgo_jax._io.atomic.atomic_group`). ``fstar``: the
+    :class:`~mmpgo_jax.FStarReference` of the plot's gaps, or None."""
+    from .._io.atomic import atomic_group
+
+    if args.certify:
+        print_certificate(data, result.poses, hint=True)
+    keep = result.inliers if getattr(args, "drop_outliers", False) else None
+    with atomic_group():
+        written = write_estimate(args, data, result.poses, keep)
+        if getattr(args, "edge_weights", None):
+            write_edge_weights_csv(args.edge_weights, data, result)
+            written.append(args.edge_weights)
+        if args.history:
+            write_history_csv(args.history, result)
+            written.append(args.history)
+        if args.plot:
+            from .._experiments.plots import save_solve_figure
+
+            save_solve_figure(args.plot, data.graph, result, fstar=None if fstar is None else fstar.value,
+                              fstar_label="f*" if fstar is None else fstar.label, title=data.path.name,
+                              start=result.start)
+            written.append(args.plot)
+    for path in written:  # only now are they in place
+        print(f"wrote {path}")
+
+
+def _rejected_lines(result, data: LoadedInput | None) -> str:
+    """"; lines 12, 40 and 3 more of FILE" for the rejected edges, when they come from one file as read."""
+    lines = None if data is None or data.keep is not None else getattr(data.g2o, "edge_line", None)
+    rejected = np.flatnonzero(~np.asarray(result.inliers))
+    if lines is None or len(rejected) == 0 or len(lines) != len(result.inliers):
+        return ""
+    which = "line" if len(rejected) == 1 else "lines"
+    return f"; {which} {join_items(lines[rejected].tolist(), 60)} of {data.path.name}"
+
+
+def print_summary(result, fstar, data: LoadedInput | None = None) -> None:
+    """The result of a solve; ``fstar``: the :class:`~mmpgo_jax.FStarReference` of its gap, or None."""
+    h = result.history
+    split = f" ({data.robots_label})" if data is not None and data.robots_label else ""
+    restart = f", restart={result.config.restart}" if result.config.method == "amm" else ""  # MM has none
+    print(f"method      {result.config.method.upper()}-PGO, {result.partition.num_robots} robots{split}{restart}")
+    print(f"iterations  {h.iterations} ({result.stop_description})")
+    print(f"f = 2F      {h.f[0]:.6f} -> {h.f[-1]:.6f}")
+    if fstar is not None:
+        print(f"f*          {fstar.value:.12g} ({fstar.label})")
+        print(f"gap         {fstar.gap(h.f[-1]):.3e} = (f - f*)/f*, relative to the {fstar.label}")
+    print(f"|grad F|    {h.grad_norm[-1]:.3e}")
+    if result.loss is not None:
+        rejected = int((~result.inliers).sum())
+        gnc = f", GNC {result.stats['gnc_stages']} stages" if bool(result.loss.use_gnc) else ""
+        print(f"loss        {result.loss.name} (c = {float(result.loss.scale):.4g}{gnc}): {rejected} of "
+              f"{len(result.inliers)} edges rejected (f = sum of rho(r^2)){_rejected_lines(result, data)}")
+    if result.accuracy is not None:
+        a = result.accuracy
+        print(f"ATE         {a.ate:.6g} RMSE, {a.ate_max:.6g} max (positions after rigid alignment); "
+              f"rotation {a.rotation_deg:.4g} deg RMSE")
+        print(f"RPE         {a.rpe_translation:.6g} translation, {a.rpe_rotation_deg:.4g} deg rotation "
+              "(consecutive poses, RMSE)")
+
+
+def print_timing(result, *, read: float, write: float) -> None:
+    """The time line: every phase of the run, in the order it ran."""
+    # TODO(one-solve-path): solve's results time initialization and building apart, solve_sharded's
+    # only together (no build_seconds); branch on the entry point until both report the same fields.
+    if "initialize_seconds" in result.stats:
+        setup = f"initialize {result.initialize_seconds:.2f} s, build {result.build_seconds:.2f} s"
+    else:
+        setup = f"initialize and build {result.init_seconds:.2f} s"
+    print(f"time        read {read:.2f} s, {setup}, compile {result.compile_seconds:.2f} s, "
+          f"iterations {result.solve_seconds:.2f} s ({result.ms_per_iteration:.2f} ms/iteration), write {write:.2f} s")
+
+
+def write_edge_weights_csv(path, data: LoadedInput, result) -> None:
+    """One line per edge of a robust solve: original ids i, j, final weight, inlier 0/1; for GTSAM
+    symbol keys also their names (i_symbol, j_symbol: "a67" for Symbol('a', 67))."""
+    from .._io.atomic import atomic_write
+    from .._io.multi_robot import symbol_names
+
+    ids = np.asarray(data.vertex_ids)
+    i, j = np.asarray(data.graph.i), np.asarray(data.graph.j)
+    names = symbol_names(ids)
+    rows = zip(ids[i].tolist(), ids[j].tolist(), result.weights, result.inliers, strict=True)
+    lines = [f"{a},{b},{float(w)!r},{int(k)}" for a, b, w, k in rows]
+    if names is not None:
+        lines = [f"{line},{names[a]},{names[b]}" for line, a, b in zip(lines, i.tolist(), j.tolist(), strict=True)]
+    with atomic_write(path) as fh:
+        fh.write("i,j,weight,inlier" + (",i_symbol,j_symbol" if names is not None else "") + "\n")
+        fh.writelines(line + "\n" for line in lines)
+
+
+def write_history_csv(path, result) -> None:
+    from .._io.atomic import atomic_write
+
+    h = result.history
+    with atomic_write(path) as fh:
+        fh.write("iteration,f,grad_norm,restarts\n")
+        for k in range(len(h.f)):
+            fh.write(f"{k},{float(h.f[k])!r},{float(h.grad_norm[k])!r},{int(h.restarts[k].sum())}\n")
