@@ -385,8 +385,9 @@ def _bench_one(job: _Job, args, iterations: int, no_progress: bool) -> _Result:
     for key, label, method, restart, pcol, ccol in RUNS:
         with progress_bar(f"[{job.name}] {label}", iterations, disable=no_progress, leave=False) as bar:
             # the paper's fixed iteration counts: f is read at 100/250/1000 whatever happens before
-            kw = dict(method=method, restart=restart, iterations=iterations, init=X0, monitor=bar,
-                      stop_when_stalled=False)
+            # (a restart rule only for AMM: MM has none, and the solvers refuse one)
+            kw = dict(method=method, iterations=iterations, init=X0, monitor=bar, stop_when_stalled=False,
+                      **({"restart": restart} if method == "amm" else {}))
             r = solve(graph, robots, **kw) if devices is None else solve_sharded(graph, robots, devices=devices, **kw)
         h = r.history
         at = {}

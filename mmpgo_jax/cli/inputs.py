@@ -171,7 +171,8 @@ def solve_options(args, data: LoadedInput) -> dict:
     robust = {} if getattr(args, "loss", "l2") == "l2" else dict(loss=args.loss, loss_scale=args.loss_scale)
     if robust and getattr(args, "gnc", False):
         robust["gnc"] = GNCConfig()
+    restart = {"restart": args.restart} if args.method == "amm" else {}  # MM has no restart rule
     return dict(method=args.method, iterations=args.iterations, init=data.start(args.init, SOLVE_STARTS),
-                initial=data.initial, xi=args.xi, restart=args.restart, chunk_size=args.chunk,
-                grad_tol=args.grad_tol, stop_when_stalled=not args.all_iterations, fixed=data.fixed,
-                frame=data.frame, **robust, **checkpoint_options(args))
+                initial=data.initial, xi=args.xi, chunk_size=args.chunk, grad_tol=args.grad_tol,
+                stop_when_stalled=not args.all_iterations, fixed=data.fixed, frame=data.frame, **restart,
+                **robust, **checkpoint_options(args))
