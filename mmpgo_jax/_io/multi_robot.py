@@ -45,15 +45,9 @@ import numpy as np
 
 from .._core.pose_graph import PoseGraph, Poses
 from .atomic import atomic_group, atomic_write
-from .g2o import (
-    _G2O,
-    G2OFile,
-    G2OFormatError,
-    _read,
-    _warn_indefinite,
-    g2o_lines,
-    write_tum,
-)
+from .format import _G2O, G2OFormatError
+from .g2o import g2o_lines, write_tum
+from .reader import G2OFile, _read, _warn_indefinite
 
 __all__ = [
     "SYMBOL_INDEX_BITS",
