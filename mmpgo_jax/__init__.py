@@ -20,9 +20,10 @@ Public API (the private modules are implementation details):
 * baselines: :func:`dgs` (distributed Gauss–Seidel, the paper's DGS column, a :class:`DGSResult`)
 * consistency pre-filter: :func:`pcm_filter` (PCM: the maximum pairwise-consistent set of inter-robot loop
   closures per robot pair, a :class:`PCMResult`)
-* solvers: :func:`solve`, :func:`centralized_optimum`, :func:`certify` (global optimality check), and the
-  jittable core :class:`MMConfig`, :class:`MMProblem`, :func:`init_state`, :func:`run`, :func:`step`,
-  :class:`SubproblemConfig`
+* solvers: :func:`solve` (one path: a :class:`Solver` — :class:`AMM`, :class:`MM` —, a start, a
+  :class:`Termination`, a layout — :class:`OneDevice`, ``mmpgo_jax.sharding.Sharded``), :func:`centralized_optimum`,
+  :func:`certify` (global optimality check), and the jittable core :class:`MMConfig`, :class:`MMProblem`,
+  :func:`init_state`, :func:`run`, :func:`step`, :class:`SubproblemConfig`
 * sweeps and accuracy: :func:`sweep`, :class:`SweepResult`, :func:`reference_optimum`,
   :func:`trajectory_accuracy`, :func:`absolute_trajectory_error`, :func:`relative_pose_error`,
   :func:`align_poses`
@@ -39,6 +40,15 @@ if TYPE_CHECKING:  # the same names, eagerly, for type checkers and IDEs
     from ._core.compilation_cache import enable_compilation_cache
     from ._core.gauge import FixedPoses, express_in_frame
     from ._core.geometry import project_to_so, quaternion_to_rotation, rotation_2d
+    from ._core.metrics import (
+        RelativePoseError,
+        TrajectoryAccuracy,
+        absolute_trajectory_error,
+        align_poses,
+        relative_pose_error,
+        rigid_alignment,
+        trajectory_accuracy,
+    )
     from ._core.partition import (
         Partition,
         contiguous_robots,
@@ -64,15 +74,6 @@ if TYPE_CHECKING:  # the same names, eagerly, for type checkers and IDEs
     )
     from ._core.precision import default_float_dtype, enable_float64, float64_enabled
     from ._experiments.certificate import OptimalityCertificate, certificate_matrix, certify
-    from ._core.metrics import (
-        RelativePoseError,
-        TrajectoryAccuracy,
-        absolute_trajectory_error,
-        align_poses,
-        relative_pose_error,
-        rigid_alignment,
-        trajectory_accuracy,
-    )
     from ._experiments.outliers import CorruptedGraph, OutlierScores, add_outlier_loop_closures, outlier_scores
     from ._experiments.sweep import SweepResult, reference_optimum, sweep
     from ._experiments.synthetic import SyntheticDataset, cube_dataset, grid_2d_dataset
@@ -112,19 +113,15 @@ if TYPE_CHECKING:  # the same names, eagerly, for type checkers and IDEs
         write_robot_folder,
         write_robot_tum,
     )
-    from ._mm.driver import RESULTS, Monitor, Termination
+    from ._mm.driver import RESULTS, History, Monitor, NonFiniteError, Termination
+    from ._mm.layouts import OneDevice
     from ._mm.outer import MMConfig, MMProblem, MMState, init_state, run, step
     from ._mm.robust import LOSSES, GNCConfig, RobustLoss, chi2_scale, loss_code, loss_rho, loss_weight
-    from ._mm.solve import (
-        History,
-        NonFiniteError,
-        SolveResult,
-        centralized_optimum,
-        output_frame,
-        solve,
-    )
+    from ._mm.solvers import AMM, MM, Solver
     from ._mm.subproblem import SubproblemConfig
     from ._robust.pcm import PCMResult, pcm_filter
+    from ._solve.result import SolveResult, output_frame
+    from ._solve.solve import centralized_optimum, solve
 
 _LAZY = {  # public name -> the private module that defines it (imported on first use)
     "enable_compilation_cache": "._core.compilation_cache",
@@ -223,12 +220,16 @@ _LAZY = {  # public name -> the private module that defines it (imported on firs
     "loss_code": "._mm.robust",
     "loss_rho": "._mm.robust",
     "loss_weight": "._mm.robust",
-    "History": "._mm.solve",
-    "NonFiniteError": "._mm.solve",
-    "SolveResult": "._mm.solve",
-    "centralized_optimum": "._mm.solve",
-    "output_frame": "._mm.solve",
-    "solve": "._mm.solve",
+    "OneDevice": "._mm.layouts",
+    "AMM": "._mm.solvers",
+    "MM": "._mm.solvers",
+    "Solver": "._mm.solvers",
+    "History": "._mm.driver",
+    "NonFiniteError": "._mm.driver",
+    "SolveResult": "._solve.result",
+    "output_frame": "._solve.result",
+    "centralized_optimum": "._solve.solve",
+    "solve": "._solve.solve",
     "SubproblemConfig": "._mm.subproblem",
 }
 
@@ -252,8 +253,10 @@ def __dir__() -> list[str]:
 __version__ = "0.1.0"
 
 __all__ = [
+    "AMM",
     "BENCHMARKS",
     "LOSSES",
+    "MM",
     "RESULTS",
     "CorruptedGraph",
     "DGSResult",
@@ -271,6 +274,7 @@ __all__ = [
     "MMState",
     "Monitor",
     "NonFiniteError",
+    "OneDevice",
     "OptimalityCertificate",
     "OutlierScores",
     "PCMResult",
@@ -280,6 +284,7 @@ __all__ = [
     "RelativePoseError",
     "RobustLoss",
     "SolveResult",
+    "Solver",
     "SubproblemConfig",
     "SweepResult",
     "SyntheticDataset",

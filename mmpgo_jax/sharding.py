@@ -50,9 +50,10 @@ from ._distributed.launcher import (
     initialize_distributed,
     run_multiprocess,
 )
+from ._distributed.layout import Sharded
 from ._distributed.plan import ShardPlan, make_mesh, plan_shards
 from ._distributed.report import CommunicationReport, communication_report
-from ._distributed.solve import solve_sharded
+from ._solve.solve import solve_sharded
 
 __all__ = [
     "AXIS",
@@ -61,6 +62,7 @@ __all__ = [
     "MeshCollectives",
     "ProcessRun",
     "ShardPlan",
+    "Sharded",
     "communication_report",
     "free_port",
     "halo_plan",

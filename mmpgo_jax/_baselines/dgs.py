@@ -72,7 +72,8 @@ import numpy as np
 from jax import lax
 from jax.scipy.linalg import cho_solve
 
-from .._core.geometry import mT, project_to_so, rotation_2d
+from .._core.geometry import mT, project_to_so
+from .._core.lie import so
 from .._core.partition import Partition, partition
 from .._core.pose_graph import HostPoses, PoseGraph, Poses, component_labels, cost, host_view
 from .._init.start import initialize
@@ -226,37 +227,12 @@ def _rotation_edges(part: Partition, free, wr) -> _Edges:
                   unknown_i, unknown_j)
 
 
-def _generators(d: int, dtype):
-    """A basis G_k of so(d): [omega]_x = sum_k omega_k G_k (d = 2: one; d = 3: the cross-product basis)."""
-    if d == 2:
-        return jnp.array([[[0.0, -1.0], [1.0, 0.0]]], dtype)
-    if d == 3:
-        G = np.zeros((3, 3, 3))
-        for k, (a, b) in enumerate([(2, 1), (0, 2), (1, 0)]):
-            G[k, a, b], G[k, b, a] = 1.0, -1.0
-        return jnp.asarray(G, dtype)
-    raise ValueError(f"DGS supports d = 2 or 3, got d = {d}")
-
-
-def _so_exp(omega, d: int):
-    """Exp of (..., d(d-1)/2) tangent vectors: rotation_2d for d = 2, Rodrigues' formula for d = 3."""
-    if d == 2:
-        return rotation_2d(omega[..., 0])
-    K = jnp.einsum("...k,kab->...ab", omega, _generators(3, omega.dtype))
-    th2 = jnp.sum(omega**2, -1)[..., None, None]
-    small = th2 < 1e-8
-    th = jnp.sqrt(jnp.where(small, 1.0, th2))
-    a = jnp.where(small, 1.0 - th2 / 6.0, jnp.sin(th) / th)
-    b = jnp.where(small, 0.5 - th2 / 24.0, (1.0 - jnp.cos(th)) / jnp.where(small, 1.0, th2))
-    return jnp.eye(3, dtype=omega.dtype) + a * K + b * (K @ K)
-
-
 def _pose_jacobians(Ri, ti, Rj, tj, Rm, tm, wr, wt):
     """Whitened residual r0 = [sqrt(w_R) vec(R_i R~ - R_j); sqrt(w_t) (R_i t~ + t_i - t_j)] and its
     Jacobians J_i, J_j ((d^2 + d) x p, columns (omega, dt)) in the increment R Exp(omega), t + dt
     (``BetweenChordalFactor::evaluateError`` with ``retractPose3Global``)."""
     d = Ri.shape[-1]
-    G = _generators(d, Ri.dtype)
+    G = jnp.asarray(so(d).generators(), Ri.dtype)  # [omega]_x = sum_k omega_k G_k
     lead = Ri.shape[:-2]
     sr, st = jnp.sqrt(wr)[..., None, None], jnp.sqrt(wt)[..., None, None]
     dEi = jnp.einsum("...ab,kbc,...cd->...kad", Ri, G, Rm).reshape(*lead, -1, d * d)  # (.., k, d^2)
@@ -413,8 +389,9 @@ def _rotation_stage(graph, part, X, t, weights, free, active_first, order, kmax,
 def _retract(lin: Poses, delta, d: int) -> Poses:
     """R Exp(omega), t + dt for increments ``delta`` (..., p, 1) (``retractPose3Global``)."""
     delta = delta[..., 0]
-    k = d * (d - 1) // 2
-    return Poses(lin.R @ _so_exp(delta[..., :k], d), lin.t + delta[..., k:])
+    group = so(d)
+    k = group.tangent_dim
+    return Poses(lin.R @ group.exp(delta[..., :k]), lin.t + delta[..., k:])
 
 
 @functools.partial(jax.jit, static_argnames=("size", "jacobi", "flagged"))

@@ -1,21 +1,24 @@
 """Rotations: construction from angles/quaternions and projection onto SO(d).
 
-Everything here works on batches (leading axes) and is jittable.
+Everything here works on batches (leading axes) and is jittable. The formulas that depend on the
+dimension are the groups' of :mod:`~mmpgo_jax._core.lie`; this module keeps the package's
+dimension-free entry points (and the names its callers import).
 """
 
 from __future__ import annotations
 
-from typing import NamedTuple
-
 import jax.numpy as jnp
 import numpy as np
-from jax import lax
+
+from .lie import GROUPS, SO2, SO3, newton_polar, project_svd, so
+
+# the former private name of the 3D Newton polar iteration (benchmarks/projection_steps.py)
+_newton_polar_3d = newton_polar
 
 
 def rotation_2d(theta):
     """Planar rotation matrices for angles ``theta`` (any shape) -> (..., 2, 2)."""
-    c, s = jnp.cos(theta), jnp.sin(theta)
-    return jnp.stack([jnp.stack([c, -s], -1), jnp.stack([s, c], -1)], -2)
+    return SO2.exp(jnp.asarray(theta)[..., None])
 
 
 def angle_2d(R):
@@ -33,16 +36,8 @@ def quaternion_to_rotation(q):
 
     The quaternion is normalised first, as SE-Sync does for g2o measurements.
     """
-    q = q / jnp.linalg.norm(q, axis=-1, keepdims=True)
-    x, y, z, w = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    return jnp.stack(
-        [
-            jnp.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
-            jnp.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
-            jnp.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
-        ],
-        -2,
-    )
+    q = jnp.asarray(q)
+    return SO3.from_quaternion(q / jnp.linalg.norm(q, axis=-1, keepdims=True))
 
 
 def rotation_to_quaternion(R) -> np.ndarray:
@@ -82,79 +77,8 @@ def project_to_so(M):
     host, no JAX dispatch: the initializations' form); anything else goes through ``jax.numpy``.
     """
     if isinstance(M, np.ndarray):
-        return _svd_projection(M, np)
+        return project_svd(M)
     return nearest_rotations(M)
-
-
-def _svd_projection(M, xp=jnp):
-    """Umeyama's SVD projection of (..., d, d) blocks (``xp``: numpy or jax.numpy)."""
-    U, _, Vt = xp.linalg.svd(M)
-    det = xp.linalg.det(U @ Vt)
-    d = M.shape[-1]
-    fix = xp.concatenate([xp.ones((*M.shape[:-2], d - 1), M.dtype), det[..., None]], -1)
-    return (U * fix[..., None, :]) @ Vt
-
-
-class _Blocks(NamedTuple):
-    """Layout adapter: where the d x d matrix axes of a batch of blocks are. ``first=False``:
-    (..., d, d) (blocks last); ``first=True``: (d, d, ...) (the solver's structure-of-arrays layout).
-    Each layout is indexed natively (no transposition), so both are as fast as hand-written code."""
-
-    first: bool
-
-    def entry(self, M, i, j):
-        return M[i, j] if self.first else M[..., i, j]
-
-    def stack_rows(self, rows):
-        return jnp.stack(rows) if self.first else jnp.stack(rows, axis=-2)
-
-    def stack_row(self, entries):
-        return jnp.stack(entries) if self.first else jnp.stack(entries, -1)
-
-
-def _closed_form_2d(M, L: _Blocks):
-    """Nearest planar rotations; exact for any input: [c -s; s c] maximises
-    tr(R^T M) = c (M00 + M11) + s (M10 - M01)."""
-    a = L.entry(M, 0, 0) + L.entry(M, 1, 1)
-    b = L.entry(M, 1, 0) - L.entry(M, 0, 1)
-    r = jnp.sqrt(a * a + b * b)
-    safe = r > 0
-    c = jnp.where(safe, a / jnp.where(safe, r, 1.0), 1.0)
-    s = jnp.where(safe, b / jnp.where(safe, r, 1.0), 0.0)
-    return L.stack_rows([L.stack_row([c, -s]), L.stack_row([s, c])])
-
-
-def _newton_polar_3d(M, max_iterations: int = 6, settled: float | None = None):
-    """Orthogonal polar factor of near-rotations (3, 3, ...) (entries first: each step is an
-    elementwise loop over contiguous vectors) by scaled Newton iteration (Higham).
-
-    Converges quadratically, so it stops once a step changed no entry by more than ``settled``
-    (default sqrt(eps); 0 runs all ``max_iterations`` steps): the error left after that step is of
-    order eps. From ||M - R|| ~ 0.1 that is four steps; an AMM extrapolation takes one to three
-    (benchmarks/projection_steps.py). Inputs with det(M) <= 0 (far from
-    SO(3)) are mapped to a proper rotation by flipping the last row's sign (not the nearest
-    rotation: :func:`project_to_so` is exact for those); the solver's accept/reject test guards
-    against such poor points.
-    """
-    def step(X):
-        r0, r1, r2 = X[0], X[1], X[2]
-        c0, c1, c2 = jnp.cross(r1, r2, axis=0), jnp.cross(r2, r0, axis=0), jnp.cross(r0, r1, axis=0)  # det(X) X^{-T}
-        det = jnp.sum(r0 * c0, axis=0)
-        invT = jnp.stack([c0, c1, c2]) / det
-        scale = jnp.sqrt(jnp.sqrt(jnp.sum(invT**2, axis=(0, 1)) / jnp.sum(X**2, axis=(0, 1))))
-        scale = jnp.where(jnp.isfinite(scale) & (scale > 0), scale, 1.0)
-        return 0.5 * (scale * X + invT / scale)
-
-    def body(carry):
-        k, X, _ = carry
-        X_next = step(X)
-        return k + 1, X_next, jnp.max(jnp.abs(X_next - X), initial=0.0)
-
-    settled = jnp.sqrt(jnp.finfo(M.dtype).eps) if settled is None else settled
-    _, X, _ = lax.while_loop(lambda c: (c[0] < max_iterations) & (c[2] > settled), body,
-                             (0, M, jnp.asarray(jnp.inf, M.dtype)))
-    det = jnp.sum(X[0] * jnp.cross(X[1], X[2], axis=0), axis=0)
-    return X.at[2].multiply(jnp.where(det < 0, -1.0, 1.0))
 
 
 def nearest_rotations(M, *, method: str = "svd", layout: str = "blocks-last"):
@@ -164,8 +88,8 @@ def nearest_rotations(M, *, method: str = "svd", layout: str = "blocks-last"):
     ``"blocks-first"``: M (d, d, ...), the matrix axes first (the solver's structure-of-arrays
     layout, where every entry is a contiguous vector). ``method="svd"``: Umeyama's SVD projection,
     exact for any input and any d (= :func:`project_to_so`). ``"fast"``: the solver's hot path,
-    the closed form for d = 2 (exact as well) and a scaled Newton polar iteration for d = 3, run
-    until it has converged (at most 6 steps; exact to rounding for near-rotations with det > 0,
+    the group's :meth:`~mmpgo_jax._core.lie.SO3.project_fast` (the closed form in 2D, exact as well;
+    a scaled Newton polar iteration in 3D, exact to rounding for near-rotations with det > 0,
     which is what a retraction or an AMM extrapolation produces); other d fall back to the SVD.
     """
     if layout not in ("blocks-last", "blocks-first"):
@@ -173,18 +97,13 @@ def nearest_rotations(M, *, method: str = "svd", layout: str = "blocks-last"):
     if method not in ("svd", "fast"):
         raise ValueError(f"method must be 'svd' or 'fast', got {method!r}")
     first = layout == "blocks-first"
-    d = M.shape[0] if first else M.shape[-1]
-    if method == "svd" or d not in (2, 3):
-        if not first:
-            return _svd_projection(M)
-        return jnp.moveaxis(_svd_projection(jnp.moveaxis(M, (0, 1), (-2, -1))), (-2, -1), (0, 1))
-    if d == 2:
-        return _closed_form_2d(M, _Blocks(first))
-    if first:
-        return _newton_polar_3d(M)
-    # blocks last: the Newton iteration runs on the entries-first transpose (the same bits; measured
-    # 1.3-1.6x faster than indexing the blocks in place, transposes included)
-    return jnp.moveaxis(_newton_polar_3d(jnp.moveaxis(M, (-2, -1), (0, 1))), (0, 1), (-2, -1))
+    M = jnp.asarray(M)
+    group = GROUPS.get(M.shape[0] if first else M.shape[-1])
+    if method == "fast" and group is not None:
+        return group.project_fast(M, first=first)
+    if not first:
+        return project_svd(M)
+    return jnp.moveaxis(project_svd(jnp.moveaxis(M, (0, 1), (-2, -1))), (-2, -1), (0, 1))
 
 
 def sym(M):
@@ -224,46 +143,20 @@ def mT(a):
     return jnp.swapaxes(a, -1, -2)
 
 
-# --- log maps (host-side NumPy, vectorised; added for mmpgo_jax/_robust/pcm.py) -------------------
+# --- log maps (host-side NumPy, float64; for mmpgo_jax/_robust/pcm.py) ------------------------------
 
 
 def so_log(R) -> np.ndarray:
     """Rotation vectors of rotations (..., d, d), d = 2 or 3: the angle (..., 1) in 2D, the axis times
-    the angle (..., 3) in 3D (|omega| in [0, pi]; near pi the axis comes from the symmetric part)."""
+    the angle (..., 3) in 3D (|omega| in [0, pi]): :meth:`~mmpgo_jax._core.lie.SO3.log` in float64."""
     R = np.asarray(R, np.float64)
-    if R.shape[-1] == 2:
-        return np.arctan2(R[..., 1, 0] - R[..., 0, 1], R[..., 0, 0] + R[..., 1, 1])[..., None]
-    v = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1)
-    s, c = 0.5 * np.linalg.norm(v, axis=-1), 0.5 * (np.trace(R, axis1=-2, axis2=-1) - 1.0)
-    theta = np.arctan2(s, c)
-    # small and moderate angles: omega = theta / (2 sin theta) v (the ratio -> 1/2 as theta -> 0)
-    ratio = np.where(s > 1e-12, theta / np.maximum(2.0 * s, 1e-300), 0.5 + theta**2 / 12.0)
-    omega = ratio[..., None] * v
-    # theta near pi: a a^T = (sym(R) - cos theta I) / (1 - cos theta), the column of the largest diagonal
-    big = c < -0.5
-    if np.any(big):
-        A = (sym(R[big]) - c[big][:, None, None] * np.eye(3)) / (1.0 - c[big])[:, None, None]
-        k = np.argmax(np.diagonal(A, axis1=-2, axis2=-1), axis=-1)
-        col = np.take_along_axis(A, k[:, None, None], axis=-1)[..., 0]
-        axis = col / np.linalg.norm(col, axis=-1, keepdims=True)
-        axis *= np.where(np.sum(axis * v[big], -1) < 0, -1.0, 1.0)[:, None]
-        omega[big] = theta[big][:, None] * axis
-    return omega
+    return so(R.shape[-1]).log(R)
 
 
 def se_log(R, t) -> tuple[np.ndarray, np.ndarray]:
     """Log of rigid motions (R (..., d, d), t (..., d)), d = 2 or 3: (rho (..., d), omega) with
     Exp(rho, omega) = (exp(hat omega), V(omega) rho), omega = :func:`so_log` (R); rho = V^-1 t."""
-    omega = so_log(R)
-    t = np.asarray(t, np.float64)
-    theta = np.linalg.norm(omega, axis=-1)
-    half = 0.5 * theta
-    safe = np.where(theta > 1e-6, half, 1.0)
-    a = np.where(theta > 1e-6, safe * np.cos(safe) / np.sin(safe), 1.0 - theta**2 / 12.0)  # (theta/2) cot(theta/2)
-    if R.shape[-1] == 2:  # V^-1 = a I - (theta/2) J, J = [[0, -1], [1, 0]]
-        w = 0.5 * omega[..., 0]
-        return np.stack([a * t[..., 0] + w * t[..., 1], a * t[..., 1] - w * t[..., 0]], -1), omega
-    # V^-1 = I - W/2 + (1 - a) / theta^2 W^2, W = hat(omega); W t = omega x t
-    b = np.where(theta > 1e-6, (1.0 - a) / np.where(theta > 1e-6, theta, 1.0) ** 2, 1.0 / 12.0)
-    wt = np.cross(omega, t)
-    return t - 0.5 * wt + b[..., None] * np.cross(omega, wt), omega
+    R = np.asarray(R, np.float64)
+    group = so(R.shape[-1])
+    omega = group.log(R)
+    return group.apply_V_inverse(omega, np.asarray(t, np.float64)), omega

@@ -20,6 +20,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from .lie import GROUPS
 from .pose_graph import Poses
 
 __all__ = [
@@ -80,14 +81,11 @@ class RelativePoseError(NamedTuple):
 
 
 def _rotation_angle(R: np.ndarray) -> np.ndarray:
-    """Geodesic angle (radians) of rotations (k, d, d), d = 2 or 3 (or any d via the trace)."""
-    d = R.shape[-1]
-    if d == 2:
-        return np.abs(np.arctan2(R[:, 1, 0] - R[:, 0, 1], R[:, 0, 0] + R[:, 1, 1]))
-    if d == 3:
-        # atan2(|axis-vector|, trace term): accurate near 0 and near pi, unlike arccos.
-        v = np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], -1)
-        return np.arctan2(0.5 * np.linalg.norm(v, axis=-1), 0.5 * (np.trace(R, axis1=1, axis2=2) - 1.0))
+    """Geodesic angle (radians) of rotations (k, d, d): the group's :meth:`~mmpgo_jax._core.lie.SO3.angle`
+    for d = 2 or 3 (accurate near 0 and near pi, unlike arccos), else via the eigenvalues."""
+    group = GROUPS.get(R.shape[-1])
+    if group is not None:
+        return group.angle(R)
     # general d: root-sum-square of the principal angles
     ev = np.linalg.eigvals(R)
     return np.sqrt(0.5 * np.sum(np.angle(ev) ** 2, axis=-1))

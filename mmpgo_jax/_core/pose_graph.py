@@ -233,8 +233,8 @@ def matrix_to_poses(X) -> Poses:
     return Poses(jnp.asarray(R), jnp.asarray(t))
 
 
-def edge_hessian_blocks(R, t, kappa, tau, *, unit_rotations: bool = False):
-    """Per-edge blocks (H_ii, H_jj, H_ij) of the PGO objective, float64 numpy, each (m, d+1, d+1).
+def edge_hessian_blocks(R, t, kappa, tau, *, unit_rotations: bool = False, xp=np):
+    """Per-edge blocks (H_ii, H_jj, H_ij) of the PGO objective, each (m, d+1, d+1).
 
     Layout per pose: Y_p = [t_p | R_p] (d x (d+1)), index 0 the translation, 1..d the rotation
     columns. For an edge e = (i, j) with measurement (R~, t~) and a = (1, t~):
@@ -248,23 +248,29 @@ def edge_hessian_blocks(R, t, kappa, tau, *, unit_rotations: bool = False):
     linear in (kappa, tau): ``tau = 0`` gives the rotation connection Laplacian's blocks (in
     [1:, 1:]), ``kappa = 0`` the translation Laplacian's (in [0, 0]). ``unit_rotations=True``
     writes I for R~ R~^T (equal up to rounding for measurements in SO(d)). Inputs: ``R`` (m, d, d),
-    ``t`` (m, d), ``kappa`` and ``tau`` (m,) or scalars.
+    ``t`` (m, d), ``kappa`` and ``tau`` (m,) or scalars. ``xp=np`` (default): float64 NumPy on the
+    host (set-up, tests, initializations); ``xp=jax.numpy``: in the arrays' own dtype, jittable (the
+    weighted Gamma assembled inside the compiled step). One formula for both, so that the host's
+    Gamma and the compiled step's are the same blocks.
     """
-    R = np.asarray(R, dtype=np.float64)
-    t = np.asarray(t, dtype=np.float64)
+    if xp is np:
+        R, t = np.asarray(R, dtype=np.float64), np.asarray(t, dtype=np.float64)
+        kappa, tau = np.asarray(kappa, dtype=np.float64), np.asarray(tau, dtype=np.float64)
     m, d = t.shape
-    kappa = np.broadcast_to(np.asarray(kappa, dtype=np.float64), (m,))[:, None, None]
-    tau = np.broadcast_to(np.asarray(tau, dtype=np.float64), (m,))[:, None, None]
-    a = np.concatenate([np.ones((m, 1)), t], 1)
-    e0 = np.zeros(d + 1)
-    e0[0] = 1.0
-    gram = np.broadcast_to(np.eye(d), R.shape) if unit_rotations else R @ np.swapaxes(R, 1, 2)
-    Hii = tau * a[:, :, None] * a[:, None, :]
-    Hii[:, 1:, 1:] += kappa * gram
-    Hjj = tau * np.broadcast_to(np.outer(e0, e0), (m, d + 1, d + 1))
-    Hjj[:, 1:, 1:] += kappa * np.eye(d)
-    Hij = -tau * a[:, :, None] * e0[None, None, :]
-    Hij[:, 1:, 1:] -= kappa * R
+    dt = t.dtype
+    kappa = xp.broadcast_to(kappa, (m,))[:, None, None]
+    tau = xp.broadcast_to(tau, (m,))[:, None, None]
+    a = xp.concatenate([xp.ones((m, 1), dt), t], 1)
+    e0 = xp.concatenate([xp.ones(1, dt), xp.zeros(d, dt)])
+    S = xp.diag(xp.concatenate([xp.zeros(1, dt), xp.ones(d, dt)]))  # diag(0, I)
+
+    def pad(B):  # diag(0, B) of (m, d, d) blocks
+        return xp.pad(B, ((0, 0), (1, 0), (1, 0)))
+
+    gram = S if unit_rotations else pad(R @ xp.swapaxes(R, 1, 2))
+    Hii = tau * a[:, :, None] * a[:, None, :] + kappa * gram
+    Hjj = tau * xp.outer(e0, e0) + kappa * S
+    Hij = -tau * a[:, :, None] * e0[None, None, :] - kappa * pad(R)
     return Hii, Hjj, Hij
 
 

@@ -17,10 +17,13 @@ from __future__ import annotations
 
 import importlib.util
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
+from .._core.lie import SO2, SO3, so
 from .._core.pose_graph import PoseGraph, Poses
 
 __all__ = ["GtsamGncResult", "GtsamResult", "gtsam_available", "gtsam_gnc", "gtsam_levenberg_marquardt"]
@@ -37,23 +40,52 @@ class GtsamResult:
     iterations: int
 
 
-def _pose_type(d: int):
+class _GtsamPoses(NamedTuple):
+    """GTSAM's pose type of one group: a pose from (R, t), the Between factor's diagonal precisions
+    from (kappa, tau) in its tangent order, its Between and Prior factor types, and the poses (R, t)
+    of an optimizer's result."""
+
+    pose: Callable
+    precisions: Callable
+    between: type
+    prior: type
+    read: Callable[[object, int], Poses]
+
+
+def _gtsam_pose2(gtsam) -> _GtsamPoses:
+    def read(result, n):
+        ps = [result.atPose2(k) for k in range(n)]
+        return Poses(SO2.exp(np.array([p.theta() for p in ps])[:, None]), np.array([[p.x(), p.y()] for p in ps]))
+
+    return _GtsamPoses(lambda R, t: gtsam.Pose2(t[0], t[1], np.arctan2(R[1, 0], R[0, 0])),
+                       lambda k, w: np.array([w, w, 2 * k]),  # Pose2 tangent: (x, y, theta)
+                       gtsam.BetweenFactorPose2, gtsam.PriorFactorPose2, read)
+
+
+def _gtsam_pose3(gtsam) -> _GtsamPoses:
+    def read(result, n):
+        ps = [result.atPose3(k) for k in range(n)]
+        return Poses(np.array([p.rotation().matrix() for p in ps]), np.array([p.translation() for p in ps]))
+
+    return _GtsamPoses(lambda R, t: gtsam.Pose3(gtsam.Rot3(R), t),
+                       lambda k, w: np.array([2 * k] * 3 + [w] * 3),  # Pose3 tangent: (rotation, translation)
+                       gtsam.BetweenFactorPose3, gtsam.PriorFactorPose3, read)
+
+
+_GTSAM_POSES = {SO2: _gtsam_pose2, SO3: _gtsam_pose3}
+
+
+def _pose_type(d: int) -> _GtsamPoses:
     import gtsam
 
-    if d == 2:
-        return (lambda R, t: gtsam.Pose2(t[0], t[1], np.arctan2(R[1, 0], R[0, 0])),
-                lambda k, w: np.array([w, w, 2 * k]),  # Pose2 tangent: (x, y, theta)
-                gtsam.BetweenFactorPose2, gtsam.PriorFactorPose2)
-    return (lambda R, t: gtsam.Pose3(gtsam.Rot3(R), t),
-            lambda k, w: np.array([2 * k] * 3 + [w] * 3),  # Pose3 tangent: (rotation, translation)
-            gtsam.BetweenFactorPose3, gtsam.PriorFactorPose3)
+    return _GTSAM_POSES[so(d)](gtsam)
 
 
 def _problem(graph: PoseGraph, start: Poses):
     import gtsam
 
     d = graph.dim
-    pose, precisions, between, prior = _pose_type(d)
+    pose, precisions, between, prior, _ = _pose_type(d)
     i, j = np.asarray(graph.i), np.asarray(graph.j)
     Rm, tm = np.asarray(graph.R, np.float64), np.asarray(graph.t, np.float64)
     kappa, tau = np.asarray(graph.kappa, np.float64), np.asarray(graph.tau, np.float64)
@@ -62,7 +94,7 @@ def _problem(graph: PoseGraph, start: Poses):
     for e in range(i.size):  # GTSAM's Python API builds factors one by one
         noise = gtsam.noiseModel.Diagonal.Precisions(precisions(kappa[e], tau[e]))
         fg.add(between(int(i[e]), int(j[e]), pose(Rm[e], tm[e]), noise))
-    fg.add(prior(0, pose(R0[0], t0[0]), gtsam.noiseModel.Isotropic.Precision(3 if d == 2 else 6, 1e12)))
+    fg.add(prior(0, pose(R0[0], t0[0]), gtsam.noiseModel.Isotropic.Precision(d + so(d).tangent_dim, 1e12)))
     values = gtsam.Values()
     for k in range(graph.num_poses):
         values.insert(k, pose(R0[k], t0[k]))
@@ -70,14 +102,7 @@ def _problem(graph: PoseGraph, start: Poses):
 
 
 def _poses(result, n: int, d: int) -> Poses:
-    if d == 2:
-        ps = [result.atPose2(k) for k in range(n)]
-        th = np.array([p.theta() for p in ps])
-        c, s = np.cos(th), np.sin(th)
-        R = np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
-        return Poses(R, np.array([[p.x(), p.y()] for p in ps]))
-    ps = [result.atPose3(k) for k in range(n)]
-    return Poses(np.array([p.rotation().matrix() for p in ps]), np.array([p.translation() for p in ps]))
+    return _pose_type(d).read(result, n)
 
 
 def gtsam_levenberg_marquardt(graph: PoseGraph, start: Poses, *, error_tol: float = 1e-10,

@@ -484,7 +484,8 @@ def solve_start(graph, robot_of_pose, *, init=None, initial=None, fixed=None, fr
     keyword arguments; those that do not choose the start (method, iterations, ...) are ignored."""
     from .._init.start import initialize
     from .._mm.robust import as_loss
-    from .._mm.solve import output_frame, start_for
+    from .._solve.build import start_for
+    from .._solve.result import output_frame
 
     method, options = start_for(init, as_loss(loss, loss_scale, gnc))
     start = initialize(graph, method, initial=initial, robots=np.asarray(robot_of_pose), fixed=fixed, **options)

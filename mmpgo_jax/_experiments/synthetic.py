@@ -75,7 +75,9 @@ from __future__ import annotations
 
 import functools
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -83,6 +85,7 @@ import numpy as np
 from jax import lax
 from scipy import integrate, optimize, special
 
+from .._core.lie import SO2, SO3, so
 from .._core.pose_graph import PoseGraph, Poses
 from .._core.precision import default_float_dtype, to_device
 
@@ -106,15 +109,12 @@ __all__ = [
 
 
 def _check_dim(dim: int) -> int:
-    dim = int(dim)
-    if dim not in (2, 3):
-        raise ValueError(f"dim must be 2 or 3, got {dim}")
-    return dim
+    return so(int(dim)).dim
 
 
 def max_angular_rmse(dim: int) -> float:
     """sqrt(E theta^2) under the uniform (Haar) distribution: the largest reachable sigma_R."""
-    return math.pi / math.sqrt(3.0) if _check_dim(dim) == 2 else math.sqrt(math.pi**2 / 3 + 2)
+    return so(_check_dim(dim)).haar_rms_angle
 
 
 @functools.lru_cache(maxsize=512)
@@ -127,6 +127,7 @@ def langevin_expected_sq_angle(kappa: float, dim: int) -> float:
     bump for any kappa; the exponent is written as -4 kappa sin^2(theta/2) to avoid cancellation.
     """
     dim = _check_dim(dim)
+    density = so(dim).haar_angle_density
     kappa = float(kappa)
     if kappa < 0:
         raise ValueError("kappa must be >= 0")
@@ -139,10 +140,7 @@ def langevin_expected_sq_angle(kappa: float, dim: int) -> float:
 
     def weight(u):
         th = u / s
-        w = math.exp(-4.0 * kappa * math.sin(0.5 * th) ** 2)
-        if dim == 3:
-            w *= math.sin(0.5 * th) ** 2
-        return w
+        return math.exp(-4.0 * kappa * math.sin(0.5 * th) ** 2) * density(th)
 
     pts = [p for p in (1.0, 3.0, 10.0, 30.0) if p < upper]
     num = integrate.quad(lambda u: (u / s) ** 2 * weight(u), 0.0, upper, points=pts, limit=200,
@@ -161,9 +159,16 @@ def langevin_expected_trace(kappa: float, dim: int) -> float:
     kappa = float(kappa)
     if math.isinf(kappa):
         return float(dim)
+    return _LANGEVIN[so(dim)].expected_trace(kappa)
+
+
+def _expected_trace_so2(kappa: float) -> float:
     x = 2.0 * kappa
-    if dim == 2:
-        return 2.0 * special.ive(1, x) / special.ive(0, x)
+    return 2.0 * special.ive(1, x) / special.ive(0, x)
+
+
+def _expected_trace_so3(kappa: float) -> float:
+    x = 2.0 * kappa
     if kappa < 1e-6:  # series: E tr R = kappa + O(kappa^2) (Haar mean of tr R is 0, variance 1)
         return kappa
     i0, i1 = special.ive(0, x), special.ive(1, x)
@@ -182,19 +187,6 @@ def expected_edge_cost(kappa, tau, dim: int):
     rot = np.array([2.0 * k * (dim - langevin_expected_trace(k, dim)) for k in uniq])[inv]
     out = rot.reshape(kap.shape) + dim * np.ones_like(np.asarray(tau, dtype=np.float64))
     return out if np.ndim(kappa) or np.ndim(tau) else float(out.reshape(()))
-
-
-def _quat_to_rot(q: np.ndarray) -> np.ndarray:
-    """(..., 4) unit quaternions (x, y, z, w) -> (..., 3, 3) rotations (host-side float64)."""
-    x, y, z, w = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    return np.stack(
-        [
-            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
-            np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
-            np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
-        ],
-        -2,
-    )
 
 
 def _sample_langevin_quaternions(rng: np.random.Generator, kappa: float, size: int) -> np.ndarray:
@@ -239,23 +231,33 @@ def sample_langevin(rng: np.random.Generator, kappa: float, size: int, dim: int)
         raise ValueError("kappa must be >= 0")
     if math.isinf(kappa):
         return np.broadcast_to(np.eye(dim), (size, dim, dim)).copy()
-    if dim == 2:
-        th = rng.vonmises(0.0, 2.0 * kappa, size)
-        c, s = np.cos(th), np.sin(th)
-        return np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
-    return _quat_to_rot(_sample_langevin_quaternions(rng, kappa, size))
+    return _LANGEVIN[so(dim)].sample(rng, kappa, size)
+
+
+def _sample_so2(rng: np.random.Generator, kappa: float, size: int) -> np.ndarray:
+    """The angle is von Mises with concentration 2 kappa (tr R = 2 cos theta, Haar: uniform angle)."""
+    return SO2.exp(rng.vonmises(0.0, 2.0 * kappa, size)[:, None])
+
+
+def _sample_so3(rng: np.random.Generator, kappa: float, size: int) -> np.ndarray:
+    """Bingham quaternions (tr R = 4 w^2 - 1, Haar: uniform on S^3)."""
+    return SO3.from_quaternion(_sample_langevin_quaternions(rng, kappa, size))
+
+
+class _Langevin(NamedTuple):
+    """Langevin(I, kappa) on one group: E tr R in closed form (kappa finite) and the exact sampler."""
+
+    expected_trace: Callable[[float], float]
+    sample: Callable[[np.random.Generator, float, int], np.ndarray]
+
+
+_LANGEVIN = {SO2: _Langevin(_expected_trace_so2, _sample_so2), SO3: _Langevin(_expected_trace_so3, _sample_so3)}
 
 
 def rotation_angle(R) -> np.ndarray:
     """Geodesic angle in [0, pi] of rotations (..., d, d), d in {2, 3} (accurate near 0)."""
     R = np.asarray(R, dtype=np.float64)
-    if R.shape[-1] == 2:
-        return np.abs(np.arctan2(R[..., 1, 0] - R[..., 0, 1], R[..., 0, 0] + R[..., 1, 1]))
-    w = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0],
-                  R[..., 1, 0] - R[..., 0, 1]], -1)
-    sin = 0.5 * np.linalg.norm(w, axis=-1)
-    cos = 0.5 * (np.trace(R, axis1=-2, axis2=-1) - 1.0)
-    return np.arctan2(sin, cos)
+    return so(R.shape[-1]).angle(R)
 
 
 @functools.lru_cache(maxsize=256)
@@ -536,9 +538,13 @@ def lattice_dataset(
     fdt = np.dtype(dtype or default_float_dtype())
     gt = Poses(to_device(Rgt, fdt), to_device(tgt, fdt))
     if name is None:
-        name = f"{'cube' if dim == 3 else 'grid2d'}_seed{seed}"
+        name = f"{_PRESET_NAME[so(dim)]}_seed{seed}"
     return SyntheticDataset(name=name, graph=graph, ground_truth=gt, sigma_t=float(sigma_t),
                             sigma_R=float(sigma_R), seed=seed)
+
+
+#: the default dataset name of each group's lattice (that of its preset below)
+_PRESET_NAME = {SO2: "grid2d", SO3: "cube"}
 
 
 def cube_dataset(

@@ -67,6 +67,7 @@ from scipy.linalg import lapack
 
 from .._core.blas import one_blas_thread
 from .._core.gauge import FixedPoses, anchor_set
+from .._core.lie import SO2, SO3, so
 from .._core.pose_graph import PoseGraph, host_view
 from .._core.sparse import PardisoCholesky, factor_symmetric, pardiso_available, pose_order
 from .driver import RESULTS, History, Monitor, Termination, drive
@@ -116,10 +117,15 @@ class NewtonConfig:
     def resolved(self, d: int, dense: bool = False) -> NewtonConfig:
         """This configuration with the defaults (None) of dimension d filled in (``dense``: the
         problem is factored densely)."""
-        return replace(self, gauss_newton_steps=(1 if d == 3 else 0) if self.gauss_newton_steps is None
-                       else self.gauss_newton_steps,
-                       reuse_contraction=(0.25 if d == 3 and not dense else 0.0) if self.reuse_contraction is None
+        steps, contraction = _NEWTON_DEFAULTS[so(d)]
+        return replace(self, gauss_newton_steps=steps if self.gauss_newton_steps is None else self.gauss_newton_steps,
+                       reuse_contraction=(0.0 if dense else contraction) if self.reuse_contraction is None
                        else self.reuse_contraction)
+
+
+#: The defaults of :class:`NewtonConfig` per group: (gauss_newton_steps, reuse_contraction), measured
+#: (see its docstring).
+_NEWTON_DEFAULTS = {SO2: (0, 0.0), SO3: (1, 0.25)}
 
 
 #: Unknowns (6 per pose in 3D, 3 in 2D) up to which the Newton steps are factored densely (LAPACK's
@@ -134,47 +140,13 @@ PARDISO_NEWTON_MIN_SIZE = 5000
 
 
 @functools.cache
-def _generators(d: int) -> np.ndarray:
-    """Basis E_k of so(d), (p, d, d), p = d(d-1)/2 (the hat map for d = 3); read-only, built once."""
-    rows, cols = np.triu_indices(d, 1)
-    E = np.zeros((rows.size, d, d))
-    k = np.arange(rows.size)
-    E[k, cols, rows] = 1.0
-    E[k, rows, cols] = -1.0
-    if d == 3:  # omega = (x, y, z): hat(omega) = [[0, -z, y], [z, 0, -x], [-y, x, 0]]
-        E = E[[2, 1, 0]] * np.array([1.0, -1.0, 1.0])[:, None, None]
-    E.setflags(write=False)
-    return E
-
-
-def _exp(omega: np.ndarray, d: int) -> np.ndarray:
-    """Exp of hat(omega) for each pose: (n, p) -> (n, d, d) (Rodrigues for d = 3)."""
-    if d == 2:
-        c, s = np.cos(omega[:, 0]), np.sin(omega[:, 0])
-        return np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
-    # (SciPy's compiled Rotation.from_rotvec takes half the time per call, but importing
-    # scipy.spatial costs ~60 ms, more than fifty solves of a tiny graph)
-    theta = np.sqrt((omega * omega).sum(1))
-    small = theta < 1e-8
-    safe = np.where(small, 1.0, theta)
-    a = np.where(small, 1.0 - theta**2 / 6.0, np.sin(theta) / safe)
-    b = np.where(small, 0.5 - theta**2 / 24.0, (1.0 - np.cos(theta)) / safe**2)
-    W = (omega @ _generators(3).reshape(3, 9)).reshape(-1, 3, 3)
-    return _EYE3 + a[:, None, None] * W + b[:, None, None] * (W @ W)
-
-
-_EYE3 = np.eye(3)
-_EYE3.setflags(write=False)
-
-
-@functools.cache
 def _local_constants(d: int):
     """The constants of dimension d that the local coordinates need (read-only, built once): the
     generators E_k; [E_k, 0] (pose j's rotation Jacobians); the map of A_i (flattened) to
     <A_i, sym(E_k E_l)> (the curvature); the squared-norm weights of the local gradient (1/2 per
     rotation coordinate, see :meth:`_Problem.linearization`); and the diagonal of the translation
     rows in the residuals' d x (d + 1) layout, as (row, entry) index arrays."""
-    E = _generators(d)
+    E = so(d).generators()
     p = E.shape[0]
     Ej = np.concatenate([E, np.zeros((p, d, 1))], 2)
     EE = E[:, None] @ E[None]  # (p, p, d, d): E_k E_l
@@ -232,7 +204,8 @@ class _Problem:
         g = self.graph
         n, d = g.num_poses, g.R.shape[-1]
         self.n, self.d = n, d
-        self.p = d * (d - 1) // 2
+        self.group = so(d)
+        self.p = self.group.tangent_dim
         self.b = self.p + d  # unknowns per pose: omega, then delta
         self.dense = self.b * n <= DENSE_NEWTON_MAX_SIZE if dense is None else bool(dense)
         # each pose's place in the unknowns: nested-dissection order for the sparse factorizations
@@ -429,7 +402,7 @@ class _Problem:
     def retract(self, R, t, step: np.ndarray):
         """(R_i Exp(omega_i), t_i + delta_i) for the step (in nested-dissection order)."""
         s = step.reshape(self.n, self.b) if self.dense else step[self.index]  # (n, b)
-        return R @ _exp(s[:, : self.p], self.d), t + s[:, self.p :]
+        return R @ self.group.exp(s[:, : self.p]), t + s[:, self.p :]
 
 
 class _DenseCholesky:

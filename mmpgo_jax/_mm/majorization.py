@@ -23,7 +23,7 @@ import numpy as np
 
 from .._core.geometry import bmm, mT
 from .._core.partition import RobotEdges
-from .._core.pose_graph import Poses
+from .._core.pose_graph import Poses, edge_hessian_blocks
 from .._core.precision import to_device
 
 
@@ -135,12 +135,8 @@ def gamma_diagonal_blocks(edges: RobotEdges, xi, n_max: int, weights=None):
     w = jnp.where(edges.is_inter, 2.0, 1.0)
     if weights is not None:
         w = w * weights
-    a = jnp.concatenate([jnp.ones((*edges.t.shape[:-1], 1), dt), edges.t], -1)  # [1; tt]
-    rot_block = jnp.diag(jnp.concatenate([jnp.zeros(1, dt), jnp.ones(d, dt)]))
-    e0 = jnp.zeros(d + 1, dt).at[0].set(1.0)
-    tail = (w * edges.tau)[:, None, None] * a[:, :, None] * a[:, None, :]
-    tail = tail + (w * edges.kappa)[:, None, None] * rot_block
-    head = (w * edges.tau)[:, None, None] * jnp.outer(e0, e0) + (w * edges.kappa)[:, None, None] * rot_block
+    tail, head, _ = edge_hessian_blocks(edges.R, edges.t, w * edges.kappa, w * edges.tau, unit_rotations=True,
+                                        xp=jnp)
     B = jax.ops.segment_sum(jnp.where(edges.local_i[:, None, None], tail, 0.0), edges.slot_i, n_max)
     B = B + jax.ops.segment_sum(jnp.where(edges.local_j[:, None, None], head, 0.0), edges.slot_j, n_max)
     return B + xi * jnp.eye(d + 1, dtype=dt)
@@ -186,21 +182,6 @@ class GammaOperator(eqx.Module):
         out = out.at[:-1].add(up).at[1:].add(down)
         coo = jax.ops.segment_sum(bmm(Y[self.src], self.blocks), self.dst, Y.shape[0], indices_are_sorted=True)
         return out + coo
-
-
-def _edge_hessian_blocks(R, t, kappa, tau):
-    """(H_ii, H_jj, H_ij) per edge, numpy, shapes (m, d+1, d+1)."""
-    m, d = t.shape
-    a = np.concatenate([np.ones((m, 1)), t], 1)
-    S = np.diag(np.r_[0.0, np.ones(d)])
-    e0 = np.zeros(d + 1)
-    e0[0] = 1.0
-    Hii = tau[:, None, None] * a[:, :, None] * a[:, None, :] + kappa[:, None, None] * S
-    Hjj = tau[:, None, None] * np.outer(e0, e0) + kappa[:, None, None] * S
-    Rblock = np.zeros((m, d + 1, d + 1))
-    Rblock[:, 1:, 1:] = R
-    Hij = -tau[:, None, None] * a[:, :, None] * e0[None, None, :] - kappa[:, None, None] * Rblock
-    return Hii, Hjj, Hij
 
 
 def _loop_closure_edges(edges: RobotEdges):
@@ -263,8 +244,8 @@ def build_gamma_operator(edges: RobotEdges, xi: float, n_max: int, *, min_coupli
     # data float arithmetic cannot represent: no NumPy warning here, the run stops on f = inf with
     # a one-line error of its own (NonFiniteError)
     with np.errstate(over="ignore", invalid="ignore"):
-        Hii, Hjj, Hij = _edge_hessian_blocks(np.asarray(edges.R, np.float64).reshape(-1, d, d),
-                                             np.asarray(edges.t, np.float64).reshape(-1, d), kappa, tau)
+        Hii, Hjj, Hij = edge_hessian_blocks(np.asarray(edges.R).reshape(-1, d, d), np.asarray(edges.t).reshape(-1, d),
+                                            kappa, tau, unit_rotations=True)
         np.add.at(diag, (robot[li], si[li]), (w * Hii)[li])
         np.add.at(diag, (robot[lj], sj[lj]), (w * Hjj)[lj])
         diag += xi * np.eye(d + 1)
@@ -336,12 +317,8 @@ def gamma_layout(edges: RobotEdges, n_max: int, *, min_couplings: int = 0) -> Ga
 
 
 def _off_diagonal_blocks(edges: RobotEdges):
-    """H_ij = -tau a e0^T - kappa diag(0, Rt) per edge (e_max, d+1, d+1) (see :func:`edge_hessian_blocks`)."""
-    d = edges.t.shape[-1]
-    dt = edges.t.dtype
-    a = jnp.concatenate([jnp.ones((*edges.t.shape[:-1], 1), dt), edges.t], -1)
-    col0 = jnp.zeros((*a.shape, d + 1), dt).at[..., 0].set(-edges.tau[:, None] * a)
-    return col0.at[..., 1:, 1:].add(-edges.kappa[:, None, None] * edges.R)
+    """H_ij = -tau a e0^T - kappa diag(0, Rt) per edge (e_max, d+1, d+1) (:func:`edge_hessian_blocks`)."""
+    return edge_hessian_blocks(edges.R, edges.t, edges.kappa, edges.tau, unit_rotations=True, xp=jnp)[2]
 
 
 def assemble_gamma(edges: RobotEdges, layout: GammaLayout, weights, xi, n_max: int):

@@ -578,7 +578,7 @@ def _run(problem: MMProblem, config: MMConfig, state: MMState, length: int, limi
         if limit is None:
             return step(problem, config, st)
         skip = st.iteration >= limit
-        return jax.lax.cond(skip, lambda s: (s, _skipped_record(s)), lambda s: step(problem, config, s), st)
+        return jax.lax.cond(skip, lambda s: (s, skipped_record(s)), lambda s: step(problem, config, s), st)
 
     return jax.lax.scan(body, state, None, length=length)
 
@@ -622,7 +622,7 @@ run = _CheckedJit(_run, """``length`` outer iterations in one ``lax.scan``; retu
     """)
 
 
-def _skipped_record(st: MMState) -> IterationRecord:
+def skipped_record(st: MMState) -> IterationRecord:
     nan = jnp.full((), jnp.nan, st.share.dtype)
     return IterationRecord(f=nan, grad_norm=nan, restarted=jnp.zeros_like(st.s, dtype=bool), settled=_settled(st))
 

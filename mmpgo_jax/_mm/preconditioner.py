@@ -45,6 +45,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._core.blas import one_blas_thread
+from .._core.lie import so
+from .._core.pose_graph import edge_hessian_blocks
 from .._core.precision import to_device
 from .majorization import soa_bmm, soa_T, tangent_soa
 
@@ -62,22 +64,7 @@ def aggregate_size(robot_poses: int, d: int) -> int:
 
 
 # --- rotations in tangent coordinates: Omega(x) = sum_q x_q Omega_q, Omega_q a basis of so(d) -----
-
-
-def _skew(x):
-    """Omega(x) for x (p, ...) -> (d, d, ...): 2D x J with J = [[0, -1], [1, 0]]; 3D [x]_x."""
-    if x.shape[0] == 1:
-        z = jnp.zeros_like(x[0])
-        return jnp.stack([jnp.stack([z, -x[0]]), jnp.stack([x[0], z])])
-    z = jnp.zeros_like(x[0])
-    return jnp.stack([jnp.stack([z, -x[2], x[1]]), jnp.stack([x[2], z, -x[0]]), jnp.stack([-x[1], x[0], z])])
-
-
-def _skew_coordinates(A):
-    """(<Omega_q, A>)_q for A (d, d, ...): the coordinates dual to Omega(.)."""
-    if A.shape[0] == 2:
-        return (A[1, 0] - A[0, 1])[None]
-    return jnp.stack([A[2, 1] - A[1, 2], A[0, 2] - A[2, 0], A[1, 0] - A[0, 1]])
+# (the group's hat map and its relatives, :mod:`~mmpgo_jax._core.lie`, entries first)
 
 
 def _matvec(M, x):
@@ -88,43 +75,14 @@ def _matvec(M, x):
     return out
 
 
-def _skew_of_vector(x, v):
-    """Omega(x) v for the coefficient x (p, ...) and a vector v (d, ...): 2D x J v; 3D x cross v."""
-    if x.shape[0] == 1:
-        return jnp.stack([-x[0] * v[1], x[0] * v[0]])
-    return jnp.cross(x, v, axis=0)
-
-
-def _skew_adjoint(v, u):
-    """Omega(.)^T applied: (<Omega_q v, u>)_q for vectors v, u (d, ...): 2D (J v).u; 3D v x u."""
-    if v.shape[0] == 2:
-        return (v[0] * u[1] - v[1] * u[0])[None]
-    return jnp.cross(v, u, axis=0)
-
-
 def _schur_correction(W):
-    """C(W) - C(0) for the Weingarten matrices W (d, d, n): -tr(W) in 2D, W - tr(W) I in 3D."""
-    tr = W[0, 0] + W[1, 1] + (W[2, 2] if W.shape[0] == 3 else 0.0)
-    if W.shape[0] == 2:
-        return -tr[None, None]
-    return W - tr * jnp.eye(3, dtype=W.dtype)[:, :, None]
-
-
-def _spd_inverse(S):
-    """Inverse of symmetric blocks S (p, p, n), p in {1, 3}, and whether each is positive definite
-    (leading minors > 0), by the adjugate (no factorization)."""
-    if S.shape[0] == 1:
-        s = S[0, 0]
-        ok = s > 0
-        return (1.0 / jnp.where(ok, s, 1.0))[None, None], ok
-    a, b, c = S[0, 0], S[0, 1], S[0, 2]
-    e, f, i = S[1, 1], S[1, 2], S[2, 2]
-    A00, A01, A02 = e * i - f * f, c * f - b * i, b * f - c * e
-    A11, A12, A22 = a * i - c * c, b * c - a * f, a * e - b * b
-    det = a * A00 + b * A01 + c * A02
-    ok = (a > 0) & (A22 > 0) & (det > 0)
-    inv = jnp.stack([jnp.stack([A00, A01, A02]), jnp.stack([A01, A11, A12]), jnp.stack([A02, A12, A22])])
-    return inv / jnp.where(ok, det, 1.0), ok
+    """C(W) (p, p, n) for the Weingarten matrices W (d, d, n) (the group's ``trace_form``, tr(W)
+    summed in index order): the Schur complement at W is S_Gamma - C(W)."""
+    d = W.shape[0]
+    tr = W[0, 0]
+    for k in range(1, d):
+        tr = tr + W[k, k]
+    return so(d).trace_form(W, tr, first=True)
 
 
 def _aggregate_sum(x, b: int):
@@ -166,18 +124,19 @@ class NewtonPreconditioner(eqx.Module):
         """M^-1 at Y (d, k, n) with the Weingarten matrices ``weingarten`` (d, d, n): a function of
         tangent vectors at Y to tangent vectors at Y."""
         R = Y[:, 1:]
-        S_inv, ok = _spd_inverse(self.schur + _schur_correction(weingarten))
-        S_gamma_inv, _ = _spd_inverse(self.schur)
+        group = so(Y.shape[0])
+        S_inv, ok = group.inverse_spd(self.schur - _schur_correction(weingarten), first=True)
+        S_gamma_inv, _ = group.inverse_spd(self.schur, first=True)
         S_inv = jnp.where(ok, S_inv, S_gamma_inv)
 
         def block_jacobi(V):
             """E diag(H_ss)^-1 E^T V, by the Schur complement in tangent coordinates."""
             Vt, VR = V[:, 0], V[:, 1:]
-            rho_R = _skew_coordinates(soa_bmm(soa_T(R), VR))
-            rho_R = rho_R - _skew_adjoint(self.coupling, _matvec(soa_T(R), Vt)) / self.gamma00
+            rho_R = group.dual(soa_bmm(soa_T(R), VR), first=True)
+            rho_R = rho_R - group.hat_apply_adjoint(self.coupling, _matvec(soa_T(R), Vt), first=True) / self.gamma00
             x_R = _matvec(S_inv, rho_R)
-            x_t = (Vt - _matvec(R, _skew_of_vector(x_R, self.coupling))) / self.gamma00
-            return jnp.concatenate([x_t[:, None], soa_bmm(R, _skew(x_R))], axis=1)
+            x_t = (Vt - _matvec(R, group.hat_apply(x_R, self.coupling, first=True))) / self.gamma00
+            return jnp.concatenate([x_t[:, None], soa_bmm(R, group.hat(x_R, first=True))], axis=1)
 
         if not self.has_coarse:
             return block_jacobi
@@ -186,11 +145,11 @@ class NewtonPreconditioner(eqx.Module):
 
         def two_level(V):
             # restrict to the rigid motions of each aggregate (translations, then rotation moments)
-            per_slot = jnp.concatenate([self.real * V[:, 0], _skew_coordinates(soa_bmm(V, soa_T(self.frame)))])
+            per_slot = jnp.concatenate([self.real * V[:, 0], group.dual(soa_bmm(V, soa_T(self.frame)), first=True)])
             coef = self.coarse_inverse @ _aggregate_sum(per_slot, b).reshape(-1)
             # prolong: every slot takes its aggregate's coefficients (a broadcast, no gather)
             coef = jnp.broadcast_to(coef.reshape(-1, m, 1), (coef.size // m, m, b)).reshape(-1, m * b)[:, :n]
-            coarse = soa_bmm(_skew(coef[d:]), self.frame)
+            coarse = soa_bmm(group.hat(coef[d:], first=True), self.frame)
             coarse = jnp.concatenate([coarse[:, :1] + self.real * coef[:d, None], coarse[:, 1:]], axis=1)
             return block_jacobi(V) + tangent_soa(Y, coarse)
 
@@ -206,10 +165,7 @@ def _tangent_basis(frame, real, d: int):
     for r in range(d):
         E[..., :, r, r, 0] = real
     X = np.moveaxis(frame, -1, -3)  # (..., n, d, k)
-    skews = [np.array([[0.0, -1.0], [1.0, 0.0]])] if d == 2 else [
-        np.array([[0.0, 0, 0], [0, 0, -1], [0, 1, 0]]), np.array([[0.0, 0, 1], [0, 0, 0], [-1, 0, 0]]),
-        np.array([[0.0, -1, 0], [1, 0, 0], [0, 0, 0]])]
-    for q, Om in enumerate(skews):
+    for q, Om in enumerate(so(d).generators()):
         E[..., :, d + q, :, :] = np.einsum("ij,...jk->...ik", Om, X)
     return E
 
@@ -243,18 +199,15 @@ def _fine_constants(diag, xp):
     """(gamma00, g, S_Gamma) of Gamma's diagonal blocks (..., n, k, k) in the stacked layout, with the
     array module ``xp`` (numpy on the host, jax.numpy in the compiled step): gamma00 = Gamma_ss[0, 0],
     g = Gamma_ss[1:, 0] and the Schur complement of the tangent block (p, p) for W = 0."""
-    d = diag.shape[-1] - 1
+    group = so(diag.shape[-1] - 1)
     gamma00 = diag[..., 0, 0]
     g = diag[..., 1:, 0]  # (..., n, d)
     G = diag[..., 1:, 1:]
     trG = xp.trace(G, axis1=-2, axis2=-1)
     gg = xp.einsum("...i,...i->...", g, g)
-    if d == 2:
-        schur = (trG - gg / gamma00)[..., None, None]
-    else:
-        eye = xp.eye(3)
-        schur = trG[..., None, None] * eye - G - (gg[..., None, None] * eye - g[..., :, None] * g[..., None, :]) \
-            / gamma00[..., None, None]
+    # C(G) - C(g g^T) / gamma00, C the group's trace form
+    schur = group.trace_form(G, trG) - group.trace_form(g[..., :, None] * g[..., None, :], gg) \
+        / gamma00[..., None, None]
     return gamma00, g, schur
 
 
@@ -352,7 +305,7 @@ class CoarseParts(eqx.Module):
 def build_coarse_parts(edges, newton: NewtonPreconditioner, n_max: int) -> CoarseParts:
     """The :class:`CoarseParts` of a partition's incident edges on the coarse space of ``newton``
     (a host-built two-level preconditioner: its start-pose frames and aggregate size; host, once)."""
-    from .majorization import _edge_hessian_blocks, _edge_slots
+    from .majorization import _edge_slots
 
     frame, real = np.asarray(newton.frame, np.float64), np.asarray(newton.real, np.float64)
     A, d, _, n = frame.shape
@@ -361,10 +314,9 @@ def build_coarse_parts(edges, newton: NewtonPreconditioner, n_max: int) -> Coars
     E = _tangent_basis(frame, real, d)  # (A, n, c, d, k)
     e_max = np.asarray(edges.kappa).shape[1]
     robot, si, sj, li, lj = _edge_slots(edges)
-    Hii, Hjj, Hij = _edge_hessian_blocks(np.asarray(edges.R, np.float64).reshape(-1, d, d),
-                                         np.asarray(edges.t, np.float64).reshape(-1, d),
-                                         np.asarray(edges.kappa, np.float64).reshape(-1),
-                                         np.asarray(edges.tau, np.float64).reshape(-1))
+    Hii, Hjj, Hij = edge_hessian_blocks(np.asarray(edges.R).reshape(-1, d, d), np.asarray(edges.t).reshape(-1, d),
+                                        np.asarray(edges.kappa).reshape(-1), np.asarray(edges.tau).reshape(-1),
+                                        unit_rotations=True)
     factor = np.where(li ^ lj, 2.0, 1.0)[:, None, None]  # an inter-robot edge: twice its local block
     own = (li & lj)[:, None, None]
     Ei, Ej = E[robot, si], E[robot, sj]  # a remote end's rows are unused: its blocks are zero

@@ -59,6 +59,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .._core.geometry import se_log
+from .._core.lie import so
 from .._core.pose_graph import PoseGraph
 from .._io.g2o import information_from_weights
 
@@ -112,21 +113,14 @@ class OdometryChains:
     segment: np.ndarray  # (n,) int
 
 
-def _hat3(v):
-    z = np.zeros_like(v[..., 0])
-    return np.stack([np.stack([z, -v[..., 2], v[..., 1]], -1), np.stack([v[..., 2], z, -v[..., 0]], -1),
-                     np.stack([-v[..., 1], v[..., 0], z], -1)], -2)
-
-
 def _adjoint(R, t):
-    """Ad of rigid motions (R (..., d, d), t (..., d)) on coordinates (rho, omega): (..., D, D)."""
-    d = R.shape[-1]
-    if d == 2:  # [[R, J t], [0, 1]], J t = (t_y, -t_x)
-        top = np.concatenate([R, np.stack([t[..., 1], -t[..., 0]], -1)[..., None]], -1)
-        bottom = np.broadcast_to(np.array([0.0, 0.0, 1.0]), (*R.shape[:-2], 1, 3))
-        return np.concatenate([top, bottom], -2)
-    top = np.concatenate([R, _hat3(t) @ R], -1)
-    bottom = np.concatenate([np.zeros_like(R), R], -1)
+    """Ad of rigid motions (R (..., d, d), t (..., d)) on coordinates (rho, omega): (..., D, D),
+    [[R, hat(t) Ad_R], [0, Ad_R]] with hat(t) Ad_R = -(omega -> hat(omega) t) Ad_R (Ad_R of SO(d):
+    R in 3D, 1 in 2D)."""
+    group = so(R.shape[-1])
+    Ad = group.adjoint(R)
+    top = np.concatenate([R, -group.hat_apply_matrix(t) @ Ad], -1)
+    bottom = np.concatenate([np.zeros((*R.shape[:-2], group.tangent_dim, R.shape[-1])), Ad], -1)
     return np.concatenate([top, bottom], -2)
 
 

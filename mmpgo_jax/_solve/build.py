@@ -1,0 +1,181 @@
+"""The one builder of a run, shared by every entry point and layout.
+
+``prepare`` does, for any :class:`~mmpgo_jax._mm.solvers.Solver` and any layout: the split (the
+layout's placement), the start (or a checkpoint's), ``solver.build`` (the constant data),
+``solver.init`` (the state at X^0, compiled once per shape) and the placement on devices, timing
+each phase. ``finish`` turns the driver's outcome into a :class:`SolveResult` with the same fields
+whatever the layout. ``solve``, ``solve_sharded`` and ``sweep`` all go through these two.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._core.metrics import trajectory_accuracy
+from .._core.pose_graph import PoseGraph, Poses
+from .._init.start import initialize
+from .._mm.checkpoint import Checkpointer, identity, restore_state
+from .._mm.checkpoint import load as load_checkpoint
+from .._mm.driver import Monitor, Termination, compile_once
+from .._mm.majorization import unstack
+from .._mm.robust import L2, RobustLoss, robust_outcome
+from .._mm.solvers import Solver, start_run
+from .result import SolveResult, output_frame
+
+__all__ = ["ROBUST_START", "Clock", "Prepared", "as_termination", "finish", "prepare", "robust_fields", "start_for"]
+
+ROBUST_START = "gnc-chordal"  # the default start of robust runs (benchmarks/robust.md)
+
+
+def start_for(init, loss: RobustLoss | None) -> tuple:
+    """(start, options) of a run: ``init`` as given, or by default the chordal start for least
+    squares and for GNC run by the distributed solver, and :data:`ROBUST_START` (with the loss's
+    scale) for a robust loss otherwise (measured in benchmarks/robust.md)."""
+    if init is not None:
+        return init, {}
+    if loss is None or bool(np.asarray(loss.use_gnc)) or int(np.asarray(loss.kernel)) == L2:
+        return "chordal", {}
+    scale = None if loss.scale is None else float(np.asarray(loss.scale))
+    return ROBUST_START, dict(scale=scale, trust_odometry=loss.trust_odometry)
+
+
+def as_termination(termination: Termination | None = None, **shortcuts) -> Termination:
+    """``termination``, or one made of the shortcut arguments (``iterations``, ``chunk_size``,
+    ``grad_tol``, ``f_target``, ``rel_decrease_tol``, ``stop_when_stalled``; None = default); a
+    shortcut beside a Termination is refused (the number would have two owners)."""
+    given = {k: v for k, v in shortcuts.items() if v is not None}
+    if termination is not None:
+        if given:
+            raise ValueError(f"give {', '.join(given)} inside the Termination, not beside termination=")
+        if not isinstance(termination, Termination):
+            raise TypeError(f"termination must be a Termination, got {type(termination).__name__}")
+        return termination
+    return Termination(given.pop("iterations", 1000), **given)
+
+
+class Clock:
+    """Seconds per phase of a run (``initialize``: partition and start; ``build``: the solver's
+    constant data, its state at X^0 and their placement; ``compile``), for ``SolveResult.stats``."""
+
+    def __init__(self):
+        self.seconds = {"initialize": 0.0, "build": 0.0, "compile": 0.0}
+        self._t = time.perf_counter()
+
+    def lap(self, phase: str) -> None:
+        now = time.perf_counter()
+        self.seconds[phase] += now - self._t
+        self._t = now
+
+    def stats(self, compile_seconds: float, solve_seconds: float) -> dict:
+        s = self.seconds
+        return dict(initialize_seconds=s["initialize"], build_seconds=s["build"],
+                    init_seconds=s["initialize"] + s["build"], compile_seconds=s["compile"] + compile_seconds,
+                    solve_seconds=solve_seconds)
+
+
+@dataclass
+class Prepared:
+    """A run ready for the driver: the layout's placement, the start (global, as computed), the
+    placed problem and state, the start's record (host), a resumed checkpoint and the checkpointer."""
+
+    placement: object
+    start_poses: Poses
+    problem: object
+    state: object
+    start: object
+    snapshot: object
+    saver: Checkpointer | None
+    clock: Clock
+
+
+def prepare(graph: PoseGraph, solver: Solver, robots, layout, termination: Termination, *, start=None, initial=None,
+            fixed=None, loss: RobustLoss | None = None, monitor: Monitor | None = None,
+            checkpoint: str | os.PathLike | None = None, checkpoint_every: int = 1,
+            resume: str | os.PathLike | None = None) -> Prepared:
+    """Everything before the iterations (see the module docstring)."""
+    monitor = monitor or Monitor()
+    clock = Clock()
+    monitor.phase("initializing")
+    placement = layout.setup(graph, robots)
+    start_method, start_options = start_for(start, loss)
+    with placement.building():
+        key = snapshot = saver = None
+        if checkpoint is not None or resume is not None:
+            key = identity(graph=graph, robot_of_pose=placement.user_part.robot_of_pose,
+                           num_robots=placement.user_part.num_robots, start=(start_method, start_options, initial),
+                           config=solver, loss=loss, fixed=fixed, chunk_size=termination.chunk_size,
+                           precision=graph.R.dtype, layout=placement.identity())
+        if resume is not None:  # every process reads the file: the same start everywhere
+            snapshot = load_checkpoint(resume)
+            snapshot.check(key, termination.iterations)
+            X0 = Poses(*(jnp.asarray(x) for x in snapshot.X0))  # the start the checkpointed run was built from
+        else:
+            X0 = placement.share_start(initialize(graph, start_method, initial=initial, robots=placement.user_part,
+                                                  fixed=fixed, **start_options))
+        if checkpoint is not None:
+            saver = Checkpointer(checkpoint, checkpoint_every, key, jax.device_get(X0),
+                                 chunk_size=termination.chunk_size, **placement.checkpoint_options())
+        start_poses = X0
+        X0 = jax.block_until_ready(placement.part.scatter(X0))
+        clock.lap("initialize")
+        monitor.phase("building")
+        problem = jax.block_until_ready(solver.build(placement.part, poses=X0, fixed=fixed, loss=loss))
+        clock.lap("build")
+        monitor.phase("compiling")
+        structure = solver.start_structure(problem)
+        start_fn = compile_once(start_run, solver, problem, X0,
+                                exported=None if structure is None else (start_run.__wrapped__, (), structure))
+        clock.lap("compile")
+        monitor.phase("building")
+        state, record = start_fn(solver, problem, X0)
+        record = jax.device_get(record)
+        if snapshot is not None:  # the checkpoint's state, placed as the fresh one
+            state = jax.tree.map(lambda a, b: jax.device_put(a, b.sharding), restore_state(snapshot, state), state)
+    problem, state = placement.place(problem, state)
+    clock.lap("build")
+    return Prepared(placement, start_poses, problem, state, record, snapshot, saver, clock)
+
+
+def robust_fields(problem, graph: PoseGraph, part, state, poses) -> tuple[dict, dict]:
+    """The robust outcome of a run for :class:`SolveResult` (``loss``, ``weights``, ``inliers``) and
+    its statistics (weight updates, GNC stages, final mu); empty for least squares."""
+    if getattr(problem, "robust", None) is None:
+        return {}, {}
+    loss = jax.device_get(problem.robust.loss)
+    weights, inliers = robust_outcome(loss, graph, part, state.weights, poses)
+    sched = jax.device_get(state.schedule)
+    stats = dict(weight_updates=int(sched.updates), gnc_stages=int(sched.stage), gnc_mu=float(sched.mu),
+                 weights_final=bool(sched.done))
+    return dict(loss=loss, weights=weights, inliers=inliers), stats
+
+
+def finish(graph: PoseGraph, solver: Solver, run: Prepared, driven, termination: Termination, *, fixed=None,
+           frame=None, ground_truth=None) -> SolveResult:
+    """The :class:`SolveResult` of a driven run (poses and start in the requested frame)."""
+    placement = run.placement
+    X = placement.to_host(driven.state.X)
+    poses = output_frame(placement.part.gather(unstack(X)), fixed, frame)  # sliced on the host
+    final = driven.state
+    if getattr(run.problem, "robust", None) is not None:
+        final = eqx.tree_at(lambda st: st.weights, final, placement.to_host(final.weights))
+    outcome, robust_stats = robust_fields(run.problem, graph, placement.part, final, poses)
+    return SolveResult(
+        poses=poses,
+        history=driven.history,
+        _partition=placement.user_part,
+        config=getattr(solver, "config", None),
+        result=driven.result,
+        stats={**run.clock.stats(driven.compile_seconds, driven.solve_seconds), **placement.stats(), **robust_stats},
+        accuracy=None if ground_truth is None else trajectory_accuracy(poses, ground_truth),
+        termination=termination,
+        start=output_frame(run.start_poses, fixed, frame),
+        solver=solver,
+        **outcome,
+    )

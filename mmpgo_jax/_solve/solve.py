@@ -1,0 +1,275 @@
+"""The one solve path: ``solve(graph, robots, solver=AMM(), start=..., termination=Termination(...),
+layout=OneDevice())``, and its front-ends ``solve_sharded`` and ``centralized_optimum``.
+
+Every run — any solver (:mod:`~mmpgo_jax._mm.solvers`), any layout (one device, a sharded mesh) —
+is the same three steps: :func:`~mmpgo_jax._solve.build.prepare` (split, start, ``solver.build``,
+``solver.init``, placement), :func:`~mmpgo_jax._mm.driver.drive` (compiled chunks until the
+budget or a stopping rule) and :func:`~mmpgo_jax._solve.build.finish` (the :class:`SolveResult`).
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+from collections.abc import Callable, Sequence
+from typing import Literal
+
+import jax
+import numpy as np
+
+from .._core.gauge import FixedPoses
+from .._core.partition import Partition, partition
+from .._core.pose_graph import HostPoses, PoseGraph, Poses
+from .._core.precision import float64_enabled
+from .._distributed.layout import Sharded
+from .._init.start import initialize
+from .._mm.centralized import NewtonConfig, newton_optimum
+from .._mm.checkpoint import DEFAULT_EVERY
+from .._mm.driver import RESULTS, History, Monitor, NonFiniteError, Termination, drive
+from .._mm.layouts import OneDevice
+from .._mm.robust import GNCConfig, RobustLoss, as_loss
+from .._mm.solvers import MM, Solver, as_solver
+from .._mm.subproblem import SubproblemConfig
+from .build import ROBUST_START, Clock, as_termination, finish, prepare
+from .result import SolveResult, output_frame
+
+__all__ = ["RESULTS", "ROBUST_START", "History", "NonFiniteError", "SolveResult", "centralized_optimum", "output_frame",
+           "solve", "solve_sharded"]
+
+
+def solve(
+    graph: PoseGraph,
+    robots: int | np.ndarray | Partition = 10,
+    *,
+    solver: Solver | None = None,
+    start=None,
+    termination: Termination | None = None,
+    layout=None,
+    method: Literal["mm", "amm"] | None = None,
+    iterations: int | None = None,
+    init=None,
+    initial: Poses | None = None,
+    xi: float | None = None,
+    restart: Literal["paper", "adaptive", "average"] | None = None,
+    subproblem: SubproblemConfig | None = None,
+    chunk_size: int | None = None,
+    grad_tol: float | None = None,
+    f_target: float | None = None,
+    rel_decrease_tol: float | None = None,
+    stop_when_stalled: bool | None = None,
+    callback: Callable[[int, np.ndarray], bool | None] | None = None,
+    ground_truth: Poses | None = None,
+    fixed: FixedPoses | None = None,
+    frame: FixedPoses | Literal["raw"] | None = None,
+    monitor: Monitor | None = None,
+    loss: str | RobustLoss = "l2",
+    loss_scale: float | None = None,
+    gnc: GNCConfig | None = None,
+    checkpoint: str | os.PathLike | None = None,
+    checkpoint_every: int = DEFAULT_EVERY,
+    resume: str | os.PathLike | None = None,
+) -> SolveResult:
+    """Run ``solver`` on ``graph`` split among ``robots``, laid out by ``layout``.
+
+    ``solver``: a :class:`~mmpgo_jax.Solver`, e.g. :class:`~mmpgo_jax.AMM` (default) or
+    :class:`~mmpgo_jax.MM`, which owns its settings (xi, restart rule, subproblem); the shortcuts
+    ``method`` ("mm" / "amm"), ``xi``, ``restart``, ``subproblem`` make one (not beside ``solver``).
+    ``termination``: a :class:`~mmpgo_jax.Termination`; the shortcuts ``iterations`` (default 1000),
+    ``chunk_size`` (50), ``grad_tol``, ``f_target``, ``rel_decrease_tol``, ``stop_when_stalled`` make
+    one (not beside ``termination``). ``layout``: :class:`~mmpgo_jax.OneDevice` (default) or
+    :class:`~mmpgo_jax.sharding.Sharded` (robots over a device mesh; :func:`solve_sharded`); the
+    result has the same fields either way. ``start`` (alias ``init``): the start, see below.
+
+    ``robots``: a count (contiguous blocks, as in the paper), an (n,) robot-of-pose array, or a
+    prepared :class:`Partition`. ``start``: see :func:`mmpgo_jax.initialize` (default ``"chordal"``,
+    the paper's start; for a robust loss :data:`ROBUST_START`); ``initial`` holds the file's VERTEX
+    estimates for ``init="vertices"``.
+    ``restart``: AMM's restart rule, ``"adaptive"`` (default), ``"average"`` or ``"paper"`` (see
+    :class:`MMConfig`; measured in benchmarks/restart_rules.md). Stops after ``iterations`` or,
+    checked after each chunk of ``chunk_size`` iterations, when
+    ||grad F|| <= ``grad_tol``, f <= ``f_target``, the relative decrease of f over the last chunk
+    is below ``rel_decrease_tol``, or (``stop_when_stalled``, default) f moved only by rounding over
+    the last chunk (:class:`~mmpgo_jax._mm.driver.Termination`): ``iterations`` is an upper bound,
+    ``stop_when_stalled=False`` runs all of them (fixed-length histories). ``callback(k, f_chunk)``
+    is called after each chunk (k = total iterations so far); returning True stops the run.
+    ``monitor`` (a :class:`Monitor`, e.g. a progress bar) is told when each phase begins and of
+    every chunk's f and ||grad F||. With ``ground_truth`` (synthetic data), the result's
+    ``accuracy`` holds ATE / RPE of the final
+    estimate after rigid alignment.
+
+    ``fixed`` (e.g. :attr:`G2OFile.fixed_poses`): poses held at their values by the start and by
+    every iteration. ``frame``: the frame of ``result.poses`` (see :func:`output_frame`): by
+    default the fixed poses' frame when there are fixed poses, else pose 0 at the identity; a
+    :class:`FixedPoses` (e.g. :attr:`G2OFile.frame`: the file's first pose at its VERTEX value)
+    moves the result rigidly so that its first pose takes that value; ``"raw"`` keeps the solver's
+    own gauge. f and the history do not depend on it.
+
+    ``loss``: the kernel of the robust objective F_rho = 1/2 sum rho_c(s_ij) (docs/conventions.md
+    §10): "l2" (least squares, the default), "huber", "cauchy", "geman-mcclure", "welsch" or
+    "tls" (truncated least squares), or a :class:`~mmpgo_jax.RobustLoss` with its weight-update
+    options; ``loss_scale``: c in residual units (default :func:`~mmpgo_jax.chi2_scale`). A robust
+    kernel starts by default from ``init="gnc-chordal"`` (GNC-TLS with chordal + Newton stages, at
+    the loss's scale); ``gnc``: a :class:`~mmpgo_jax.GNCConfig` (tls, geman-mcclure) runs GNC stages
+    in the distributed solver instead, from the chordal start.
+    f and the history are then f = 2 F_rho, and the result holds the final edge ``weights`` and the
+    ``inliers`` (edges whose final residual is within the scale).
+
+    ``checkpoint``: a file to which the state, the history so far and the start are written
+    (atomically: the file is always a whole checkpoint) after every ``checkpoint_every``-th chunk
+    the run goes on from (:mod:`~mmpgo_jax._mm.checkpoint`). ``resume``: such a file; the run
+    continues from it exactly as the interrupted run would have (same f history and poses, bit for
+    bit on the same machine), with the same other arguments except ``iterations`` (which may be
+    larger); a checkpoint of another problem (graph, robots, start, method, settings, loss, fixed
+    poses, chunk size, precision) is refused with a :class:`~mmpgo_jax._mm.checkpoint.CheckpointError`
+    naming what differs. Both may name the same file.
+
+    Raises :class:`NonFiniteError` when f or its gradient stops being finite (data whose weights or
+    residuals float arithmetic cannot represent). Numbers are checked (ValueError naming the
+    parameter). A second call with the same shapes and configuration structure does not compile
+    again (:func:`~mmpgo_jax._mm.driver.compile_once`).
+    """
+    if init is not None and start is not None:
+        raise ValueError("give start= (or its older name init=), not both")
+    solver = as_solver(solver, method=method, xi=xi, restart=restart, subproblem=subproblem)
+    termination = as_termination(termination, iterations=iterations, chunk_size=chunk_size, grad_tol=grad_tol,
+                                 f_target=f_target, rel_decrease_tol=rel_decrease_tol,
+                                 stop_when_stalled=stop_when_stalled)
+    monitor = monitor or Monitor()
+    run = prepare(graph, solver, robots, layout or OneDevice(), termination, start=start if init is None else init,
+                  initial=initial, fixed=fixed, loss=as_loss(loss, loss_scale, gnc), monitor=monitor,
+                  checkpoint=checkpoint, checkpoint_every=checkpoint_every, resume=resume)
+    placement = run.placement
+    out = drive(placement.compile_chunk(solver, run.problem), run.state, placement.start_record(run.start),
+                termination, fetch=placement.fetch, callback=callback, agree=placement.agree, monitor=monitor,
+                checkpoint=run.saver, history=None if run.snapshot is None else run.snapshot.history)
+    return finish(graph, solver, run, out, termination, fixed=fixed, frame=frame, ground_truth=ground_truth)
+
+
+def solve_sharded(
+    graph: PoseGraph,
+    robots: int | np.ndarray | Partition = 10,
+    *,
+    mesh=None,
+    devices: int | Sequence | None = None,
+    reorder: bool | None = None,
+    exchange: Literal["halo", "all_gather"] = "halo",
+    **options,
+) -> SolveResult:
+    """:func:`solve` with ``layout=Sharded(mesh, devices, exchange, reorder)``: the robots sharded over
+    the devices of a 1-D mesh.
+
+    ``mesh`` (a ``Mesh`` with one axis named ``"robots"``) or ``devices`` (a device list, a count, or
+    None for all devices, of every process), ``reorder`` (see :func:`~mmpgo_jax.sharding.plan_shards`)
+    and ``exchange``: "halo" (default) sends each device only the neighbour poses its robots read (one
+    ``all_to_all`` per iteration), "all_gather" every pose. Every other argument is :func:`solve`'s;
+    the result has its fields. ``result.partition`` is the user's partition (robot indices as given);
+    ``result.stats`` also holds the mesh size, the shard plan and the sharded (renumbered, padded)
+    partition. A second call with the same shapes and configuration structure does not compile again.
+    In a multi-process run every process must call this with the same arguments; the callback's stop
+    decision is taken from process 0.
+
+    ``checkpoint`` / ``checkpoint_every`` / ``resume``: as for :func:`solve`; the state is saved in the
+    sharded layout, so a checkpoint resumes only on the same number of devices with the same
+    ``exchange`` (and is refused otherwise). In a multi-process run every process gathers the state for
+    a checkpoint and process 0 writes it; to resume, every process reads the file (on several hosts it
+    must be readable on each, e.g. a shared file system).
+    """
+    if options.get("layout") is not None:
+        raise ValueError("solve_sharded lays the robots out itself: call solve(..., layout=...) instead")
+    options.pop("layout", None)
+    return solve(graph, robots, layout=Sharded(mesh=mesh, devices=devices, exchange=exchange, reorder=reorder),
+                 **options)
+
+
+def centralized_optimum(
+    graph: PoseGraph,
+    *,
+    init="chordal",
+    initial: Poses | None = None,
+    grad_tol: float = 1e-6,
+    max_iterations: int = 5000,
+    xi: float | None = None,
+    subproblem: SubproblemConfig | None = None,
+    fixed: FixedPoses | None = None,
+    frame: FixedPoses | Literal["raw"] | None = None,
+    callback: Callable[[int, np.ndarray], bool | None] | None = None,
+    monitor: Monitor | None = None,
+    chunk_size: int = 25,
+    method: Literal["newton", "mm"] = "newton",
+) -> SolveResult:
+    """The centralized optimum: one robot, run to ||grad F|| <= ``grad_tol`` (f* of every reported gap).
+
+    ``method="newton"`` (default): Riemannian Newton steps with Levenberg–Marquardt damping and a
+    sparse direct solve per step, on the host in float64 (:mod:`~mmpgo_jax._mm.centralized`);
+    ``xi`` is the initial damping (default 0: the first step is Gauss–Newton, whose matrix is
+    positive definite). It converges quadratically near the optimum: 2–16 iterations
+    on the benchmark files (benchmarks/centralized.md compares it with GTSAM's Levenberg–Marquardt
+    on the same objective). The stopping rules are checked, and ``callback(k, f)`` /
+    ``monitor`` told, after every iteration; ``result.config`` is None.
+
+    ``method="mm"``: MM with A = 1 (:func:`solve`), where the majorizer is F plus the proximal term
+    xi/2 ||X - X^k||^2 (``xi`` default 1e-6), so each outer iteration is a damped Riemannian
+    Newton step solved by truncated CG (``subproblem``; default near exact: CG to a relative
+    residual 1e-8 in float64, 1e-4 in float32, at most 1000 iterations); checked every ``chunk_size`` iterations, and in
+    float32, which stalls far above ``grad_tol``, also stopped once a chunk lowers f by less than
+    a relative 1e-7.
+
+    Check a result with :func:`~mmpgo_jax.certify`. ``init`` / ``initial`` / ``fixed`` /
+    ``frame`` / ``callback`` / ``monitor``: as for :func:`solve` (with two or more fixed poses the
+    optimum is a constrained one, which the certificate does not cover).
+    """
+    if method == "newton":
+        return _newton_optimum(graph, init, initial, grad_tol, max_iterations, xi, fixed, frame, callback, monitor)
+    if method != "mm":
+        raise ValueError(f"method must be 'newton' or 'mm', got {method!r}")
+    xi = 1e-6 if xi is None else xi
+    # float32 cannot resolve a 1e-8 residual: CG would always run to its cap
+    tol = 1e-8 if float64_enabled() else 1e-4
+    sub = subproblem or SubproblemConfig(max_steps=4, gradient_tolerance=0.1, cg_iterations=1000, cg_tolerance=tol)
+    # float32 stalls far above grad_tol: stop once a chunk no longer lowers f
+    termination = Termination(max_iterations, chunk_size, grad_tol,
+                              rel_decrease_tol=None if float64_enabled() else 1e-7)
+    return solve(
+        graph,
+        1,
+        solver=MM(xi, sub),
+        termination=termination,
+        start=init,
+        initial=initial,
+        fixed=fixed,
+        frame=frame,
+        callback=callback,
+        monitor=monitor,
+    )
+
+
+def _newton_optimum(graph, init, initial, grad_tol, max_iterations, xi, fixed, frame, callback, monitor) -> SolveResult:
+    """:func:`centralized_optimum` by the host Newton solver."""
+    # Newton's own rule: ||grad F|| <= grad_tol or the cap (the certificate needs a critical point)
+    termination = Termination(max_iterations, 1, grad_tol, stop_when_stalled=False)
+    config = NewtonConfig() if xi is None else NewtonConfig(initial_damping=xi)
+    monitor = monitor or Monitor()
+    clock = Clock()
+    monitor.phase("initializing")
+    X0 = initialize(graph, init, initial=initial, fixed=fixed, host=True)
+    clock.lap("initialize")
+    monitor.phase("building")
+    R, t, history, result, stats = newton_optimum(graph, X0.R, X0.t, termination, fixed=fixed,
+                                                  config=config, callback=callback, monitor=monitor)
+    dt = X0.R.dtype
+    out = output_frame(HostPoses(R.astype(dt), t.astype(dt)), fixed, frame)  # the frame on the host
+    # one transfer of both (jnp.asarray would be cheaper per call but compiles a conversion per
+    # new shape: ~15 ms on the first call for a graph, which is the call that matters)
+    poses = Poses(*jax.device_put((out.R, out.t)))
+    seconds = clock.seconds
+    return SolveResult(
+        poses=poses,
+        history=history,
+        _partition=functools.partial(partition, graph, 1),  # device arrays only when asked for
+        config=None,
+        result=result,
+        stats=dict(initialize_seconds=seconds["initialize"], build_seconds=stats["build_seconds"],
+                   init_seconds=seconds["initialize"] + stats["build_seconds"], compile_seconds=0.0,
+                   solve_seconds=stats["solve_seconds"], factorizations=stats["factorizations"]),
+        termination=termination,
+    )
