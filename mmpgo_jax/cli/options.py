@@ -1,23 +1,22 @@
 """The options several commands share, and the argparse types that check every number when it is
-parsed (range in the message, exit status 2). Light: a command's parser is built before its
-command runs, so nothing here imports JAX."""
+parsed (range in the message, exit status 2): :func:`finite_float` is the library's
+(:mod:`mmpgo_jax._core.validate`), so that the command line and the Python API word a range alike."""
 
 from __future__ import annotations
 
 import argparse
-import math
+
+from .._core.validate import finite_float
+
+__all__ = ["INT_MAX", "ITERATIONS", "ROBOTS", "add_common", "add_strict", "finite_float", "host_port", "int_in"]
 
 INT_MAX = 2**31 - 1  # iteration counts end up in int32 arrays in float32 mode
 
 
-def _range_text(low, high, *, strict_low: bool = False) -> str:
-    if high is None:
-        return f"{'>' if strict_low else '>='} {low:g}" if isinstance(low, float) else f">= {low}"
-    return f"between {low} and {high}"
-
-
 def int_in(low: int, high: int | None = None):
-    """argparse ``type``: an integer with ``low <= value (<= high)``."""
+    """argparse ``type``: an integer with ``low <= value (<= high)``. Not
+    :func:`mmpgo_jax._core.validate.int_in`, which says "a non-negative integer" where the command
+    line's messages have always said "an integer >= 0"."""
 
     def parse(text: str) -> int:
         try:
@@ -25,27 +24,11 @@ def int_in(low: int, high: int | None = None):
         except (TypeError, ValueError):
             value = None
         if value is None or value < low or (high is not None and value > high):
-            raise argparse.ArgumentTypeError(f"must be an integer {_range_text(low, high)}, got {text!r}")
+            limits = f">= {low}" if high is None else f"between {low} and {high}"
+            raise argparse.ArgumentTypeError(f"must be an integer {limits}, got {text!r}")
         return value
 
     parse.__name__ = "integer"
-    return parse
-
-
-def finite_float(low: float, *, strict: bool = False):
-    """argparse ``type``: a finite number ``>= low`` (``> low`` with ``strict``)."""
-
-    def parse(text: str) -> float:
-        try:
-            value = float(text)
-        except (TypeError, ValueError):
-            value = math.nan
-        if not math.isfinite(value) or value < low or (strict and value == low):
-            raise argparse.ArgumentTypeError(
-                f"must be a finite number {_range_text(float(low), None, strict_low=strict)}, got {text!r}")
-        return value
-
-    parse.__name__ = "number"
     return parse
 
 
