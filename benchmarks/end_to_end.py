@@ -81,7 +81,7 @@ def main() -> None:
     ap.add_argument("--out", default=None)
     args = ap.parse_args()
     load_start = os.getloadavg()[0]
-    solve_path = "import mmpgo_jax.cli, mmpgo_jax.cli.robots, mmpgo_jax._io.g2o, mmpgo_jax._mm.solve"
+    solve_path = "import mmpgo_jax.cli, mmpgo_jax.cli.robots, mmpgo_jax._io.g2o, mmpgo_jax._solve.solve"
     imports = {"python": import_seconds("pass"), "jax": import_seconds("import jax"),
                "solve": import_seconds(solve_path)}
     base_imports = import_seconds(solve_path, args.baseline) if args.baseline else None

@@ -33,8 +33,9 @@ import numpy as np  # noqa: E402
 
 import mmpgo_jax as mg  # noqa: E402
 from mmpgo_jax._mm.majorization import soa_bmm, soa_T, sym0, tangent_soa, to_soa  # noqa: E402
-from mmpgo_jax._mm.outer import _gradients, start_state  # noqa: E402
+from mmpgo_jax._mm.outer import start_state  # noqa: E402
 from mmpgo_jax._mm.subproblem import _retract_soa, subproblem_steps  # noqa: E402
+from mmpgo_jax._mm.weighting import gradients  # noqa: E402
 from mmpgo_jax.sharding import solve_sharded  # noqa: E402
 
 FILES = ["MITb", "intel", "M3500", "city10000", "sphere2500", "torus3D", "garage"]
@@ -95,7 +96,7 @@ def profile(name: str) -> dict:
                                    V, P, Y, W),
         "two-level": in_loop_us(lambda v, P, Y, W: vm(lambda p, y, w, x: p.at(y, w)(x))(P, Y, W, v), V, P, Y, W),
         "retraction": in_loop_us(lambda v, Y: vm(_retract_soa)(Y, 1e-3 * v), V, Y),
-        "gradient": in_loop_us(lambda X, problem: _gradients(problem, X)[0], state.X, problem, reps=30),
+        "gradient": in_loop_us(lambda X, problem: gradients(problem, X)[0], state.X, problem, reps=30),
         "aggregate": P.aggregate,
         "poses_per_robot": part.max_poses,
     }

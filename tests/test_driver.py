@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 import mmpgo_jax as mm
-from mmpgo_jax._distributed import solve as sharded_module
+from mmpgo_jax._distributed import layout as sharded_module
 from mmpgo_jax._mm.driver import RESULTS, Termination
 from mmpgo_jax.sharding import solve_sharded
 

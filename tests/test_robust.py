@@ -138,10 +138,10 @@ def test_weighted_gamma_matches_host_build():
     problem = MMProblem.build(part, xi, poses=X, loss=RobustLoss("huber", 1.0))
     host = build_newton_preconditioner(ref.diag, ref.band, ref.src, ref.dst, ref.blocks, stack(X), part.pose_mask,
                                        aggregate=problem.newton.aggregate)
-    assert problem.newton.has_coarse and problem.robust.coarse is not None
+    assert problem.newton.has_coarse and problem.weighting.coarse is not None
     empty = ~jnp.any(got.diag != 0.0, axis=(-1, -2))
     compiled = jax.vmap(newton_from_gamma, in_axes=(0, 0, 0, 0, 0))(
-        got.diag, problem.newton, problem.robust.coarse, slot_w, jnp.where(empty, 1.0, xi))
+        got.diag, problem.newton, problem.weighting.coarse, slot_w, jnp.where(empty, 1.0, xi))
     for field in ("gamma00", "coupling", "schur", "coarse_inverse"):
         a, b = np.asarray(getattr(compiled, field)), np.asarray(getattr(host, field))
         np.testing.assert_allclose(a, b, rtol=1e-8, atol=1e-10 * np.abs(b).max(), err_msg=field)
@@ -249,7 +249,7 @@ def test_robust_start_finds_every_outlier_on_a_cube(rate):
 def test_default_start_of_robust_losses():
     """Least squares starts from the chordal initialization; a robust kernel from the GNC-chordal
     start at its own scale; GNC run by the distributed solver (explicit gnc=) from the chordal one."""
-    from mmpgo_jax._mm.solve import ROBUST_START, start_for
+    from mmpgo_jax._solve.build import ROBUST_START, start_for
 
     assert start_for(None, None) == ("chordal", {})
     assert start_for("odometry", RobustLoss("tls")) == ("odometry", {})

@@ -111,8 +111,7 @@ def _sharded_runner(mesh: Mesh, specs: _Specs, length: int):
         restarted = jax.lax.all_gather(rec.restarted, AXIS, axis=1, tiled=True)
         return st, IterationRecord(f=rec.f, grad_norm=rec.grad_norm, restarted=restarted, settled=rec.settled)
 
-    robust = problem_specs.robust is not None
-    rec_specs = IterationRecord(f=P(), grad_norm=P(), restarted=P(), settled=P() if robust else None)
+    rec_specs = IterationRecord(f=P(), grad_norm=P(), restarted=P(), settled=P())
     mapped = _shard_map(
         chunk,
         mesh=mesh,
@@ -236,8 +235,8 @@ class ShardedPlacement(Placement):
         return out
 
     def fetch(self, rec):
-        extra = () if rec.settled is None else (_to_host(rec.settled),)
-        return _to_host(rec.f), _to_host(rec.grad_norm), self._user_restarts(_to_host(rec.restarted)), *extra
+        return (_to_host(rec.f), _to_host(rec.grad_norm), self._user_restarts(_to_host(rec.restarted)),
+                _to_host(rec.settled))
 
     def start_record(self, rec) -> tuple:
         return rec.f, rec.grad_norm, self._user_restarts(np.asarray(rec.restarted)[None])[0]

@@ -54,6 +54,8 @@ leaves the cache); on an accelerator, larger batches fill the device.
 from __future__ import annotations
 
 import csv
+import dataclasses
+import functools
 import math
 import time
 from collections import Counter
@@ -67,19 +69,21 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._core.gauge import FixedPoses
+from .._core.metrics import trajectory_accuracy
 from .._core.partition import SPLITS, Partition, RobotEdges, partition, split_robots
 from .._core.pose_graph import PoseGraph, Poses
 from .._core.resources import available_memory_bytes
 from .._init.start import initialize
 from .._io.atomic import atomic_write
-from .._mm.driver import NonFiniteError, Termination, compile_once, drive
+from .._mm.driver import RESULTS, History, NonFiniteError, Termination, compile_once, drive
 from .._mm.majorization import gamma_couplings, stack, unstack
-from .._mm.outer import MMConfig, MMProblem, evaluate, init_state, run
+from .._mm.outer import MMProblem
 from .._mm.preconditioner import aggregate_size
-from .._mm.robust import GNC_LOSSES, GNCConfig, RobustLoss, as_loss, loss_code, robust_outcome
-from .._mm.solve import output_frame, start_for
+from .._mm.robust import GNC_LOSSES, GNCConfig, RobustLoss, as_loss, loss_code
+from .._mm.solvers import AMM, MM, Solver, run_chunk
 from .._mm.subproblem import SubproblemConfig
-from .._core.metrics import absolute_trajectory_error, relative_pose_error
+from .._solve.build import start_for
+from .._solve.result import SolveResult, output_frame
 from .outliers import outlier_scores
 
 __all__ = ["TRACE_COUNTS", "SweepResult", "default_max_batch_bytes", "reference_optimum", "sweep"]
@@ -89,31 +93,28 @@ __all__ = ["TRACE_COUNTS", "SweepResult", "default_max_batch_bytes", "reference_
 TRACE_COUNTS: Counter = Counter()
 
 
-def _sweep_chunk_impl(problem: MMProblem, config: MMConfig, state, length: int, limit):
-    TRACE_COUNTS[config.method] += 1  # runs only while tracing
-    if state.s.shape[0] == 1:
+def _sweep_chunk_impl(solver: Solver, problem, state, length: int, limit):
+    TRACE_COUNTS[solver.name] += 1  # runs only while tracing
+    chunk = run_chunk.__wrapped__
+    if jax.tree.leaves(state)[0].shape[0] == 1:
         # A batch of one runs unbatched: under vmap the AMM step's lax.cond (MM fallback only when a
         # robot restarts) would become a select that computes the fallback every iteration.
         def squeeze(tree):
             return jax.tree.map(lambda x: x[0], tree)
-        out = run(squeeze(problem), config, squeeze(state), length, limit)
+        out = chunk(solver, squeeze(problem), squeeze(state), length, limit)
         return jax.tree.map(lambda x: x[None], out)
-    return jax.vmap(lambda p, s: run(p, config, s, length, limit))(problem, state)
+    return jax.vmap(lambda p, s: chunk(solver, p, s, length, limit))(problem, state)
 
 
 _sweep_chunk_impl.__name__ = "sweep_chunk"
 _sweep_chunk_impl.__qualname__ = "sweep_chunk"
-#: ``jit(vmap(run))`` over the leading configuration axis (name in compile logs: ``sweep_chunk``).
+#: ``jit(vmap(run_chunk))`` over the leading configuration axis (name in compile logs: ``sweep_chunk``).
 sweep_chunk = jax.jit(_sweep_chunk_impl, static_argnames=("length",))
 
 
 @partial(jax.jit)
-def _batched_start(problem: MMProblem, config: MMConfig, X0):
-    def one(p, x):
-        st = init_state(p, unstack(x), config)
-        return st, evaluate(p, st)
-
-    return jax.vmap(one)(problem, X0)
+def _batched_start(solver: Solver, problem, X0):
+    return jax.vmap(lambda p, x: solver.init(p, unstack(x)))(problem, X0)
 
 
 def default_max_batch_bytes(fraction: float = 0.25) -> int:
@@ -128,7 +129,7 @@ def reference_optimum(graph: PoseGraph, *, grad_tol: float = 1e-5, max_iteration
     problems (3600-pose Cube: f ~ 1.5e4, ||grad F|| stalls at 3e-6 after ~50 iterations while f
     no longer changes in the 16th digit), which turns it into a 5000-iteration run.
     """
-    from .._mm.solve import centralized_optimum
+    from .._solve.solve import centralized_optimum
 
     return float(centralized_optimum(graph, grad_tol=grad_tol, max_iterations=max_iterations).f)
 
@@ -185,6 +186,7 @@ class SweepResult:
     loss_values: dict[str, object] = field(default_factory=dict)  # label -> RobustLoss (None: least squares)
     weights: dict[tuple, np.ndarray] = field(repr=False, default_factory=dict)
     inliers: dict[tuple, np.ndarray] = field(repr=False, default_factory=dict)
+    results: dict[tuple, SolveResult] = field(repr=False, default_factory=dict)  # key -> SolveResult
 
     def __post_init__(self):
         if self.axes is None:
@@ -366,18 +368,6 @@ def _per_graph(value, names, what):
 # ----------------------------------------------------------------------------------------------
 
 
-@dataclass
-class _Config:
-    index: int
-    name: str
-    graph: PoseGraph
-    robots: int
-    method: str
-    n_max: int = 0
-    e_max: int = 0
-    couplings: int = 0
-
-
 def sweep(
     graphs,
     robots: Sequence[int] | int = (5, 10, 50),
@@ -444,33 +434,139 @@ def sweep(
     Equivalent, configuration by configuration, to ``solve(graph, robots, method=..., iterations,
     init, xi, restart, subproblem, fixed, loss, loss_scale, gnc, stop_when_stalled=False)`` (for
     ``"l2"`` swept among robust losses: ``loss=RobustLoss("l2", loss_scale)``): a batch runs every
-    iteration, since one configuration cannot stop alone.
+    iteration, since one configuration cannot stop alone. ``results`` holds each configuration's
+    :class:`~mmpgo_jax.SolveResult` (the fields a ``solve`` returns; timings are the configuration's
+    share of its batch).
     """
     if iterations < 0:
         raise ValueError(f"iterations must be >= 0, got {iterations}")
     if group_by not in ("method", "robots"):
         raise ValueError(f"group_by must be 'method' or 'robots', got {group_by!r}")
-    names, glist, gts, fixed_of, corrupt = _normalize_graphs(graphs)
-    loss_of = _loss_values(loss, loss_scale, gnc)
-    labels = list(loss_of)
-    robust = any(v is not None for v in loss_of.values())
-    by_loss = len(labels) > 1
-    if fixed is not None:
-        fixed_of = _per_graph(fixed, names, "fixed")
-    for name, g in zip(names, glist, strict=False):
-        if fixed_of.get(name) is not None:
-            fixed_of[name].check(g.num_poses, g.dim)
-    any_fixed = any(v is not None for v in fixed_of.values())
-    d = glist[0].dim
-    robots = [int(robots)] if np.ndim(robots) == 0 else list(dict.fromkeys(int(a) for a in robots))
     methods = [methods] if isinstance(methods, str) else list(dict.fromkeys(methods))
     for m in methods:
         if m not in ("mm", "amm"):
             raise ValueError(f"unknown method {m!r}: use 'mm' or 'amm'")
+    plan = _Plan.make(graphs, robots, iterations, init=init, xi=xi, fstar=fstar, ground_truth=ground_truth,
+                      fixed=fixed, split=split, seed=seed, loss=loss, loss_scale=loss_scale, gnc=gnc,
+                      chunk_size=chunk_size, subproblem=subproblem, restart=restart)
+    if max_batch_bytes is None:
+        max_batch_bytes = default_max_batch_bytes()
+    say = progress or (lambda msg: None)
+    out = _Outputs()
+    for method in methods:
+        keys = [(gi, a, x, li) for a in plan.all_robots for gi in range(len(plan.glist)) if a in plan.robots_of[gi]
+                for x in plan.xis for li in range(len(plan.labels))]
+        groups = [keys] if group_by == "method" else [[k for k in keys if k[1] == a] for a in plan.all_robots]
+        for gkeys in groups:
+            _run_group(plan, method, gkeys, out, max_batch_bytes, max_batch_configs, say)
+    return out.result(plan, methods)
+
+
+@dataclass
+class _Plan:
+    """What every configuration of a sweep shares: the normalized inputs, the splits and unpadded
+    partitions (each (graph, robots) partitioned once), the starts (each computed once), f*."""
+
+    names: list
+    glist: list
+    gts: dict
+    fixed_of: dict
+    corrupt: dict
+    loss_of: dict
+    labels: list
+    robots_of: dict
+    all_robots: list
+    unpadded: dict
+    needs: dict
+    rops: dict
+    fstars: dict
+    xis: list
+    axes: tuple
+    init: object
+    iterations: int
+    chunk_size: int
+    subproblem: SubproblemConfig
+    restart: str
+    seconds: dict = field(default_factory=dict)  # initialize seconds per (graph, robots[, start])
+    starts: dict = field(default_factory=dict)
+
+    @staticmethod
+    def make(graphs, robots, iterations, *, init, xi, fstar, ground_truth, fixed, split, seed, loss, loss_scale, gnc,
+             chunk_size, subproblem, restart) -> _Plan:
+        names, glist, gts, fixed_of, corrupt = _normalize_graphs(graphs)
+        loss_of = _loss_values(loss, loss_scale, gnc)
+        labels = list(loss_of)
+        if fixed is not None:
+            fixed_of = _per_graph(fixed, names, "fixed")
+        for name, g in zip(names, glist, strict=False):
+            if fixed_of.get(name) is not None:
+                fixed_of[name].check(g.num_poses, g.dim)
+        if ground_truth is not None:
+            gts = {k: v for k, v in _per_graph(ground_truth, names, "ground_truth").items() if v is not None}
+        robots_of, rops = _splits(names, glist, robots, split, seed)
+        seconds, unpadded, needs = {}, {}, {}
+        for (gi, a), rop in rops.items():
+            t0 = time.perf_counter()
+            p = partition(glist[gi], rop)
+            real = int(np.asarray(p.pose_mask).sum(axis=1).max())
+            needs[(gi, a)] = (p.max_poses, p.max_edges, gamma_couplings(p.edges), aggregate_size(real, glist[gi].dim))
+            unpadded[(gi, a)] = jax.device_get(p)
+            seconds[(gi, a)] = time.perf_counter() - t0
+        xis = _xi_values(xi)
+        axes = (("xi",) if len(xis) > 1 else ()) + (("loss",) if len(labels) > 1 else ())
+        return _Plan(names=names, glist=glist, gts=gts, fixed_of=fixed_of, corrupt=corrupt, loss_of=loss_of,
+                     labels=labels, robots_of=robots_of,
+                     all_robots=list(dict.fromkeys(a for gi in range(len(glist)) for a in robots_of[gi])),
+                     unpadded=unpadded, needs=needs, rops=rops, fstars=_fstars(fstar, names, glist), xis=xis,
+                     axes=axes, init=init, iterations=iterations, chunk_size=chunk_size,
+                     subproblem=subproblem or SubproblemConfig(), restart=restart, seconds=seconds)
+
+    @property
+    def robust(self) -> bool:
+        return any(v is not None for v in self.loss_of.values())
+
+    @property
+    def any_fixed(self) -> bool:
+        return any(v is not None for v in self.fixed_of.values())
+
+    def key_of(self, gi: int, a: int, method: str, x: float, li: int) -> tuple:
+        extra = {"xi": (x,), "loss": (self.labels[li],)}
+        return (self.names[gi], a, method, *(v for ax in self.axes for v in extra[ax]))
+
+    def solver(self, method: str, xi) -> Solver:
+        """The configuration's solver (``xi=None``: the batch's, whose xi each problem carries)."""
+        return MM(xi, self.subproblem) if method == "mm" else AMM(xi, self.restart, self.subproblem)
+
+    def start_of(self, gi: int, a: int, li: int) -> Poses:
+        """The start of (graph, robots, loss), computed once (per robot count only when it depends on it)."""
+        fix = self.fixed_of[self.names[gi]]
+        method, options = start_for(self.init, self.loss_of[self.labels[li]])
+        per_robots = isinstance(method, str) and method == "distributed-chordal"
+        key = (gi, a) if per_robots else (gi, str(method) if isinstance(method, str) else id(method),
+                                          tuple(sorted(options.items())))
+        if key not in self.starts:
+            t0 = time.perf_counter()
+            robots_kw = {"robots": self.rops[(gi, a)]} if per_robots else {}
+            self.starts[key] = initialize(self.glist[gi], method, fixed=fix, **robots_kw, **options)
+            self.seconds[("start", key)] = time.perf_counter() - t0
+        return self.starts[key]
+
+    def initialize_seconds(self, gi: int, a: int, li: int) -> float:
+        """Partition and start seconds of a configuration (a shared start counted whole for each)."""
+        method, options = start_for(self.init, self.loss_of[self.labels[li]])
+        per_robots = isinstance(method, str) and method == "distributed-chordal"
+        key = (gi, a) if per_robots else (gi, str(method) if isinstance(method, str) else id(method),
+                                          tuple(sorted(options.items())))
+        return self.seconds[(gi, a)] + self.seconds.get(("start", key), 0.0)
+
+
+def _splits(names, glist, robots, split, seed) -> tuple[dict, dict]:
+    """(robot counts per graph, robot-of-pose per (graph, robots)) of ``sweep``'s ``split``."""
+    robots = [int(robots)] if np.ndim(robots) == 0 else list(dict.fromkeys(int(a) for a in robots))
     one_array = isinstance(split, np.ndarray) and np.issubdtype(split.dtype, np.integer) and len(names) == 1
     split_of = {n: split for n in names} if isinstance(split, str) or one_array else _per_graph(split, names, "split")
-    robots_of: dict[int, list[int]] = {}  # robot counts run per graph
-    given: dict[int, np.ndarray] = {}  # robot-of-pose arrays given per graph
+    robots_of: dict[int, list[int]] = {}
+    rops: dict[tuple[int, int], np.ndarray] = {}
     for gi, (name, g) in enumerate(zip(names, glist, strict=False)):
         how = split_of[name]
         if isinstance(how, str):
@@ -480,222 +576,198 @@ def sweep(
                 if not 1 <= a <= g.num_poses:
                     raise ValueError(f"graph {name!r} has {g.num_poses} poses: cannot split among {a} robots")
             robots_of[gi] = robots
+            for a in robots:
+                rops[(gi, a)] = split_robots(g, how, a, seed=seed)
         else:
-            given[gi] = split_robots(g, how)
-            robots_of[gi] = [int(given[gi].max()) + 1]
-    all_robots = list(dict.fromkeys(a for gi in range(len(glist)) for a in robots_of[gi]))
+            given = split_robots(g, how)
+            robots_of[gi] = [int(given.max()) + 1]
+            rops[(gi, robots_of[gi][0])] = given
+    return robots_of, rops
 
-    def robot_of_pose(gi: int, a: int) -> np.ndarray:
-        how = split_of[names[gi]]
-        return given[gi] if gi in given else split_robots(glist[gi], how, a, seed=seed)
-    if ground_truth is not None:
-        gts = {k: v for k, v in _per_graph(ground_truth, names, "ground_truth").items() if v is not None}
+
+def _fstars(fstar, names, glist) -> dict:
     if isinstance(fstar, str):
         if fstar != "centralized":
             raise ValueError(f"fstar must be a mapping, a sequence, a number, None or 'centralized', got {fstar!r}")
-        fstars = {n: reference_optimum(g) for n, g in zip(names, glist, strict=False)}
-    else:
-        fstars = {n: (None if v is None else float(v)) for n, v in _per_graph(fstar, names, "fstar").items()}
-    if max_batch_bytes is None:
-        max_batch_bytes = default_max_batch_bytes()
-    xis = _xi_values(xi)
-    by_xi = len(xis) > 1  # several xi: results keyed (graph, robots, method, xi)
-    sub = subproblem or SubproblemConfig()
-    say = progress or (lambda msg: None)
+        return {n: reference_optimum(g) for n, g in zip(names, glist, strict=False)}
+    return {n: (None if v is None else float(v)) for n, v in _per_graph(fstar, names, "fstar").items()}
 
-    axes = (("xi",) if by_xi else ()) + (("loss",) if by_loss else ())
 
-    def key_of(name: str, a: int, method: str, x: float, label: str) -> tuple:
-        return (name, a, method) + ((x,) if by_xi else ()) + ((label,) if by_loss else ())
+@dataclass
+class _Outputs:
+    """What the groups of a sweep produce, gathered into one :class:`SweepResult`."""
 
-    # Every (graph, robots) is partitioned once: the unpadded partition gives the shape needs
-    # (n_max, e_max, loop-closure couplings) and is kept on the host, to be padded to its group's
-    # common shape (exactly the arrays of a padded partition(...) call) when it is built.
-    unpadded: dict[tuple[int, int], Partition] = {}
-    needs: dict[tuple[int, int], tuple[int, int, int, int]] = {}
-    rops: dict[tuple[int, int], np.ndarray] = {}
-    for gi, g in enumerate(glist):
-        for a in robots_of[gi]:
-            rops[(gi, a)] = robot_of_pose(gi, a)
-            p = partition(g, rops[(gi, a)])
-            real = int(np.asarray(p.pose_mask).sum(axis=1).max())
-            needs[(gi, a)] = (p.max_poses, p.max_edges, gamma_couplings(p.edges), aggregate_size(real, g.dim))
-            unpadded[(gi, a)] = jax.device_get(p)
+    histories: dict = field(default_factory=dict)
+    poses: dict = field(default_factory=dict)
+    weights: dict = field(default_factory=dict)
+    inliers: dict = field(default_factory=dict)
+    results: dict = field(default_factory=dict)
+    rows: list = field(default_factory=list)
+    groups: list = field(default_factory=list)
 
-    starts: dict = {}
+    def result(self, plan: _Plan, methods: list) -> SweepResult:
+        # order histories as graph-major, then robots, then method (then xi, then loss)
+        index_of = {"xi": plan.xis.index, "loss": plan.labels.index}
+        order = {k: (plan.names.index(k[0]), plan.all_robots.index(k[1]), methods.index(k[2]),
+                     *(index_of[ax](v) for ax, v in zip(plan.axes, k[3:], strict=True)))
+                 for k in self.histories}
+        histories = dict(sorted(self.histories.items(), key=lambda kv: order[kv[0]]))
+        self.rows.sort(key=lambda r: order[r.pop("_key")])
+        results = {k: self.results[k] for k in histories}
+        return SweepResult(histories=histories, fstar=plan.fstars, configs=self.rows, groups=self.groups,
+                           poses=self.poses, iterations=plan.iterations, xi_values=list(plan.xis), axes=plan.axes,
+                           loss_values=dict(plan.loss_of), weights=self.weights, inliers=self.inliers, results=results)
 
-    def start_of(gi: int, a: int, li: int) -> Poses:
-        fix = fixed_of[names[gi]]
-        method, options = start_for(init, loss_of[labels[li]])
-        per_robots = isinstance(method, str) and method == "distributed-chordal"
-        key = (gi, a) if per_robots else (gi, str(method) if isinstance(method, str) else id(method),
-                                          tuple(sorted(options.items())))
-        if key not in starts:
-            robots_kw = {"robots": rops[(gi, a)]} if per_robots else {}
-            starts[key] = initialize(glist[gi], method, fixed=fix, **robots_kw, **options)
-        return starts[key]
 
-    histories: dict[tuple, np.ndarray] = {}
-    final_poses: dict[tuple, Poses] = {}
-    final_weights: dict[tuple, np.ndarray] = {}
-    final_inliers: dict[tuple, np.ndarray] = {}
-    config_rows: list[dict] = []
-    group_rows: list[dict] = []
+def _batchable(problem: MMProblem, n_common: int) -> MMProblem:
+    """The problem with its partition's global (n,) arrays padded to ``n_common`` (graphs of a batch
+    differ in n; the chunk never reads these arrays, so placeholders of one shape stack)."""
+    p = problem.partition
+    pad = n_common - p.num_poses
+    common = dataclasses.replace(p, robot_of_pose=jnp.pad(p.robot_of_pose, (0, pad)),
+                                 slot_of_pose=jnp.pad(p.slot_of_pose, (0, pad)), num_poses=n_common)
+    return dataclasses.replace(problem, partition=common)
 
-    for method in methods:
-        # xi=None: each problem carries its own xi (an array leaf), so one config serves them all
-        config = MMConfig(method=method, restart=restart, xi=None, subproblem=sub)
-        keys = [(gi, a, x, li) for a in all_robots for gi in range(len(glist)) if a in robots_of[gi] for x in xis
-                for li in range(len(labels))]
-        groups = [keys] if group_by == "method" else [[k for k in keys if k[1] == a] for a in all_robots]
-        for gkeys in groups:
-            n_max = max(needs[k[:2]][0] for k in gkeys)
-            e_max = max(needs[k[:2]][1] for k in gkeys)
-            kc = max(needs[k[:2]][2] for k in gkeys)
-            # one coarse aggregate size per batch (a static field): the config's, else the largest automatic one
-            agg = sub.aggregate or max(needs[k[:2]][3] for k in gkeys)
-            A = max(k[1] for k in gkeys)
 
-            def build(gi: int, a: int, x: float, li: int, n_max=n_max, e_max=e_max, A=A, kc=kc, agg=agg,
-                      config=config):
-                g = glist[gi]
-                part = _pad_partition(unpadded[(gi, a)], n_max, e_max, A)
-                fix = fixed_of[names[gi]]
-                if fix is None and any_fixed:  # one pytree structure per batch: an all-free mask
-                    fix = np.zeros(g.num_poses, dtype=bool)
-                problem = MMProblem.build(part, x, config=config, min_couplings=kc, fixed=fix, aggregate=agg,
-                                          poses=part.scatter(start_of(gi, a, li)), loss=loss_of[labels[li]])
-                return part, problem
+def _run_group(plan: _Plan, method: str, gkeys: list, out: _Outputs, max_batch_bytes, max_batch_configs, say) -> None:
+    """One compiled group: the configurations ``gkeys`` padded to one shape, run in batches."""
+    n_max, e_max, kc = (max(plan.needs[k[:2]][i] for k in gkeys) for i in range(3))
+    # one coarse aggregate size per batch (a static field): the config's, else the largest automatic one
+    agg = plan.subproblem.aggregate or max(plan.needs[k[:2]][3] for k in gkeys)
+    A = max(k[1] for k in gkeys)
+    d = plan.glist[0].dim
 
-            def batchable(problem: MMProblem, n_common: int) -> MMProblem:
-                # robot_of_pose / slot_of_pose (n,) and the static num_poses differ between graphs;
-                # run() never reads them, so the stacked copy carries common-shaped placeholders.
-                p = problem.partition
-                pad = n_common - p.num_poses
-                common = Partition(
-                    pose_index=p.pose_index,
-                    pose_mask=p.pose_mask,
-                    edges=p.edges,
-                    robot_of_pose=jnp.pad(p.robot_of_pose, (0, pad)),
-                    slot_of_pose=jnp.pad(p.slot_of_pose, (0, pad)),
-                    num_poses=n_common,
-                )
-                return MMProblem(partition=common, gamma_soa=problem.gamma_soa, newton=problem.newton,
-                                 free=problem.free, xi=problem.xi, robust=problem.robust)
+    def build(gi: int, a: int, x: float, li: int):
+        g = plan.glist[gi]
+        part = _pad_partition(plan.unpadded[(gi, a)], n_max, e_max, A)
+        fix = plan.fixed_of[plan.names[gi]]
+        if fix is None and plan.any_fixed:  # one pytree structure per batch: an all-free mask
+            fix = np.zeros(g.num_poses, dtype=bool)
+        problem = plan.solver(method, x).build(part, poses=part.scatter(plan.start_of(gi, a, li)), fixed=fix,
+                                               loss=plan.loss_of[plan.labels[li]], min_couplings=kc, aggregate=agg)
+        return part, problem
 
-            n_common = max(glist[k[0]].num_poses for k in gkeys)
-            # bytes of one configuration (all have the same padded shape)
-            t_build = time.perf_counter()
-            built = {gkeys[0]: build(*gkeys[0])}  # reused by the first batch
-            prob0 = batchable(built[gkeys[0]][1], n_common)
-            st_shape = jax.eval_shape(lambda p, x, config=config: init_state(p, unstack(x), config), prob0,
-                                      jax.ShapeDtypeStruct((A, n_max, d, d + 1), prob0.gamma_soa.diag.dtype))
-            per_config = _tree_bytes(prob0) + _tree_bytes(st_shape)
-            del prob0
-            C = len(gkeys)
-            per_batch = max(1, min(C, int(max_batch_bytes // max(per_config, 1)), max_batch_configs or C))
-            num_batches = math.ceil(C / per_batch)
-            per_batch = math.ceil(C / num_batches)
-            group = dict(method=method, robots=sorted({k[1] for k in gkeys}), **({"xi": xis} if by_xi else {}),
-                         **({"losses": labels} if by_loss else {}),
-                         configs=C, A=A, n_max=n_max, aggregate=agg,
-                         e_max=e_max, couplings=kc, bytes_per_config=per_config, batches=num_batches,
-                         configs_per_batch=per_batch, compile_seconds=0.0, run_seconds=0.0,
-                         setup_seconds=0.0,
-                         padding_factor=float(A * n_max * C / sum(glist[k[0]].num_poses for k in gkeys)))
-            setup = time.perf_counter() - t_build
-            for b in range(num_batches):
-                t0 = time.perf_counter()
-                bkeys = gkeys[b * per_batch:(b + 1) * per_batch]
-                real = len(bkeys)
-                bkeys = bkeys + [bkeys[-1]] * (per_batch - real)  # same compiled shape
-                parts, probs, X0s, blosses = [], [], [], []
-                for (gi, a, x, li) in bkeys[:real]:
-                    part, prob = built.pop((gi, a, x, li), None) or build(gi, a, x, li)
-                    parts.append(part)
-                    blosses.append(None if prob.robust is None else jax.device_get(prob.robust.loss))
-                    probs.append(batchable(prob, n_common))
-                    X0s.append(stack(part.scatter(start_of(gi, a, li))))
-                probs += [probs[-1]] * (per_batch - real)
-                X0s += [X0s[-1]] * (per_batch - real)
-                problem = _stack(probs)
-                del probs
-                state, rec0 = _batched_start(problem, config, jnp.stack(X0s))
-                setup += time.perf_counter() - t0
+    batch_solver = plan.solver(method, None)  # xi=None: each problem carries its own xi (an array leaf)
+    n_common = max(plan.glist[k[0]].num_poses for k in gkeys)
+    t_build = time.perf_counter()
+    built = {gkeys[0]: build(*gkeys[0])}  # reused by the first batch
+    prob0 = _batchable(built[gkeys[0]][1], n_common)
+    st_shape = jax.eval_shape(lambda p, x: batch_solver.init(p, unstack(x))[0], prob0,
+                              jax.ShapeDtypeStruct((A, n_max, d, d + 1), prob0.gamma_soa.diag.dtype))
+    per_config = _tree_bytes(prob0) + _tree_bytes(st_shape)  # bytes of one configuration (one padded shape)
+    del prob0
+    C = len(gkeys)
+    per_batch = max(1, min(C, int(max_batch_bytes // max(per_config, 1)), max_batch_configs or C))
+    num_batches = math.ceil(C / per_batch)
+    per_batch = math.ceil(C / num_batches)
+    group = dict(method=method, robots=sorted({k[1] for k in gkeys}), **({"xi": plan.xis} if "xi" in plan.axes else {}),
+                 **({"losses": plan.labels} if "loss" in plan.axes else {}),
+                 configs=C, A=A, n_max=n_max, aggregate=agg,
+                 e_max=e_max, couplings=kc, bytes_per_config=per_config, batches=num_batches,
+                 configs_per_batch=per_batch, compile_seconds=0.0, run_seconds=0.0, setup_seconds=0.0,
+                 padding_factor=float(A * n_max * C / sum(plan.glist[k[0]].num_poses for k in gkeys)))
+    setup = time.perf_counter() - t_build
+    for b in range(num_batches):
+        bkeys = gkeys[b * per_batch:(b + 1) * per_batch]
+        setup += _run_batch(plan, method, batch_solver, bkeys, per_batch, built, build, n_common, per_config, group,
+                            out, b)
+        say(f"{method} robots={group['robots']} batch {b + 1}/{num_batches}: {len(bkeys)} configs, "
+            f"{group['batch_run_seconds']:.1f} s run, {group['compile_seconds']:.1f} s compile")
+    group.pop("batch_run_seconds", None)
+    group["setup_seconds"] = setup
+    out.groups.append(group)
 
-                def compile_chunk(state, length, limit, problem=problem, config=config):
-                    compiled = compile_once(sweep_chunk, problem, config, state, length, limit, static=(length,))
-                    return lambda st, lim: compiled(problem, config, st, lim)
 
-                # sweeps never stop early: the driver keeps the records on the device and fetches f once
-                traces = TRACE_COUNTS[method]
-                try:
-                    out = drive(compile_chunk, state, (rec0.f, rec0.grad_norm, rec0.restarted),
-                                Termination(iterations, chunk_size), fetch=None)
-                except NonFiniteError as err:
-                    which = ", ".join(f"{names[gi]!r} ({a} robots{f', xi={x:g}' if by_xi else ''}"
-                                      f"{f', loss {labels[li]}' if robust else ''})"
-                                      for gi, a, x, li in bkeys[:real])
-                    raise NonFiniteError(f"sweep ({method}), in a batch of {which}: {err}") from None
-                if b == 0:
-                    group["compile_seconds"] = out.compile_seconds
-                    group["traces"] = TRACE_COUNTS[method] - traces  # 1 (0: jax's trace cache hit)
-                f_all, run_s, state = out.history.f, out.solve_seconds, out.state
-                X_final = np.asarray(state.X)
-                if robust:
-                    W_final, sched = jax.device_get((state.weights, state.schedule))
-                del problem, state
-                for c, (gi, a, x, li) in enumerate(bkeys[:real]):
-                    name = names[gi]
-                    key = key_of(name, a, method, x, labels[li])
-                    f = f_all[c]
-                    histories[key] = f
-                    Xc = unstack(jnp.asarray(X_final[c]))
-                    poses = output_frame(parts[c].gather(Xc), fixed_of[name], None)
-                    final_poses[key] = poses
-                    fs_ = fstars.get(name)
-                    row = dict(graph=name, robots=a, method=method, **({"xi": x} if by_xi else {}),
-                               **({"loss": labels[li]} if robust else {}),
-                               iterations=iterations,
-                               f_start=float(f[0]), f=float(f[-1]),
-                               gap=None if fs_ is None else float(f[-1] - fs_),
-                               relative_gap=None if fs_ is None else float((f[-1] - fs_) / fs_),
-                               fstar=fs_, bytes=per_config, seconds=run_s / real,
-                               ms_per_iteration=1e3 * run_s / real / max(iterations, 1),
-                               batch_ms_per_iteration=1e3 * run_s / max(iterations, 1), batch=b,
-                               batch_size=real)
-                    if name in gts:
-                        row["ate"] = absolute_trajectory_error(poses, gts[name])
-                        rpe = relative_pose_error(poses, gts[name])
-                        row["rpe_translation"] = rpe.translation
-                        row["rpe_rotation_deg"] = rpe.rotation_deg
-                    if name in corrupt:
-                        row.update(outlier_rate=corrupt[name][1], outliers=int(corrupt[name][0].sum()))
-                    if robust:
-                        w, inl = robust_outcome(blosses[c], glist[gi], parts[c], W_final[c], poses)
-                        final_weights[key], final_inliers[key] = w, inl
-                        row.update(rejected=int((~inl).sum()), weight_updates=int(sched.updates[c]),
-                                   gnc_stages=int(sched.stage[c]))
-                        if name in corrupt:
-                            scores = outlier_scores(inl, corrupt[name][0])
-                            row.update(precision=scores.precision, recall=scores.recall)
-                    config_rows.append(row)
-                group["run_seconds"] += run_s
-                say(f"{method} robots={group['robots']} batch {b + 1}/{num_batches}: {real} configs, "
-                    f"{run_s:.1f} s run, {group['compile_seconds']:.1f} s compile")
-            group["setup_seconds"] = setup
-            group_rows.append(group)
+def _run_batch(plan: _Plan, method: str, solver: Solver, bkeys: list, per_batch: int, built: dict, build,
+               n_common: int, per_config: int, group: dict, out: _Outputs, b: int) -> float:
+    """One batch of a group (filled up to ``per_batch`` with discarded copies: one compiled shape);
+    returns its set-up seconds."""
+    t0 = time.perf_counter()
+    real = len(bkeys)
+    parts, probs, X0s = [], [], []
+    for key in bkeys:
+        part, prob = built.pop(key, None) or build(*key)
+        parts.append(part)
+        probs.append(_batchable(prob, n_common))
+        X0s.append(stack(part.scatter(plan.start_of(key[0], key[1], key[3]))))
+    probs += [probs[-1]] * (per_batch - real)
+    X0s += [X0s[-1]] * (per_batch - real)
+    problem = _stack(probs)
+    state, rec0 = _batched_start(solver, problem, jnp.stack(X0s))
+    setup = time.perf_counter() - t0
 
-    # order histories as graph-major, then robots, then method (then xi, then loss)
-    index_of = {"xi": xis.index, "loss": labels.index}
-    order = {k: (names.index(k[0]), all_robots.index(k[1]), methods.index(k[2]),
-                 *(index_of[ax](v) for ax, v in zip(axes, k[3:], strict=True)))
-             for k in histories}
-    histories = dict(sorted(histories.items(), key=lambda kv: order[kv[0]]))
-    config_rows.sort(key=lambda r: order[key_of(r["graph"], r["robots"], r["method"], r.get("xi"), r.get("loss"))])
-    return SweepResult(histories=histories, fstar=fstars, configs=config_rows, groups=group_rows,
-                       poses=final_poses, iterations=iterations, xi_values=list(xis), axes=axes,
-                       loss_values=dict(loss_of), weights=final_weights, inliers=final_inliers)
+    def compile_chunk(state, length, limit):
+        compiled = compile_once(sweep_chunk, solver, problem, state, length, limit, static=(length,))
+        return lambda st, lim: compiled(solver, problem, st, lim)
+
+    # sweeps never stop early: the driver keeps the records on the device and fetches f once
+    traces = TRACE_COUNTS[method]
+    termination = Termination(plan.iterations, plan.chunk_size, stop_when_stalled=False)
+    try:
+        driven = drive(compile_chunk, state, (rec0.f, rec0.grad_norm, rec0.restarted), termination, fetch=None)
+    except NonFiniteError as err:
+        which = ", ".join(f"{plan.names[gi]!r} ({a} robots{f', xi={x:g}' if 'xi' in plan.axes else ''}"
+                          f"{f', loss {plan.labels[li]}' if plan.robust else ''})" for gi, a, x, li in bkeys)
+        raise NonFiniteError(f"sweep ({method}), in a batch of {which}: {err}") from None
+    if b == 0:
+        group["compile_seconds"] = driven.compile_seconds
+        group["traces"] = TRACE_COUNTS[method] - traces  # 1 (0: jax's trace cache hit)
+    final = jax.device_get(driven.state)
+    shares = dict(build=setup / real, compile=driven.compile_seconds / real, solve=driven.solve_seconds / real)
+    for c, key in enumerate(bkeys):
+        one = jax.tree.map(lambda x, c=c: x[c], final)
+        history = History(driven.history.f[c], driven.history.grad_norm[c], driven.history.restarts[c])
+        _record(plan, method, key, parts[c], probs[c], one, history, termination, shares, per_config, b, real, out)
+    group["run_seconds"] += driven.solve_seconds
+    group["batch_run_seconds"] = driven.solve_seconds
+    return setup
+
+
+def _record(plan: _Plan, method: str, key: tuple, part, problem, state, history: History, termination: Termination,
+            shares: dict, per_config: int, b: int, real: int, out: _Outputs) -> None:
+    """One configuration's :class:`SolveResult`, row, history, poses and robust outcome."""
+    gi, a, x, li = key
+    name, graph = plan.names[gi], plan.glist[gi]
+    k = plan.key_of(gi, a, method, x, li)
+    fixed = plan.fixed_of[name]
+    poses = output_frame(part.gather(unstack(jnp.asarray(state.X))), fixed, None)
+    solver = plan.solver(method, x)
+    outcome, robust_stats = solver.outcome(problem, graph, part, state, poses)
+    init_s = plan.initialize_seconds(gi, a, li)
+    stats = dict(initialize_seconds=init_s, build_seconds=shares["build"], init_seconds=init_s + shares["build"],
+                 compile_seconds=shares["compile"], solve_seconds=shares["solve"], batch=b, batch_size=real,
+                 **robust_stats)
+    gt = plan.gts.get(name)
+    user_part = functools.partial(partition, graph, plan.rops[(gi, a)])  # built when first read
+    result = SolveResult(poses=poses, history=history, _partition=user_part,
+                         config=solver.config, result=RESULTS.iterations, stats=stats,
+                         accuracy=None if gt is None else trajectory_accuracy(poses, gt), termination=termination,
+                         start=output_frame(plan.start_of(gi, a, li), fixed, None), solver=solver, **outcome)
+    out.results[k] = result
+    out.histories[k] = f = history.f
+    out.poses[k] = poses
+    fs_ = plan.fstars.get(name)
+    row = dict(graph=name, robots=a, method=method, **({"xi": x} if "xi" in plan.axes else {}),
+               **({"loss": plan.labels[li]} if plan.robust else {}), iterations=plan.iterations,
+               f_start=float(f[0]), f=float(f[-1]), gap=None if fs_ is None else float(f[-1] - fs_),
+               relative_gap=None if fs_ is None else float((f[-1] - fs_) / fs_), fstar=fs_, bytes=per_config,
+               seconds=shares["solve"], ms_per_iteration=1e3 * shares["solve"] / max(plan.iterations, 1),
+               batch_ms_per_iteration=1e3 * shares["solve"] * real / max(plan.iterations, 1), batch=b,
+               batch_size=real, _key=k)
+    if gt is not None:
+        row["ate"] = result.accuracy.ate
+        row["rpe_translation"] = result.accuracy.rpe_translation
+        row["rpe_rotation_deg"] = result.accuracy.rpe_rotation_deg
+    if name in plan.corrupt:
+        row.update(outlier_rate=plan.corrupt[name][1], outliers=int(plan.corrupt[name][0].sum()))
+    if plan.robust:
+        out.weights[k], out.inliers[k] = outcome["weights"], outcome["inliers"]
+        row.update(rejected=int((~outcome["inliers"]).sum()), weight_updates=robust_stats["weight_updates"],
+                   gnc_stages=robust_stats["gnc_stages"])
+        if name in plan.corrupt:
+            scores = outlier_scores(outcome["inliers"], plan.corrupt[name][0])
+            row.update(precision=scores.precision, recall=scores.recall)
+    out.rows.append(row)
 
 
 def _loss_values(loss, scale, gnc) -> dict[str, RobustLoss | None]:

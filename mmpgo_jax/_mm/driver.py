@@ -23,6 +23,7 @@ import jax
 import numpy as np
 
 from .._core.compilation_cache import compile_exported
+from .._core.validate import check_count, check_flag, check_real
 
 __all__ = ["RESULTS", "STALL_EPS", "History", "Monitor", "NonFiniteError", "Termination", "compile_once", "drive"]
 
@@ -93,21 +94,6 @@ class History:
         return int(hit[0]) if len(hit) else None
 
 
-def _finite_number(name: str, value, *, low: float, inclusive: bool = True, optional: bool = False) -> None:
-    if value is None and optional:
-        return
-    ok = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
-    ok = ok and np.isfinite(value) and (value >= low if inclusive else value > low)
-    if not ok:
-        bound = f">= {low:g}" if inclusive else f"> {low:g}"
-        raise ValueError(f"{name} must be a finite number {bound}{' or None' if optional else ''}, got {value!r}")
-
-
-def _count(name: str, value, low: int) -> None:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
-        raise ValueError(f"{name} must be an integer >= {low}, got {value!r}")
-
-
 @dataclass(frozen=True)
 class Termination:
     """When a driven run stops: after ``iterations`` (an upper bound), or — checked after each chunk
@@ -126,16 +112,12 @@ class Termination:
     stop_when_stalled: bool = True
 
     def __post_init__(self):
-        _count("iterations", self.iterations, 0)
-        _count("chunk_size", self.chunk_size, 1)
-        _finite_number("grad_tol", self.grad_tol, low=0.0, inclusive=False, optional=True)
-        if self.f_target is not None and not (
-            isinstance(self.f_target, (int, float, np.number)) and np.isfinite(self.f_target)
-        ):
-            raise ValueError(f"f_target must be a finite number or None, got {self.f_target!r}")
-        _finite_number("rel_decrease_tol", self.rel_decrease_tol, low=0.0, optional=True)
-        if not isinstance(self.stop_when_stalled, bool):
-            raise ValueError(f"stop_when_stalled must be True or False, got {self.stop_when_stalled!r}")
+        check_count(None, "iterations", self.iterations, 0, scalar=True)
+        check_count(None, "chunk_size", self.chunk_size, 1, scalar=True)
+        check_real(None, "grad_tol", self.grad_tol, 0.0, low_open=True, optional=True, scalar=True)
+        check_real(None, "f_target", self.f_target, optional=True, scalar=True)
+        check_real(None, "rel_decrease_tol", self.rel_decrease_tol, 0.0, optional=True, scalar=True)
+        check_flag(None, "stop_when_stalled", self.stop_when_stalled)
 
     @property
     def length(self) -> int:

@@ -64,9 +64,8 @@ class Placement:
         return compile_chunk
 
     def fetch(self, rec):
-        """A chunk's records on the host: (f, grad_norm, restarted[, settled])."""
-        extra = () if rec.settled is None else (rec.settled,)
-        return jax.device_get((rec.f, rec.grad_norm, rec.restarted, *extra))
+        """A chunk's records on the host: (f, grad_norm, restarted, settled)."""
+        return jax.device_get((rec.f, rec.grad_norm, rec.restarted, rec.settled))
 
     def start_record(self, rec) -> tuple:
         """The driver's start: (f, grad_norm, restarted) at X^0, host values."""

@@ -18,50 +18,27 @@ import numpy as np
 from .._core.partition import Partition
 from .._core.pose_graph import Poses
 from .._core.precision import to_device
+from .._core.validate import check_choice, check_count, check_real, concrete_value
 from .majorization import (
-    GammaLayout,
     GammaOperator,
     GammaSoA,
-    assemble_gamma,
     build_gamma_operator,
     gamma_layout,
-    gamma_to_soa,
-    gradient_and_share,
     host_soa,
-    incident_residuals,
-    robot_share,
     soa_to_gamma,
     stack,
-    weighted_gradient,
 )
-from .preconditioner import (
-    CoarseParts,
-    NewtonPreconditioner,
-    build_coarse_parts,
-    build_newton_preconditioner,
-    newton_from_gamma,
-)
-from .robust import (
-    RobustLoss,
-    WeightSchedule,
-    initial_schedule,
-    next_weights,
-    robust_cost,
-    robust_edges,
-    start_weights,
-)
+from .preconditioner import NewtonPreconditioner, build_coarse_parts, build_newton_preconditioner
+from .robust import RobustLoss, robust_edges
 from .subproblem import (
     PRECONDITIONERS,
     SubproblemConfig,
-    check_choice,
-    check_count,
-    check_real,
-    concrete_value,
     majorizer_value,
     project_rotations,
     solve_subproblem,
     tangent_projection,
 )
+from .weighting import LOCAL, Collectives, LeastSquares, NoWeights, Reweighted, Weighting, WeightState
 
 METHODS = ("mm", "amm")
 RESTARTS = ("paper", "adaptive", "average")
@@ -161,17 +138,6 @@ def check_xi(problem: MMProblem, config: MMConfig) -> None:
             )
 
 
-class RobustData(eqx.Module):
-    """What a robust run needs beyond the least-squares problem: the loss (its numbers filled in,
-    :meth:`RobustLoss.with_defaults`), where each edge goes in Gamma, and each edge's contribution to
-    the coarse matrix of the two-level preconditioner (None with block-Jacobi alone)."""
-
-    loss: RobustLoss
-    layout: GammaLayout
-    coarse: CoarseParts | None
-    robust_edge: jax.Array  # (A, e_max) bool: the incident edges the loss applies to (others: weight 1)
-
-
 class MMProblem(eqx.Module):
     """Constant data of a run: the partition, Gamma^alpha of every robot and the constant part of
     the subproblem's preconditioner (built once).
@@ -187,10 +153,12 @@ class MMProblem(eqx.Module):
     (``build(..., fixed=mask)`` with an all-False mask gives an all-True array, e.g. to batch
     problems with and without fixed poses).
 
-    ``robust`` (:class:`RobustData`) is None for least squares (``loss`` "l2": the program of a
-    plain run). With a robust loss Gamma and the preconditioner depend on the edge weights and live
-    in the state (:class:`MMState`); ``gamma_soa`` and ``newton`` then hold those of unit weights,
-    from which the loop-closure list and the coarse space are read.
+    ``weighting`` is the edge-weighting strategy (:mod:`~mmpgo_jax._mm.weighting`):
+    :class:`~mmpgo_jax._mm.weighting.LeastSquares` (``loss`` "l2": the program of a plain run) or
+    :class:`~mmpgo_jax._mm.weighting.Reweighted` (a robust kernel), whose Gamma and preconditioner
+    depend on the edge weights and live in the state (:class:`MMState`); ``gamma_soa`` and
+    ``newton`` then hold those of unit weights, from which the loop-closure list and the coarse
+    space are read.
     """
 
     partition: Partition
@@ -198,7 +166,7 @@ class MMProblem(eqx.Module):
     newton: NewtonPreconditioner  # batched over robots: the subproblem's preconditioner data
     free: jax.Array | None  # (A, n_max) bool, or None when no pose is fixed
     xi: jax.Array  # () the xi of Gamma
-    robust: RobustData | None = None
+    weighting: Weighting = LeastSquares()
 
     @property
     def gamma(self) -> GammaOperator:
@@ -261,7 +229,7 @@ class MMProblem(eqx.Module):
                                                  aggregate=aggregate)
         else:
             newton = build_newton_preconditioner(gamma.diag, dtype=dtype)
-        robust = None
+        weighting = LeastSquares()
         if loss is not None:
             n_max = partition.max_poses
             coarse = build_coarse_parts(partition.edges, newton, n_max) if newton.has_coarse else None
@@ -270,9 +238,9 @@ class MMProblem(eqx.Module):
             gi = index[np.asarray(e.robot_i), np.asarray(e.slot_i)]
             gj = index[np.asarray(e.robot_j), np.asarray(e.slot_j)]
             mask = robust_edges(loss, gi.reshape(-1), gj.reshape(-1)).reshape(gi.shape)
-            robust = RobustData(loss=loss.with_defaults(e.t.shape[-1]),
-                                layout=gamma_layout(e, n_max, min_couplings=min_couplings), coarse=coarse,
-                                robust_edge=to_device(mask))
+            weighting = Reweighted(loss=loss.with_defaults(e.t.shape[-1]),
+                                   layout=gamma_layout(e, n_max, min_couplings=min_couplings), coarse=coarse,
+                                   robust_edge=to_device(mask))
         del gamma  # the stacked-layout copy is not kept: the solver reads gamma_soa
         free = None  # no fixed pose: the solver runs without a mask (same compiled code as ever)
         if fixed is not None:
@@ -284,7 +252,7 @@ class MMProblem(eqx.Module):
             free[np.asarray(partition.robot_of_pose)[mask], np.asarray(partition.slot_of_pose)[mask]] = False
             free = to_device(free)
         return MMProblem(partition=partition, gamma_soa=soa, newton=newton, free=free, xi=to_device(xi, dtype),
-                         robust=robust)
+                         weighting=weighting)
 
 
 class MMState(eqx.Module):
@@ -301,110 +269,14 @@ class MMState(eqx.Module):
     share_slow: jax.Array  # (A,) slow moving average of Gbar^alpha ("average" restart)
     share_fast: jax.Array  # (A,) fast moving average of Gbar^alpha
     soft_hits: jax.Array  # (A,) consecutive iterations above the fast average
-    # robust losses only (None for least squares): the edge weights of the current majorizer, its
-    # Gamma^alpha and preconditioner, and where the weight updates stand
-    weights: jax.Array | None = None  # (A, e_max) per incident edge
-    gamma: GammaSoA | None = None
-    newton: NewtonPreconditioner | None = None
-    schedule: WeightSchedule | None = None
+    weighting: NoWeights | WeightState  # the state of the problem's weighting strategy
 
 
 class IterationRecord(eqx.Module):
     f: jax.Array  # 2F(X^{k+1}) (the tables' convention)
     grad_norm: jax.Array  # ||grad F(X^{k+1})|| (Riemannian, of F)
     restarted: jax.Array  # (A,) bool: robot took the MM fallback this iteration
-    # robust losses only: GNC has ended (the stopping rules may apply); None for least squares
-    settled: jax.Array | None = None
-
-
-class Collectives(eqx.Module):
-    """How robots exchange data in one iteration.
-
-    The default is a single device holding every robot. A sharded run (robots split over devices,
-    see ``mmpgo_jax.sharding``) replaces these with collectives over its mesh axis.
-    """
-
-    def gather_poses(self, X):
-        """All robots' poses (A, n_max, d, d+1) from this device's block of robots."""
-        return X
-
-    def sum(self, x):
-        """Sum over all robots of a per-robot quantity (A_local,) -> scalar."""
-        return jnp.sum(x)
-
-    def max(self, x):
-        """Maximum over all robots of a per-robot array (A_local, ...) -> scalar."""
-        return jnp.max(x)
-
-
-LOCAL = Collectives()
-
-
-def _gradients(problem: MMProblem, X, comm: Collectives = LOCAL):
-    """(grad F(X) blocks (stacked), shares, local costs) for stacked padded poses X.
-
-    Endpoint poses are gathered from all robots' poses: this is the neighbour exchange.
-    """
-    part = problem.partition
-    Xg = comm.gather_poses(X)
-    return jax.vmap(lambda e: gradient_and_share(e, Xg, part.max_poses))(part.edges)
-
-
-def _residuals(problem: MMProblem, X, comm: Collectives = LOCAL):
-    """(residuals (A, d, d+1, e_max), s (A, e_max)) of every robot's incident edges at stacked poses X."""
-    Xg = comm.gather_poses(X)
-    return jax.vmap(lambda e: incident_residuals(e, Xg))(problem.partition.edges)
-
-
-def _robust_gradients(problem: MMProblem, E, s, weights):
-    """(grad of 1/2 sum w s (stacked), robust shares of F_rho, shares of 1/2 sum w s) per robot."""
-    part = problem.partition
-    grad = jax.vmap(lambda e, r, w: weighted_gradient(e, r, w, part.max_poses))(part.edges, E, weights)
-    share = jax.vmap(robot_share)(part.edges, robust_cost(problem.robust.loss, s, problem.robust.robust_edge))
-    weighted = jax.vmap(robot_share)(part.edges, weights * s)
-    return grad, share, weighted
-
-
-def _weighted_operators(problem: MMProblem, config: MMConfig, weights):
-    """Gamma^alpha (structure of arrays) and the preconditioner of every robot for edge ``weights``
-    (A, e_max), assembled in the compiled step; the coarse level only when the config uses it."""
-    rb = problem.robust
-    base = problem.newton.without_coarse() if config.subproblem.preconditioner == "block-jacobi" else problem.newton
-    n_max = problem.partition.max_poses
-
-    def one(edges, layout, w, base_a, parts_a):
-        gamma, empty = assemble_gamma(edges, layout, w, problem.xi, n_max)
-        slot_weight = jnp.where(empty, 1.0, problem.xi).astype(w.dtype)
-        return gamma_to_soa(gamma), newton_from_gamma(gamma.diag, base_a, parts_a, w, slot_weight)
-
-    parts = rb.coarse if base.has_coarse else None
-    return jax.vmap(one)(problem.partition.edges, rb.layout, weights, base, parts)
-
-
-def _operators(problem: MMProblem, config: MMConfig, st: MMState):
-    """(Gamma^alpha, preconditioner) of the current majorizer: the problem's for least squares, the
-    state's (of the current weights) for a robust loss."""
-    if st.gamma is None:
-        return problem.gamma_soa, problem.preconditioner(config)
-    check_preconditioner(problem, config)
-    pre = st.newton.without_coarse() if config.subproblem.preconditioner == "block-jacobi" else st.newton
-    return st.gamma, pre
-
-
-def _reweight(problem: MMProblem, config: MMConfig, st: MMState, X, comm: Collectives):
-    """At the new iterate X: the weights (updated when the schedule says so, and Gamma^alpha with its
-    preconditioner rebuilt then only), the gradient of the new majorizer, the robust shares."""
-    E, s = _residuals(problem, X, comm)
-    rb = problem.robust
-    weighted_f = 2.0 * comm.sum(jax.vmap(robot_share)(problem.partition.edges, st.weights * s))
-    s_max = comm.max(jnp.where(rb.robust_edge, s, 0.0))
-    update, weights, schedule = next_weights(rb.loss, st.schedule, s, st.weights, weighted_f, s_max, comm.sum,
-                                             rb.robust_edge)
-    gamma, newton = jax.lax.cond(update, lambda: _weighted_operators(problem, config, weights),
-                                 lambda: (st.gamma, st.newton))
-    grad, share, weighted = _robust_gradients(problem, E, s, weights)
-    schedule = eqx.tree_at(lambda sc: sc.weighted_f, schedule, 2.0 * comm.sum(weighted))
-    return grad, share, update, dict(weights=weights, gamma=gamma, newton=newton, schedule=schedule)
+    settled: jax.Array  # () bool: the stopping rules may apply (a robust run's GNC has ended; always True otherwise)
 
 
 def _riemannian_grad_norm(X, grad, free, comm: Collectives = LOCAL):
@@ -425,18 +297,7 @@ def init_state(problem: MMProblem, X0: Poses, config: MMConfig = None) -> MMStat
     else:
         check_xi(problem, config)
     X0 = stack(X0)
-    robust = {}
-    if problem.robust is None:
-        grad, share, local = _gradients(problem, X0)
-    else:
-        rb = problem.robust
-        E, s = _residuals(problem, X0)
-        weights = start_weights(rb.loss, s, rb.robust_edge)
-        gamma, newton = _weighted_operators(problem, config, weights)
-        grad, share, weighted = _robust_gradients(problem, E, s, weights)
-        local = 0.5 * jnp.sum(robust_cost(rb.loss, s, rb.robust_edge), axis=-1)
-        robust = dict(weights=weights, gamma=gamma, newton=newton,
-                      schedule=initial_schedule(problem.robust.loss, 2.0 * jnp.sum(weighted)))
+    grad, share, local, weighting = problem.weighting.start(problem, config, X0)
     A = share.shape[0]
     return MMState(
         X=X0,
@@ -450,7 +311,7 @@ def init_state(problem: MMProblem, X0: Poses, config: MMConfig = None) -> MMStat
         share_slow=share,
         share_fast=share,
         soft_hits=jnp.zeros(A, jnp.int32),
-        **robust,
+        weighting=weighting,
     )
 
 
@@ -534,7 +395,7 @@ def _amm_update(problem: MMProblem, config: MMConfig, st: MMState, gamma_soa, pr
 def step(problem: MMProblem, config: MMConfig, st: MMState, comm: Collectives = LOCAL):
     """One outer iteration; returns (new state, record). With a robust loss the weights of the next
     majorizer are set at the new iterate when their schedule says so (:func:`~mmpgo_jax._mm.robust.next_weights`)."""
-    gamma, pre = _operators(problem, config, st)
+    gamma, pre = problem.weighting.operators(problem, config, st.weighting)
     if config.method == "mm":
         X_new = _mm_update(problem, config, st.X, st.grad, gamma, pre)
         s_new = st.s
@@ -544,14 +405,8 @@ def step(problem: MMProblem, config: MMConfig, st: MMState, comm: Collectives = 
         X_new, s_new, restart, soft_hits = _amm_update(problem, config, st, gamma, pre)
     else:
         raise ValueError(f"unknown method {config.method!r}: use 'mm' or 'amm'")
-    robust = {}
-    settled = None
-    if problem.robust is None:
-        grad, share, _ = _gradients(problem, X_new, comm)
-    else:
-        grad, share, update, robust = _reweight(problem, config, st, X_new, comm)
-        s_new = jnp.where(update, 1.0, s_new)  # a new majorizer: AMM's momentum starts afresh
-        settled = robust["schedule"].done | ~jnp.asarray(problem.robust.loss.use_gnc)
+    grad, share, renewed, weighting, settled = problem.weighting.update(problem, config, st.weighting, X_new, comm)
+    s_new = jnp.where(renewed, 1.0, s_new)  # a new majorizer: AMM's momentum starts afresh
     new = MMState(
         X=X_new,
         grad=grad,
@@ -564,7 +419,7 @@ def step(problem: MMProblem, config: MMConfig, st: MMState, comm: Collectives = 
         share_slow=st.share_slow + config.average_rates[0] * (share - st.share_slow),
         share_fast=st.share_fast + config.average_rates[1] * (share - st.share_fast),
         soft_hits=soft_hits,
-        **robust,
+        weighting=weighting,
     )
     rec = IterationRecord(
         f=2.0 * comm.sum(share), grad_norm=_riemannian_grad_norm(X_new, grad, problem.free, comm), restarted=restart,
@@ -624,12 +479,7 @@ run = _CheckedJit(_run, """``length`` outer iterations in one ``lax.scan``; retu
 
 def skipped_record(st: MMState) -> IterationRecord:
     nan = jnp.full((), jnp.nan, st.share.dtype)
-    return IterationRecord(f=nan, grad_norm=nan, restarted=jnp.zeros_like(st.s, dtype=bool), settled=_settled(st))
-
-
-def _settled(st: MMState):
-    """A record's ``settled`` outside the step: True (robust losses) or None (least squares)."""
-    return None if st.schedule is None else jnp.ones((), bool)
+    return IterationRecord(f=nan, grad_norm=nan, restarted=jnp.zeros_like(st.s, dtype=bool), settled=jnp.ones((), bool))
 
 
 def evaluate(problem: MMProblem, state: MMState) -> IterationRecord:
@@ -638,6 +488,7 @@ def evaluate(problem: MMProblem, state: MMState) -> IterationRecord:
         f=2.0 * jnp.sum(state.share),
         grad_norm=_riemannian_grad_norm(state.X, state.grad, problem.free),
         restarted=jnp.zeros_like(state.s, dtype=bool),
+        settled=jnp.ones((), bool),
     )
 
 

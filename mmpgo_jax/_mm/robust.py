@@ -48,7 +48,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .subproblem import check_count, check_real, concrete_value
+from .._core.validate import check_count, check_real, concrete_value
 
 LOSSES = ("l2", "huber", "cauchy", "geman-mcclure", "welsch", "tls")
 GNC_LOSSES = ("geman-mcclure", "tls")  # kernels with a GNC schedule (tls only runs through it)

@@ -19,6 +19,7 @@ from typing import Literal
 
 import equinox as eqx
 import jax
+import numpy as np
 
 from .outer import (
     LOCAL,
@@ -34,6 +35,7 @@ from .outer import (
 )
 from .robust import RobustLoss
 from .subproblem import SubproblemConfig
+from .weighting import NoWeights
 
 __all__ = ["AMM", "MM", "Solver", "as_solver", "run_chunk", "start_run"]
 
@@ -75,6 +77,11 @@ class Solver(eqx.Module):
     def check(self, problem) -> None:
         """ValueError when this solver cannot run on ``problem`` (checked before tracing)."""
 
+    def outcome(self, problem, graph, part, state, poses, to_host=np.asarray) -> tuple[dict, dict]:
+        """What the final ``state`` adds to the result (e.g. a robust run's weights and inliers) and to
+        its statistics; ``to_host`` brings a (possibly sharded) array to the host."""
+        return {}, {}
+
     def iteration(self, state):
         """The outer iterations ``state`` has done (traced)."""
         return state.iteration
@@ -101,15 +108,18 @@ class _Majorization(Solver):
         return start_state.__wrapped__(problem, X0, self.config)
 
     def start_structure(self, problem: MMProblem):
-        # known without tracing for least squares (robust states hold the weighted operators)
-        if problem.robust is not None:
+        # known without tracing when the weighting has no state (robust states hold the weighted operators)
+        if not problem.weighting.stateless:
             return None
         leaf = 0.0
-        state = MMState(**{f.name: leaf for f in dataclasses.fields(MMState) if f.default is dataclasses.MISSING})
-        return state, IterationRecord(f=leaf, grad_norm=leaf, restarted=leaf)
+        fields = {f.name: leaf for f in dataclasses.fields(MMState) if f.name != "weighting"}
+        return MMState(**fields, weighting=NoWeights()), self.record_structure(problem)
 
     def record_structure(self, problem: MMProblem):
-        return IterationRecord(f=0.0, grad_norm=0.0, restarted=0.0, settled=None if problem.robust is None else 0.0)
+        return IterationRecord(f=0.0, grad_norm=0.0, restarted=0.0, settled=0.0)
+
+    def outcome(self, problem: MMProblem, graph, part, state: MMState, poses, to_host=np.asarray):
+        return problem.weighting.outcome(graph, part, state.weighting, poses, to_host)
 
     def step(self, problem: MMProblem, state: MMState, comm: Collectives = LOCAL):
         return step(problem, self.config, state, comm)
@@ -141,8 +151,8 @@ class AMM(_Majorization):
 
 def as_solver(solver=None, *, method: str | None = None, xi=None, restart=None, subproblem=None) -> Solver:
     """The solver of a call: ``solver`` (a :class:`Solver`, or an :class:`MMConfig`), or one made of
-    the shortcut arguments (``method`` "mm" / "amm", default "amm"); a shortcut given beside a
-    solver is refused (its number would have two owners)."""
+    the shortcut arguments (``method`` "mm" / "amm", default "amm"; ``restart`` applies to AMM); a
+    shortcut given beside a solver is refused (its number would have two owners)."""
     shortcuts = dict(method=method, xi=xi, restart=restart, subproblem=subproblem)
     given = [k for k, v in shortcuts.items() if v is not None]
     if solver is not None:
@@ -159,9 +169,7 @@ def as_solver(solver=None, *, method: str | None = None, xi=None, restart=None, 
     method = "amm" if method is None else method
     xi = 1e-3 if xi is None else xi
     if method == "mm":
-        if restart is not None:
-            raise ValueError("restart= applies to AMM only (MM has no momentum to restart)")
-        return MM(xi, subproblem)
+        return MM(xi, subproblem)  # (``restart`` is AMM's: MM has no momentum to restart)
     if method == "amm":
         return AMM(xi, restart or "adaptive", subproblem)
     raise ValueError(f"unknown method {method!r}: use 'mm' or 'amm'")

@@ -13,7 +13,6 @@ import os
 import time
 from dataclasses import dataclass
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -25,11 +24,11 @@ from .._mm.checkpoint import Checkpointer, identity, restore_state
 from .._mm.checkpoint import load as load_checkpoint
 from .._mm.driver import Monitor, Termination, compile_once
 from .._mm.majorization import unstack
-from .._mm.robust import L2, RobustLoss, robust_outcome
+from .._mm.robust import L2, RobustLoss
 from .._mm.solvers import Solver, start_run
 from .result import SolveResult, output_frame
 
-__all__ = ["ROBUST_START", "Clock", "Prepared", "as_termination", "finish", "prepare", "robust_fields", "start_for"]
+__all__ = ["ROBUST_START", "Clock", "Prepared", "as_termination", "finish", "prepare", "start_for"]
 
 ROBUST_START = "gnc-chordal"  # the default start of robust runs (benchmarks/robust.md)
 
@@ -143,29 +142,13 @@ def prepare(graph: PoseGraph, solver: Solver, robots, layout, termination: Termi
     return Prepared(placement, start_poses, problem, state, record, snapshot, saver, clock)
 
 
-def robust_fields(problem, graph: PoseGraph, part, state, poses) -> tuple[dict, dict]:
-    """The robust outcome of a run for :class:`SolveResult` (``loss``, ``weights``, ``inliers``) and
-    its statistics (weight updates, GNC stages, final mu); empty for least squares."""
-    if getattr(problem, "robust", None) is None:
-        return {}, {}
-    loss = jax.device_get(problem.robust.loss)
-    weights, inliers = robust_outcome(loss, graph, part, state.weights, poses)
-    sched = jax.device_get(state.schedule)
-    stats = dict(weight_updates=int(sched.updates), gnc_stages=int(sched.stage), gnc_mu=float(sched.mu),
-                 weights_final=bool(sched.done))
-    return dict(loss=loss, weights=weights, inliers=inliers), stats
-
-
 def finish(graph: PoseGraph, solver: Solver, run: Prepared, driven, termination: Termination, *, fixed=None,
            frame=None, ground_truth=None) -> SolveResult:
     """The :class:`SolveResult` of a driven run (poses and start in the requested frame)."""
     placement = run.placement
     X = placement.to_host(driven.state.X)
     poses = output_frame(placement.part.gather(unstack(X)), fixed, frame)  # sliced on the host
-    final = driven.state
-    if getattr(run.problem, "robust", None) is not None:
-        final = eqx.tree_at(lambda st: st.weights, final, placement.to_host(final.weights))
-    outcome, robust_stats = robust_fields(run.problem, graph, placement.part, final, poses)
+    outcome, robust_stats = solver.outcome(run.problem, graph, placement.part, driven.state, poses, placement.to_host)
     return SolveResult(
         poses=poses,
         history=driven.history,

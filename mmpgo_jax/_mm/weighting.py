@@ -1,0 +1,206 @@
+"""How edges are weighted in the majorizer: a strategy of the MM step with its own state.
+
+:class:`LeastSquares` is the trivial weighting (every edge weight 1, Γ^α and its preconditioner
+constant, no state: the program of a plain run). :class:`Reweighted` is a robust kernel's
+iteratively reweighted majorizer (Eq. (13) with w_ij = ρ'(s_ij), the GNC schedule of
+:mod:`~mmpgo_jax._mm.robust`): its state (:class:`WeightState`) holds the edge weights, the Γ^α
+and preconditioner of those weights and where the weight updates stand. The outer step
+(:mod:`~mmpgo_jax._mm.outer`) asks the strategy for the current operators and, at the new
+iterate, for the gradient, the objective shares and whether the majorizer changed; it never asks
+which strategy it has.
+
+Also here: :class:`Collectives`, how robots exchange data in one iteration (the strategies read
+neighbour poses through it).
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .majorization import (
+    GammaLayout,
+    GammaSoA,
+    assemble_gamma,
+    gamma_to_soa,
+    gradient_and_share,
+    incident_residuals,
+    robot_share,
+    weighted_gradient,
+)
+from .preconditioner import CoarseParts, NewtonPreconditioner, newton_from_gamma
+from .robust import (
+    RobustLoss,
+    WeightSchedule,
+    initial_schedule,
+    next_weights,
+    robust_cost,
+    robust_outcome,
+    start_weights,
+)
+
+__all__ = ["LOCAL", "Collectives", "LeastSquares", "NoWeights", "Reweighted", "WeightState", "Weighting"]
+
+
+class Collectives(eqx.Module):
+    """How robots exchange data in one iteration.
+
+    The default is a single device holding every robot. A sharded run (robots split over devices,
+    see ``mmpgo_jax.sharding``) replaces these with collectives over its mesh axis.
+    """
+
+    def gather_poses(self, X):
+        """All robots' poses (A, n_max, d, d+1) from this device's block of robots."""
+        return X
+
+    def sum(self, x):
+        """Sum over all robots of a per-robot quantity (A_local,) -> scalar."""
+        return jnp.sum(x)
+
+    def max(self, x):
+        """Maximum over all robots of a per-robot array (A_local, ...) -> scalar."""
+        return jnp.max(x)
+
+
+LOCAL = Collectives()
+
+
+def gradients(problem, X, comm: Collectives = LOCAL):
+    """(grad F(X) blocks (stacked), shares, local costs) for stacked padded poses X.
+
+    Endpoint poses are gathered from all robots' poses: this is the neighbour exchange.
+    """
+    part = problem.partition
+    Xg = comm.gather_poses(X)
+    return jax.vmap(lambda e: gradient_and_share(e, Xg, part.max_poses))(part.edges)
+
+
+class NoWeights(eqx.Module):
+    """The state of :class:`LeastSquares`: nothing."""
+
+
+class WeightState(eqx.Module):
+    """The state of :class:`Reweighted`: the edge weights of the current majorizer, its Γ^α and
+    preconditioner, and where the weight updates stand."""
+
+    weights: jax.Array  # (A, e_max) per incident edge
+    gamma: GammaSoA
+    newton: NewtonPreconditioner
+    schedule: WeightSchedule
+
+
+class Weighting(eqx.Module):
+    """The strategy interface (see the module docstring)."""
+
+    stateless = True  # whether the state is NoWeights (its structure is then known without tracing)
+
+    def start(self, problem, config, X0):
+        """At X^0: (gradient, shares, local costs, state)."""
+        raise NotImplementedError
+
+    def operators(self, problem, config, state):
+        """(Γ^α, preconditioner) of the current majorizer."""
+        raise NotImplementedError
+
+    def update(self, problem, config, state, X, comm: Collectives):
+        """At the new iterate X: (gradient, shares, whether the majorizer changed, state, whether the
+        stopping rules may apply yet)."""
+        raise NotImplementedError
+
+    def outcome(self, graph, part, state, poses, to_host=np.asarray) -> tuple[dict, dict]:
+        """The run's robust outcome for ``SolveResult`` (loss, weights, inliers) and its statistics."""
+        return {}, {}
+
+
+class LeastSquares(Weighting):
+    """Every edge weight 1: Γ^α and the preconditioner are the problem's, built once."""
+
+    def start(self, problem, config, X0):
+        grad, share, local = gradients(problem, X0)
+        return grad, share, local, NoWeights()
+
+    def operators(self, problem, config, state):
+        return problem.gamma_soa, problem.preconditioner(config)
+
+    def update(self, problem, config, state, X, comm: Collectives):
+        grad, share, _ = gradients(problem, X, comm)
+        return grad, share, False, state, jnp.ones((), bool)
+
+
+class Reweighted(Weighting):
+    """A robust kernel's reweighted majorizer: the loss (its numbers filled in,
+    :meth:`RobustLoss.with_defaults`), where each edge goes in Γ^α, each edge's contribution to the
+    coarse matrix of the two-level preconditioner (None with block-Jacobi alone) and the incident
+    edges the loss applies to (the others keep weight 1)."""
+
+    loss: RobustLoss
+    layout: GammaLayout
+    coarse: CoarseParts | None
+    robust_edge: jax.Array  # (A, e_max) bool
+    stateless = False
+
+    def _residuals(self, problem, X, comm: Collectives = LOCAL):
+        Xg = comm.gather_poses(X)
+        return jax.vmap(lambda e: incident_residuals(e, Xg))(problem.partition.edges)
+
+    def _gradients(self, problem, E, s, weights):
+        """(grad of 1/2 sum w s (stacked), robust shares of F_rho, shares of 1/2 sum w s) per robot."""
+        part = problem.partition
+        grad = jax.vmap(lambda e, r, w: weighted_gradient(e, r, w, part.max_poses))(part.edges, E, weights)
+        share = jax.vmap(robot_share)(part.edges, robust_cost(self.loss, s, self.robust_edge))
+        weighted = jax.vmap(robot_share)(part.edges, weights * s)
+        return grad, share, weighted
+
+    def _operators_of(self, problem, config, weights):
+        """Γ^α (structure of arrays) and the preconditioner of every robot for edge ``weights``,
+        assembled in the compiled step; the coarse level only when the config uses it."""
+        block_jacobi = config.subproblem.preconditioner == "block-jacobi"
+        base = problem.newton.without_coarse() if block_jacobi else problem.newton
+        n_max = problem.partition.max_poses
+
+        def one(edges, layout, w, base_a, parts_a):
+            gamma, empty = assemble_gamma(edges, layout, w, problem.xi, n_max)
+            slot_weight = jnp.where(empty, 1.0, problem.xi).astype(w.dtype)
+            return gamma_to_soa(gamma), newton_from_gamma(gamma.diag, base_a, parts_a, w, slot_weight)
+
+        parts = self.coarse if base.has_coarse else None
+        return jax.vmap(one)(problem.partition.edges, self.layout, weights, base, parts)
+
+    def start(self, problem, config, X0):
+        E, s = self._residuals(problem, X0)
+        weights = start_weights(self.loss, s, self.robust_edge)
+        gamma, newton = self._operators_of(problem, config, weights)
+        grad, share, weighted = self._gradients(problem, E, s, weights)
+        local = 0.5 * jnp.sum(robust_cost(self.loss, s, self.robust_edge), axis=-1)
+        schedule = initial_schedule(self.loss, 2.0 * jnp.sum(weighted))
+        return grad, share, local, WeightState(weights, gamma, newton, schedule)
+
+    def operators(self, problem, config, state: WeightState):
+        problem.preconditioner(config)  # checks that the config's preconditioner was built
+        block_jacobi = config.subproblem.preconditioner == "block-jacobi"
+        return state.gamma, state.newton.without_coarse() if block_jacobi else state.newton
+
+    def update(self, problem, config, state: WeightState, X, comm: Collectives):
+        """The weights (updated when the schedule says so, and Γ^α with its preconditioner rebuilt
+        then only), the gradient of the new majorizer, the robust shares."""
+        E, s = self._residuals(problem, X, comm)
+        weighted_f = 2.0 * comm.sum(jax.vmap(robot_share)(problem.partition.edges, state.weights * s))
+        s_max = comm.max(jnp.where(self.robust_edge, s, 0.0))
+        update, weights, schedule = next_weights(self.loss, state.schedule, s, state.weights, weighted_f, s_max,
+                                                 comm.sum, self.robust_edge)
+        gamma, newton = jax.lax.cond(update, lambda: self._operators_of(problem, config, weights),
+                                     lambda: (state.gamma, state.newton))
+        grad, share, weighted = self._gradients(problem, E, s, weights)
+        schedule = eqx.tree_at(lambda sc: sc.weighted_f, schedule, 2.0 * comm.sum(weighted))
+        settled = schedule.done | ~jnp.asarray(self.loss.use_gnc)
+        return grad, share, update, WeightState(weights, gamma, newton, schedule), settled
+
+    def outcome(self, graph, part, state: WeightState, poses, to_host=np.asarray) -> tuple[dict, dict]:
+        loss = jax.device_get(self.loss)
+        weights, inliers = robust_outcome(loss, graph, part, to_host(state.weights), poses)
+        sched = jax.device_get(jax.tree.map(to_host, state.schedule))
+        stats = dict(weight_updates=int(sched.updates), gnc_stages=int(sched.stage), gnc_mu=float(sched.mu),
+                     weights_final=bool(sched.done))
+        return dict(loss=loss, weights=weights, inliers=inliers), stats
