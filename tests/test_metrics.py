@@ -7,6 +7,7 @@ import math
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from lie_cases import each_dim
 
 import mmpgo_jax as mm
 from mmpgo_jax._core.geometry import rotation_2d
@@ -31,7 +32,7 @@ def _rigidly_moved(gt: mm.Poses, Q, c) -> mm.Poses:
     return mm.Poses(jnp.asarray(Q @ R), jnp.asarray(t @ Q.T + c))
 
 
-@pytest.mark.parametrize("d", [2, 3])
+@each_dim
 def test_metrics_vanish_for_rigidly_transformed_ground_truth(d):
     rng = np.random.default_rng(d)
     n = 40
@@ -98,7 +99,7 @@ def test_rpe_hand_computation():
         relative_pose_error(gt, gt, delta=n)
 
 
-@pytest.mark.parametrize("d", [2, 3])
+@each_dim
 def test_trajectory_accuracy_matches_definitions(d):
     """Per-pose perturbation of a rigidly moved ground truth: every field against a direct formula."""
     rng = np.random.default_rng(10 + d)

@@ -4,6 +4,7 @@ distribution, and the filter on multi-robot Cube (3D) and grid (2D) graphs with 
 import numpy as np
 import pytest
 import scipy.linalg
+from lie_cases import each_dim
 from scipy.spatial.transform import Rotation
 
 import mmpgo_jax as mm
@@ -50,7 +51,7 @@ def _append(graph: PoseGraph, i, j, R, t) -> PoseGraph:
                                  num_poses=graph.num_poses, dtype=np.float64)
 
 
-@pytest.mark.parametrize("d", [2, 3])
+@each_dim
 def test_se_log_inverts_exp(d):
     rng = np.random.default_rng(d)
     p = d * (d - 1) // 2
