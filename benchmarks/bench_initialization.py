@@ -107,14 +107,12 @@ def bench(name: str, path: Path, ref: float, robots: int, budget: int) -> dict:
     R0 = dc._initial_rotations(st, None, g.num_poses)
     GinvR, row["setup_R"] = timed(st.gamma_inverse, dc.DEFAULT_XI, True)
     for restart, key in ((True, "restart"), (False, "plain")):
-        out = dc._run_rotations(st, GinvR, R0, budget, None, restart)
-        hist = np.asarray(out.history)[: int(out.k) + 1]  # the buffer is padded (NaN) beyond the budget
+        _, hist, _, _ = dc._run_rotations(st, GinvR, R0, budget, None, restart)
         row[f"k_{key}"] = first_within(hist, fR)
         row[f"gap_{key}"] = abs(hist[-1] - fR) / fR
-    L = dc._history_length(max(budget, 210))  # one compiled loop for both budgets (that of the runs above)
-    dc._run_rotations(st, GinvR, R0, 10, None, True, history_length=L).X.block_until_ready()  # compiled
-    _, t_short = timed(lambda: dc._run_rotations(st, GinvR, R0, 10, None, True, history_length=L).X)
-    _, t_long = timed(lambda: dc._run_rotations(st, GinvR, R0, 210, None, True, history_length=L).X)
+    # one compiled chunk for both budgets (that of the runs above; budgets are traced)
+    _, t_short = timed(lambda: dc._run_rotations(st, GinvR, R0, 10, None, True)[0])
+    _, t_long = timed(lambda: dc._run_rotations(st, GinvR, R0, 210, None, True)[0])
     row["ms_R"] = (t_long - t_short) / 200 * 1e3
     row["t_R6"] = None if row["k_restart"] is None else row["setup_R"] + row["k_restart"] * row["ms_R"] / 1e3
 

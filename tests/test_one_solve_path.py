@@ -34,11 +34,11 @@ _CHILD = textwrap.dedent("""
     out = {}
     for name, r in results.items():
         out[name] = dict(f=r.history.f.tolist(), fields=[f.name for f in dataclasses.fields(r)],
-                         stats={k: r.stats.get(k) for k in %r}, solver=repr(r.solver), config=repr(r.config),
+                         stats={k: r.stats.get(k) for k in TIMINGS}, solver=repr(r.solver), config=repr(r.config),
                          result=r.result.value, poses_R=r.poses.R.tolist(), start_t=r.start.t.tolist(),
                          devices=r.stats.get("devices"))
     print(json.dumps(out))
-""" % (TIMINGS,))
+""").replace("TIMINGS", repr(TIMINGS))
 
 
 @pytest.fixture(scope="module")
@@ -89,7 +89,7 @@ def test_each_number_has_one_owner(cube):
         mm.solve(cube, 3, termination=Termination(10), iterations=5)
     with pytest.raises(TypeError, match="solver must be a Solver"):
         mm.solve(cube, 3, solver="amm")
-    with pytest.raises(ValueError, match="start= .* not both"):
+    with pytest.raises(ValueError, match=r"start= .* not both"):
         mm.solve(cube, 3, start="chordal", init="odometry")
 
 

@@ -106,7 +106,7 @@ def test_robust_majorizer_bounds_objective(name):
         np.testing.assert_allclose(float(jnp.sum(st.share)), Fk, rtol=1e-12)
         for scale in (1e-3, 0.1, 1.0, 5.0):
             X = random_ambient(rng, Xk, scale)
-            dec = jax.vmap(majorizer_value)(st.gamma, stack(part.scatter(X)), st.X, st.grad)
+            dec = jax.vmap(majorizer_value)(st.weighting.gamma, stack(part.scatter(X)), st.X, st.grad)
             G = Fk + float(jnp.sum(dec))
             F = _robust_objective(graph, X, name, c)
             assert G >= F - 1e-10 * max(1.0, abs(F)), (name, scale, G, F)
@@ -197,9 +197,9 @@ def test_inter_robot_edge_same_weight_on_both_robots():
     config = MMConfig(xi=1e-3)
     problem = MMProblem.build(part, config=config, loss=loss, poses=part.scatter(X0))
     st, _ = run(problem, config, init_state(problem, part.scatter(X0), config), 10)
-    assert int(st.schedule.stage) >= 2
+    assert int(st.weighting.schedule.stage) >= 2
     index = incident_edge_index(graph.i, graph.j, part.robot_of_pose, part.num_robots, part.max_edges)
-    w_slots = np.asarray(st.weights)
+    w_slots = np.asarray(st.weighting.weights)
     rop = np.asarray(part.robot_of_pose)
     inter = np.flatnonzero(rop[np.asarray(graph.i)] != rop[np.asarray(graph.j)])
     assert len(inter) > 3

@@ -220,8 +220,8 @@ def test_scalar_xi_keeps_keys_and_columns(tmp_path):
 def test_padding_an_unpadded_partition_equals_partitioning_padded(cube):
     """The sweep partitions each (graph, robots) once and pads it: the same arrays as partition()
     with the padding options."""
+    from mmpgo_jax._core.partition import pad_partition as _pad_partition
     from mmpgo_jax._core.partition import partition
-    from mmpgo_jax._experiments.sweep import _pad_partition
 
     for a in (5, 50):
         p0 = jax.device_get(partition(cube.graph, a))

@@ -416,3 +416,32 @@ def partition_stats(graph: PoseGraph, robot_of_pose: np.ndarray) -> PartitionSta
         sent_poses=np.bincount(triples[:, 1], minlength=A).astype(np.int64),
         dim=graph.dim,
     )
+
+
+def pad_partition(p: Partition, n_max: int, e_max: int, num_robots: int) -> Partition:
+    """``partition(graph, robots, min_max_poses=n_max, min_max_edges=e_max, num_robots=...)`` from the
+    unpadded partition ``p`` (host arrays): the same arrays, without partitioning the graph again
+    (a sweep pads every configuration of a batch to one shape)."""
+    A0, n0 = np.shape(p.pose_mask)
+    e0 = np.shape(p.edges.kappa)[1]
+    A, n_max, e_max = max(num_robots, A0), max(n_max, n0), max(e_max, e0)
+
+    def pad(x, lead, fill=0):
+        x = np.asarray(x)
+        out = np.full(lead + x.shape[2:], fill, dtype=x.dtype)
+        out[: x.shape[0], : x.shape[1]] = x
+        return jnp.asarray(out)
+
+    e = p.edges
+    d = np.shape(e.t)[-1]
+    R = np.broadcast_to(np.eye(d, dtype=np.asarray(e.R).dtype), (A, e_max, d, d)).copy()
+    R[:A0, :e0] = np.asarray(e.R)
+    E = (A, e_max)
+    edges = RobotEdges(
+        robot_i=pad(e.robot_i, E), slot_i=pad(e.slot_i, E), robot_j=pad(e.robot_j, E), slot_j=pad(e.slot_j, E),
+        local_i=pad(e.local_i, E, False), local_j=pad(e.local_j, E, False), R=jnp.asarray(R), t=pad(e.t, E),
+        kappa=pad(e.kappa, E), tau=pad(e.tau, E),
+    )
+    return Partition(pose_index=pad(p.pose_index, (A, n_max)), pose_mask=pad(p.pose_mask, (A, n_max), False),
+                     edges=edges, robot_of_pose=jnp.asarray(p.robot_of_pose), slot_of_pose=jnp.asarray(p.slot_of_pose),
+                     num_poses=p.num_poses)

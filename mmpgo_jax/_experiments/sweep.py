@@ -55,13 +55,11 @@ from __future__ import annotations
 
 import csv
 import dataclasses
-import functools
 import math
 import time
 from collections import Counter
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from functools import partial
 from typing import Literal
 
 import jax
@@ -69,21 +67,21 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._core.gauge import FixedPoses
-from .._core.metrics import trajectory_accuracy
-from .._core.partition import SPLITS, Partition, RobotEdges, partition, split_robots
+from .._core.partition import SPLITS, partition, split_robots
 from .._core.pose_graph import PoseGraph, Poses
 from .._core.resources import available_memory_bytes
 from .._init.start import initialize
 from .._io.atomic import atomic_write
-from .._mm.driver import RESULTS, History, NonFiniteError, Termination, compile_once, drive
-from .._mm.majorization import gamma_couplings, stack, unstack
+from .._mm.driver import RESULTS, Driven, History, NonFiniteError, Termination, compile_once, drive
+from .._mm.layouts import Padded
+from .._mm.majorization import gamma_couplings
 from .._mm.outer import MMProblem
 from .._mm.preconditioner import aggregate_size
 from .._mm.robust import GNC_LOSSES, GNCConfig, RobustLoss, as_loss, loss_code
 from .._mm.solvers import AMM, MM, Solver, run_chunk
 from .._mm.subproblem import SubproblemConfig
-from .._solve.build import start_for
-from .._solve.result import SolveResult, output_frame
+from .._solve.build import finish, prepare, start_for
+from .._solve.result import SolveResult
 from .outliers import outlier_scores
 
 __all__ = ["TRACE_COUNTS", "SweepResult", "default_max_batch_bytes", "reference_optimum", "sweep"]
@@ -110,11 +108,6 @@ _sweep_chunk_impl.__name__ = "sweep_chunk"
 _sweep_chunk_impl.__qualname__ = "sweep_chunk"
 #: ``jit(vmap(run_chunk))`` over the leading configuration axis (name in compile logs: ``sweep_chunk``).
 sweep_chunk = jax.jit(_sweep_chunk_impl, static_argnames=("length",))
-
-
-@partial(jax.jit)
-def _batched_start(solver: Solver, problem, X0):
-    return jax.vmap(lambda p, x: solver.init(p, unstack(x)))(problem, X0)
 
 
 def default_max_batch_bytes(fraction: float = 0.25) -> int:
@@ -635,27 +628,23 @@ def _run_group(plan: _Plan, method: str, gkeys: list, out: _Outputs, max_batch_b
     # one coarse aggregate size per batch (a static field): the config's, else the largest automatic one
     agg = plan.subproblem.aggregate or max(plan.needs[k[:2]][3] for k in gkeys)
     A = max(k[1] for k in gkeys)
-    d = plan.glist[0].dim
+    layout = Padded(n_max, e_max, A, couplings=kc, aggregate=agg, mask_fixed=plan.any_fixed)
+    termination = Termination(plan.iterations, plan.chunk_size, stop_when_stalled=False)
 
-    def build(gi: int, a: int, x: float, li: int):
-        g = plan.glist[gi]
-        part = _pad_partition(plan.unpadded[(gi, a)], n_max, e_max, A)
-        fix = plan.fixed_of[plan.names[gi]]
-        if fix is None and plan.any_fixed:  # one pytree structure per batch: an all-free mask
-            fix = np.zeros(g.num_poses, dtype=bool)
-        problem = plan.solver(method, x).build(part, poses=part.scatter(plan.start_of(gi, a, li)), fixed=fix,
-                                               loss=plan.loss_of[plan.labels[li]], min_couplings=kc, aggregate=agg)
-        return part, problem
+    def prepared(key):
+        """The configuration built by the one builder of every solve (its start computed once per graph)."""
+        gi, a, x, li = key
+        start = plan.start_of(gi, a, li)
+        run = prepare(plan.glist[gi], plan.solver(method, x), plan.unpadded[(gi, a)], layout, termination,
+                      fixed=plan.fixed_of[plan.names[gi]], loss=plan.loss_of[plan.labels[li]], given_start=start)
+        run.clock.seconds["initialize"] += plan.initialize_seconds(gi, a, li)  # the partition and the start
+        return run
 
-    batch_solver = plan.solver(method, None)  # xi=None: each problem carries its own xi (an array leaf)
     n_common = max(plan.glist[k[0]].num_poses for k in gkeys)
     t_build = time.perf_counter()
-    built = {gkeys[0]: build(*gkeys[0])}  # reused by the first batch
-    prob0 = _batchable(built[gkeys[0]][1], n_common)
-    st_shape = jax.eval_shape(lambda p, x: batch_solver.init(p, unstack(x))[0], prob0,
-                              jax.ShapeDtypeStruct((A, n_max, d, d + 1), prob0.gamma_soa.diag.dtype))
-    per_config = _tree_bytes(prob0) + _tree_bytes(st_shape)  # bytes of one configuration (one padded shape)
-    del prob0
+    built = {gkeys[0]: prepared(gkeys[0])}  # reused by the first batch
+    first = built[gkeys[0]]
+    per_config = _tree_bytes(_batchable(first.problem, n_common)) + _tree_bytes(first.state)  # one padded shape
     C = len(gkeys)
     per_batch = max(1, min(C, int(max_batch_bytes // max(per_config, 1)), max_batch_configs or C))
     num_batches = math.ceil(C / per_batch)
@@ -669,32 +658,27 @@ def _run_group(plan: _Plan, method: str, gkeys: list, out: _Outputs, max_batch_b
     setup = time.perf_counter() - t_build
     for b in range(num_batches):
         bkeys = gkeys[b * per_batch:(b + 1) * per_batch]
-        setup += _run_batch(plan, method, batch_solver, bkeys, per_batch, built, build, n_common, per_config, group,
-                            out, b)
+        t0 = time.perf_counter()
+        runs = [built.pop(key, None) or prepared(key) for key in bkeys]
+        setup += time.perf_counter() - t0
+        run_s = _run_batch(plan, method, bkeys, runs, per_batch, n_common, termination, per_config, group, out, b)
         say(f"{method} robots={group['robots']} batch {b + 1}/{num_batches}: {len(bkeys)} configs, "
-            f"{group['batch_run_seconds']:.1f} s run, {group['compile_seconds']:.1f} s compile")
-    group.pop("batch_run_seconds", None)
+            f"{run_s:.1f} s run, {group['compile_seconds']:.1f} s compile")
     group["setup_seconds"] = setup
     out.groups.append(group)
 
 
-def _run_batch(plan: _Plan, method: str, solver: Solver, bkeys: list, per_batch: int, built: dict, build,
-               n_common: int, per_config: int, group: dict, out: _Outputs, b: int) -> float:
+def _run_batch(plan: _Plan, method: str, bkeys: list, runs: list, per_batch: int, n_common: int,
+               termination: Termination, per_config: int, group: dict, out: _Outputs, b: int) -> float:
     """One batch of a group (filled up to ``per_batch`` with discarded copies: one compiled shape);
-    returns its set-up seconds."""
-    t0 = time.perf_counter()
+    returns its run seconds."""
     real = len(bkeys)
-    parts, probs, X0s = [], [], []
-    for key in bkeys:
-        part, prob = built.pop(key, None) or build(*key)
-        parts.append(part)
-        probs.append(_batchable(prob, n_common))
-        X0s.append(stack(part.scatter(plan.start_of(key[0], key[1], key[3]))))
-    probs += [probs[-1]] * (per_batch - real)
-    X0s += [X0s[-1]] * (per_batch - real)
-    problem = _stack(probs)
-    state, rec0 = _batched_start(solver, problem, jnp.stack(X0s))
-    setup = time.perf_counter() - t0
+    fill = [runs[-1]] * (per_batch - real)
+    problem = _stack([_batchable(r.problem, n_common) for r in runs + fill])
+    state = _stack([r.state for r in runs + fill])
+    start = tuple(np.stack([np.asarray(x) for x in column])
+                  for column in zip(*(r.placement.start_record(r.start) for r in runs + fill), strict=True))
+    solver = plan.solver(method, None)  # xi=None: each problem carries its own xi (an array leaf)
 
     def compile_chunk(state, length, limit):
         compiled = compile_once(sweep_chunk, solver, problem, state, length, limit, static=(length,))
@@ -702,9 +686,8 @@ def _run_batch(plan: _Plan, method: str, solver: Solver, bkeys: list, per_batch:
 
     # sweeps never stop early: the driver keeps the records on the device and fetches f once
     traces = TRACE_COUNTS[method]
-    termination = Termination(plan.iterations, plan.chunk_size, stop_when_stalled=False)
     try:
-        driven = drive(compile_chunk, state, (rec0.f, rec0.grad_norm, rec0.restarted), termination, fetch=None)
+        driven = drive(compile_chunk, state, start, termination, fetch=None)
     except NonFiniteError as err:
         which = ", ".join(f"{plan.names[gi]!r} ({a} robots{f', xi={x:g}' if 'xi' in plan.axes else ''}"
                           f"{f', loss {plan.labels[li]}' if plan.robust else ''})" for gi, a, x, li in bkeys)
@@ -713,59 +696,49 @@ def _run_batch(plan: _Plan, method: str, solver: Solver, bkeys: list, per_batch:
         group["compile_seconds"] = driven.compile_seconds
         group["traces"] = TRACE_COUNTS[method] - traces  # 1 (0: jax's trace cache hit)
     final = jax.device_get(driven.state)
-    shares = dict(build=setup / real, compile=driven.compile_seconds / real, solve=driven.solve_seconds / real)
-    for c, key in enumerate(bkeys):
-        one = jax.tree.map(lambda x, c=c: x[c], final)
-        history = History(driven.history.f[c], driven.history.grad_norm[c], driven.history.restarts[c])
-        _record(plan, method, key, parts[c], probs[c], one, history, termination, shares, per_config, b, real, out)
+    for c, (key, run) in enumerate(zip(bkeys, runs, strict=True)):
+        one = Driven(state=jax.tree.map(lambda x, c=c: x[c], final),
+                     history=History(driven.history.f[c], driven.history.grad_norm[c], driven.history.restarts[c]),
+                     result=RESULTS.iterations, compile_seconds=driven.compile_seconds / real,
+                     solve_seconds=driven.solve_seconds / real)
+        _record(plan, method, key, run, one, termination, per_config, b, real, out)
     group["run_seconds"] += driven.solve_seconds
-    group["batch_run_seconds"] = driven.solve_seconds
-    return setup
+    return driven.solve_seconds
 
 
-def _record(plan: _Plan, method: str, key: tuple, part, problem, state, history: History, termination: Termination,
-            shares: dict, per_config: int, b: int, real: int, out: _Outputs) -> None:
-    """One configuration's :class:`SolveResult`, row, history, poses and robust outcome."""
+def _record(plan: _Plan, method: str, key: tuple, run, driven: Driven, termination: Termination, per_config: int,
+            b: int, real: int, out: _Outputs) -> None:
+    """One configuration's :class:`SolveResult` (by the one solve path's ``finish``), row, history,
+    poses and robust outcome."""
     gi, a, x, li = key
     name, graph = plan.names[gi], plan.glist[gi]
     k = plan.key_of(gi, a, method, x, li)
-    fixed = plan.fixed_of[name]
-    poses = output_frame(part.gather(unstack(jnp.asarray(state.X))), fixed, None)
-    solver = plan.solver(method, x)
-    outcome, robust_stats = solver.outcome(problem, graph, part, state, poses)
-    init_s = plan.initialize_seconds(gi, a, li)
-    stats = dict(initialize_seconds=init_s, build_seconds=shares["build"], init_seconds=init_s + shares["build"],
-                 compile_seconds=shares["compile"], solve_seconds=shares["solve"], batch=b, batch_size=real,
-                 **robust_stats)
-    gt = plan.gts.get(name)
-    user_part = functools.partial(partition, graph, plan.rops[(gi, a)])  # built when first read
-    result = SolveResult(poses=poses, history=history, _partition=user_part,
-                         config=solver.config, result=RESULTS.iterations, stats=stats,
-                         accuracy=None if gt is None else trajectory_accuracy(poses, gt), termination=termination,
-                         start=output_frame(plan.start_of(gi, a, li), fixed, None), solver=solver, **outcome)
+    result = finish(graph, plan.solver(method, x), run, driven, termination, fixed=plan.fixed_of[name],
+                    ground_truth=plan.gts.get(name))
+    result.stats.update(batch=b, batch_size=real)
     out.results[k] = result
-    out.histories[k] = f = history.f
-    out.poses[k] = poses
+    out.histories[k] = f = result.history.f
+    out.poses[k] = result.poses
     fs_ = plan.fstars.get(name)
     row = dict(graph=name, robots=a, method=method, **({"xi": x} if "xi" in plan.axes else {}),
                **({"loss": plan.labels[li]} if plan.robust else {}), iterations=plan.iterations,
                f_start=float(f[0]), f=float(f[-1]), gap=None if fs_ is None else float(f[-1] - fs_),
                relative_gap=None if fs_ is None else float((f[-1] - fs_) / fs_), fstar=fs_, bytes=per_config,
-               seconds=shares["solve"], ms_per_iteration=1e3 * shares["solve"] / max(plan.iterations, 1),
-               batch_ms_per_iteration=1e3 * shares["solve"] * real / max(plan.iterations, 1), batch=b,
+               seconds=result.solve_seconds, ms_per_iteration=1e3 * result.solve_seconds / max(plan.iterations, 1),
+               batch_ms_per_iteration=1e3 * result.solve_seconds * real / max(plan.iterations, 1), batch=b,
                batch_size=real, _key=k)
-    if gt is not None:
+    if result.accuracy is not None:
         row["ate"] = result.accuracy.ate
         row["rpe_translation"] = result.accuracy.rpe_translation
         row["rpe_rotation_deg"] = result.accuracy.rpe_rotation_deg
     if name in plan.corrupt:
         row.update(outlier_rate=plan.corrupt[name][1], outliers=int(plan.corrupt[name][0].sum()))
-    if plan.robust:
-        out.weights[k], out.inliers[k] = outcome["weights"], outcome["inliers"]
-        row.update(rejected=int((~outcome["inliers"]).sum()), weight_updates=robust_stats["weight_updates"],
-                   gnc_stages=robust_stats["gnc_stages"])
+    if result.inliers is not None:
+        out.weights[k], out.inliers[k] = result.weights, result.inliers
+        row.update(rejected=int((~result.inliers).sum()), weight_updates=result.stats["weight_updates"],
+                   gnc_stages=result.stats["gnc_stages"])
         if name in plan.corrupt:
-            scores = outlier_scores(outcome["inliers"], plan.corrupt[name][0])
+            scores = outlier_scores(result.inliers, plan.corrupt[name][0])
             row.update(precision=scores.precision, recall=scores.recall)
     out.rows.append(row)
 
@@ -822,31 +795,3 @@ def _xi_values(xi) -> list[float]:
     if not out:
         raise ValueError("xi: give at least one value")
     return list(dict.fromkeys(out))
-
-
-def _pad_partition(p: Partition, n_max: int, e_max: int, num_robots: int) -> Partition:
-    """``partition(graph, robots, min_max_poses=n_max, min_max_edges=e_max, num_robots=...)`` from the
-    unpadded partition ``p`` (host arrays): the same arrays, without partitioning the graph again."""
-    A0, n0 = np.shape(p.pose_mask)
-    e0 = np.shape(p.edges.kappa)[1]
-    A, n_max, e_max = max(num_robots, A0), max(n_max, n0), max(e_max, e0)
-
-    def pad(x, lead, fill=0):
-        x = np.asarray(x)
-        out = np.full(lead + x.shape[2:], fill, dtype=x.dtype)
-        out[: x.shape[0], : x.shape[1]] = x
-        return jnp.asarray(out)
-
-    e = p.edges
-    d = np.shape(e.t)[-1]
-    R = np.broadcast_to(np.eye(d, dtype=np.asarray(e.R).dtype), (A, e_max, d, d)).copy()
-    R[:A0, :e0] = np.asarray(e.R)
-    E = (A, e_max)
-    edges = RobotEdges(
-        robot_i=pad(e.robot_i, E), slot_i=pad(e.slot_i, E), robot_j=pad(e.robot_j, E), slot_j=pad(e.slot_j, E),
-        local_i=pad(e.local_i, E, False), local_j=pad(e.local_j, E, False), R=jnp.asarray(R), t=pad(e.t, E),
-        kappa=pad(e.kappa, E), tau=pad(e.tau, E),
-    )
-    return Partition(pose_index=pad(p.pose_index, (A, n_max)), pose_mask=pad(p.pose_mask, (A, n_max), False),
-                     edges=edges, robot_of_pose=jnp.asarray(p.robot_of_pose), slot_of_pose=jnp.asarray(p.slot_of_pose),
-                     num_poses=p.num_poses)

@@ -71,17 +71,16 @@ Gamma^alpha is already positive definite for xi = 0 on connected data. It is neg
 the measurement weights of the benchmark files: it slows the majorizer by a relative xi /
 (weights at a pose), and xi = 0 and 1e-3 give the same iteration counts there.
 
-Stopping. ``tol`` (relative, default 1e-10; None runs the whole budget) stops a stage at the
-first iteration k >= 10 with |f(X^{k-10}) - f(X^k)| <= tol * f(X^k), f the relaxed objective
-(which every iteration computes anyway from the residuals of the gradient evaluation: each robot
-sums its own edges and half of its inter-robot edges). With the momentum restart the objective
-decreases essentially monotonically and linearly, and on the benchmark files the gap to the
-optimum at the stop was within 1-100x of tol. The loop is a ``lax.while_loop`` over
-``lax.scan`` chunks of 10 iterations of the same jitted step, with the state frozen as soon as a
-stage converges or the budget is spent, so the reported iteration count is exact. ``tol`` and the
-budget are traced values; the only static size is the history buffer, whose length is the budget
-rounded up to a power of two. Changing ``tol`` never recompiles, and budgets within one power of
-two (e.g. 300 and 500, both 512) share one compilation per graph shape.
+Stopping. Each stage is a solver (:class:`AMMChordal`) run by the same driver as MM and AMM
+(:func:`~mmpgo_jax._mm.driver.drive`): compiled chunks of 10 iterations, the budget, and
+``tol`` (relative, default 1e-10; None runs the whole budget) as the driver's relative-decrease
+rule, checked after every chunk: a stage stops after the first chunk (k = 10, 20, ...) with
+f(X^{k-10}) - f(X^k) <= tol * f(X^{k-10}), f the relaxed objective (which every iteration computes
+anyway from the residuals of the gradient evaluation: each robot sums its own edges and half of
+its inter-robot edges). With the momentum restart the objective decreases essentially
+monotonically and linearly, and on the benchmark files the gap to the optimum at the stop was
+within 1-100x of tol. ``tol`` and the budget are traced values: the one compiled chunk of a
+graph shape serves every tolerance and budget.
 
 Budgets. The defaults (20000 + 20000 iterations) are a cap, not a cost: every benchmark file
 stops by ``tol`` first. The ill-conditioned files need thousands of iterations
@@ -106,12 +105,17 @@ from .._core.partition import partition as make_partition
 from .._core.pose_graph import PoseGraph, Poses, edge_hessian_blocks
 from .._core.resources import available_memory_bytes
 from .._core.validate import check_count, check_real
+from .._mm.driver import RESULTS, Termination, drive
+from .._mm.layouts import Placement
+from .._mm.outer import IterationRecord
+from .._mm.solvers import Solver, start_run
 
 __all__ = [
     "DEFAULT_ROTATION_ITERATIONS",
     "DEFAULT_TOL",
     "DEFAULT_TRANSLATION_ITERATIONS",
     "DEFAULT_XI",
+    "AMMChordal",
     "DistributedChordalInfo",
     "distributed_chordal_initialization",
     "distributed_relaxed_rotations",
@@ -123,7 +127,7 @@ DEFAULT_TRANSLATION_ITERATIONS = 20000
 DEFAULT_TOL = 1e-10
 DEFAULT_XI = 1e-3
 DEFAULT_RESTART = True
-_CHUNK = 10  # iterations per lax.scan chunk between convergence checks of the while loop
+_CHUNK = 10  # iterations per compiled chunk between the driver's convergence checks
 
 
 # --------------------------------------------------------------------------------------------
@@ -271,6 +275,44 @@ def _apply_inverse_trans(Ginv, g):
 # --------------------------------------------------------------------------------------------
 
 
+class _Stage(eqx.Module):
+    """The constant data of one stage: the robots' incident edges, the anchor slots and the inverse
+    of every robot's Gamma (factored once on the host)."""
+
+    edges: object
+    anchor: jax.Array
+    Ginv: jax.Array
+
+    def gradient(self, X):
+        """(grad F(X) per robot, the relaxed objective 2F(X))."""
+        raise NotImplementedError
+
+    def apply_inverse(self, G):
+        raise NotImplementedError
+
+
+class RotationStage(_Stage):
+    """The relaxed rotation problem (22) as majorized by Eq. (24)."""
+
+    def gradient(self, R):
+        return _rotation_gradient(self.edges, self.anchor, R)
+
+    def apply_inverse(self, G):
+        return _apply_inverse_rot(self.Ginv, G)
+
+
+class TranslationStage(_Stage):
+    """The translation problem (25) with the rotations fixed (``v`` = R_i t~_ij per edge slot)."""
+
+    v: jax.Array
+
+    def gradient(self, t):
+        return _translation_gradient(self.edges, self.anchor, self.v, t)
+
+    def apply_inverse(self, g):
+        return _apply_inverse_trans(self.Ginv, g)
+
+
 class _State(eqx.Module):
     X: jax.Array  # R^k or t^k, padded (A, n_max, ...)
     Xprev: jax.Array
@@ -278,69 +320,69 @@ class _State(eqx.Module):
     Gprev: jax.Array
     s: jax.Array  # (A,) Nesterov sequence s^{alpha(k)}
     k: jax.Array  # iterations done
-    done: jax.Array
-    history: jax.Array  # (max_iters + 1,) relaxed objective (2F convention) at X^0..X^k
 
 
-def _amm_run(grad_fn, apply_inv, X0, max_iters: int, budget, tol, restart: bool):
-    """Algorithm 3 from X0: a while_loop over lax.scan chunks of one step; returns the final state.
+class AMMChordal(Solver):
+    """Algorithm 3 (AMM-Chordal) as a solver of the one driver: each robot's exact minimiser of the
+    quadratic majorizer (Eq. (24)) from the Nesterov point, with the per-robot gradient restart
+    (``restart``, module docstring). Its problems are the stages (:class:`RotationStage`,
+    :class:`TranslationStage`); the driver's chunks, budget and relative-decrease rule
+    (``Termination(budget, 10, rel_decrease_tol=tol)``) run it as they run MM and AMM."""
 
-    ``grad_fn(X) -> (grad, cost)``; ``apply_inv(G) -> G Gamma^{-1}`` (per robot).
-    """
-    G0, f0 = grad_fn(X0)
-    dt = X0.dtype
-    A = X0.shape[0]
-    hist = jnp.full((max_iters + 1,), jnp.nan, dt).at[0].set(f0)
-    state = _State(X0, X0, G0, G0, jnp.ones((A,), dt), jnp.asarray(0, jnp.int32), jnp.asarray(False), hist)
-    axes = tuple(range(1, X0.ndim))
-    bshape = (A,) + (1,) * (X0.ndim - 1)
+    restart: bool = eqx.field(static=True, default=DEFAULT_RESTART)
 
-    def step(st: _State, _):
-        active = (st.k < budget) & ~st.done
+    @property
+    def name(self) -> str:
+        return "amm-chordal"
+
+    def init(self, problem: _Stage, X0):
+        G0, f0 = problem.gradient(X0)
+        A = X0.shape[0]
+        state = _State(X0, X0, G0, G0, jnp.ones((A,), X0.dtype), jnp.asarray(0, jnp.int32))
+        return state, self._record(f0, G0, jnp.zeros((A,), bool))
+
+    def step(self, problem: _Stage, st: _State, comm=None):
+        axes = tuple(range(1, st.X.ndim))
+        bshape = (st.X.shape[0],) + (1,) * (st.X.ndim - 1)
         # Algorithm 3, lines 11-14 (every robot at once)
         s1 = 0.5 * (jnp.sqrt(4.0 * st.s**2 + 1.0) + 1.0)
         gam = ((st.s - 1.0) / s1).reshape(bshape)
         Y = st.X + gam * (st.X - st.Xprev)
         GY = st.G + gam * (st.G - st.Gprev)
-        Z = Y - apply_inv(GY)
-        if restart:
+        Z = Y - problem.apply_inverse(GY)
+        uphill = jnp.zeros(st.s.shape, bool)
+        if self.restart:
             # per-robot gradient restart: momentum is dropped where the step goes uphill
             uphill = jnp.sum(GY * (Z - st.X), axis=axes) > 0
             s1 = jnp.where(uphill, 1.0, s1)
-        GZ, fZ = grad_fn(Z)  # line 17 (one exchange of boundary poses)
-        k1 = st.k + 1
-        hist = st.history.at[k1].set(fZ)
-        # relative decrease of the objective over the last _CHUNK iterations
-        back = hist[jnp.maximum(k1 - _CHUNK, 0)]
-        conv = (k1 >= _CHUNK) & (jnp.abs(back - fZ) <= tol * jnp.abs(fZ))
-        new = _State(Z, st.X, GZ, st.G, s1, k1, conv, hist)
-        st = jax.tree_util.tree_map(lambda a, b: jnp.where(active, a, b), new, st)
-        return st, None
+        GZ, fZ = problem.gradient(Z)  # line 17 (one exchange of boundary poses)
+        return _State(Z, st.X, GZ, st.G, s1, st.k + 1), self._record(fZ, GZ, uphill)
 
-    def chunk(st):
-        st, _ = jax.lax.scan(step, st, None, length=_CHUNK)
-        return st
+    def skipped(self, st: _State):
+        nan = jnp.full((), jnp.nan, st.X.dtype)
+        return IterationRecord(f=nan, grad_norm=nan, restarted=jnp.zeros(st.s.shape, bool), settled=jnp.ones((), bool))
 
-    def cond(st):
-        return (st.k < budget) & ~st.done
+    def iteration(self, st: _State):
+        return st.k
 
-    return jax.lax.while_loop(cond, chunk, state)
+    def record_structure(self, problem):
+        return IterationRecord(f=0.0, grad_norm=0.0, restarted=0.0, settled=0.0)
+
+    @staticmethod
+    def _record(f, G, restarted):
+        return IterationRecord(f=f, grad_norm=jnp.sqrt(jnp.sum(G**2)), restarted=restarted, settled=jnp.ones((), bool))
 
 
-@eqx.filter_jit
-def _rotation_solve(edges, anchor, Ginv, R0, budget, tol, max_iters: int, restart: bool):
-    grad_fn = lambda R: _rotation_gradient(edges, anchor, R)  # noqa: E731
-    apply_inv = lambda G: _apply_inverse_rot(Ginv, G)  # noqa: E731
-    return _amm_run(grad_fn, apply_inv, R0, max_iters, budget, tol, restart)
-
-
-@eqx.filter_jit
-def _translation_solve(edges, anchor, Ginv, Rpad, t0, budget, tol, max_iters: int, restart: bool):
-    # v_e = R_i tt_e with the fixed rotations, per robot edge slot (constant over iterations)
-    v = jnp.einsum("aexy,aey->aex", Rpad[edges.robot_i, edges.slot_i], edges.t)
-    grad_fn = lambda t: _translation_gradient(edges, anchor, v, t)  # noqa: E731
-    apply_inv = lambda g: _apply_inverse_trans(Ginv, g)  # noqa: E731
-    return _amm_run(grad_fn, apply_inv, t0, max_iters, budget, tol, restart)
+def _drive_stage(part: Partition, problem: _Stage, X0, budget: int, tol, restart: bool):
+    """One stage of the distributed chordal start on the driver: (final iterate, f history,
+    iterations, whether the tolerance stopped it)."""
+    solver = AMMChordal(restart=bool(restart))
+    placement = Placement(part)
+    state, start = start_run(solver, problem, X0)
+    termination = Termination(budget, _CHUNK, rel_decrease_tol=tol, stop_when_stalled=False)
+    out = drive(placement.compile_chunk(solver, problem), state, placement.start_record(jax.device_get(start)),
+                termination, fetch=placement.fetch)
+    return out.state.X, out.history.f, out.history.iterations, out.result is RESULTS.rel_decrease_tol
 
 
 # --------------------------------------------------------------------------------------------
@@ -384,12 +426,6 @@ def _check_iters(name, value) -> int:
 def _check_tol(tol) -> float | None:
     check_real(None, "tol", tol, 0.0, optional=True, scalar=True)
     return None if tol is None else float(tol)
-
-
-def _tol_value(tol, dt):
-    """``tol`` as the traced stopping threshold (-1 when None: never satisfied)."""
-    tol = _check_tol(tol)
-    return jnp.asarray(-1.0 if tol is None else tol, dt)
 
 
 class _Setup(eqx.Module):
@@ -457,37 +493,18 @@ def _initial_translations(st: _Setup, initial, n: int):
     return jnp.where(st.anchor[..., None], st.anchor_t, t0)
 
 
-def _history_length(budget: int) -> int:
-    """Static length of the compiled loop's history buffer for an iteration ``budget``: the next
-    power of two >= budget (at least 1). The budget itself is traced, so all budgets up to that
-    length share one compiled loop: a graph shape compiles once per power of two of the budget."""
-    return 1 << max(int(budget) - 1, 0).bit_length()
+def _run_rotations(st: _Setup, Ginv, R0, budget: int, tol, restart: bool):
+    """The rotation stage on the driver; ``budget`` and ``tol`` are traced (the compiled chunk of 10
+    iterations serves every budget and tolerance)."""
+    return _drive_stage(st.part, RotationStage(st.part.edges, st.anchor, Ginv), R0, budget, _check_tol(tol), restart)
 
 
-def _static_length(budget: int, history_length: int | None) -> int:
-    L = _history_length(budget) if history_length is None else int(history_length)
-    if budget > L:
-        raise ValueError(f"history_length ({L}) must be at least the iteration budget ({budget})")
-    return L
-
-
-def _run_rotations(st: _Setup, Ginv, R0, budget: int, tol, restart: bool, history_length: int | None = None):
-    """The jitted AMM-Chordal loop. ``budget`` and ``tol`` are traced; ``history_length`` (static,
-    >= budget; default the next power of two) fixes the compiled shape. The history
-    beyond the last iteration is NaN: slice it to ``k + 1``."""
-    L = _static_length(budget, history_length)
-    return _rotation_solve(
-        st.part.edges, st.anchor, Ginv, R0, jnp.asarray(budget, jnp.int32), _tol_value(tol, st.dtype), L, bool(restart)
-    )
-
-
-def _run_translations(st: _Setup, Ginv, Rpad, t0, budget: int, tol, restart: bool, history_length: int | None = None):
-    """As :func:`_run_rotations`, for the translation stage."""
-    L = _static_length(budget, history_length)
-    return _translation_solve(
-        st.part.edges, st.anchor, Ginv, Rpad, t0, jnp.asarray(budget, jnp.int32), _tol_value(tol, st.dtype), L,
-        bool(restart),
-    )
+def _run_translations(st: _Setup, Ginv, Rpad, t0, budget: int, tol, restart: bool):
+    """As :func:`_run_rotations`, for the translation stage with the rotations ``Rpad`` fixed."""
+    edges = st.part.edges
+    # v_e = R_i tt_e with the fixed rotations, per robot edge slot (constant over iterations)
+    v = jnp.einsum("aexy,aey->aex", Rpad[edges.robot_i, edges.slot_i], edges.t)
+    return _drive_stage(st.part, TranslationStage(edges, st.anchor, Ginv, v), t0, budget, _check_tol(tol), restart)
 
 
 def _unpad(st: _Setup, X):
@@ -508,17 +525,17 @@ def distributed_relaxed_rotations(
 
     ``robots``: a robot count (contiguous blocks), an (n,) robot-of-pose array or a Partition.
     ``initial``: R^(0) (n, d, d); default every block I (anchor poses are always I).
-    ``iterations`` and ``tol`` are traced: another tolerance, or a budget below the same power of
-    two, reuses the compiled loop (module docstring, "Stopping").
+    ``iterations`` and ``tol`` are traced: another tolerance or budget reuses the compiled chunk
+    (module docstring, "Stopping").
     Returns (R (n, d, d) not projected, history (k+1,) of 2 F_R, iterations used k, converged).
     """
     iterations = _check_iters("iterations", iterations)
     tol = _check_tol(tol)
     st = _setup(graph, robots)
-    out = _run_rotations(st, st.gamma_inverse(xi, True), _initial_rotations(st, initial, graph.num_poses),
-                         iterations, tol, restart)
-    k = int(out.k)
-    return _unpad(st, out.X), np.asarray(out.history)[: k + 1], k, bool(out.done)
+    X, history, k, converged = _run_rotations(st, st.gamma_inverse(xi, True),
+                                              _initial_rotations(st, initial, graph.num_poses), iterations, tol,
+                                              restart)
+    return _unpad(st, X), history, k, converged
 
 
 def distributed_translations(
@@ -545,10 +562,9 @@ def distributed_translations(
     if R.shape != (n, d, d):
         raise ValueError(f"rotations must have shape ({n}, {d}, {d}), got {R.shape}")
     Rpad = st.part.scatter(Poses(R, jnp.zeros((n, d), st.dtype))).R
-    out = _run_translations(st, st.gamma_inverse(xi, False), Rpad, _initial_translations(st, initial, n),
-                            iterations, tol, restart)
-    k = int(out.k)
-    return _unpad(st, out.X), np.asarray(out.history)[: k + 1], k, bool(out.done)
+    X, history, k, converged = _run_translations(st, st.gamma_inverse(xi, False), Rpad,
+                                                 _initial_translations(st, initial, n), iterations, tol, restart)
+    return _unpad(st, X), history, k, converged
 
 
 def distributed_chordal_initialization(
@@ -586,21 +602,21 @@ def distributed_chordal_initialization(
     st = _setup(graph, robots, fixed)
     R0 = _initial_rotations(st, initial_rotations, n)
     t0 = _initial_translations(st, initial_translations, n)
-    outR = _run_rotations(st, st.gamma_inverse(xi, True), R0, rotation_iterations, tol, restart)
+    RX, hR, kR, convR = _run_rotations(st, st.gamma_inverse(xi, True), R0, rotation_iterations, tol, restart)
     # each robot projects its own blocks; padding slots hold I, anchors keep their values
-    Rpad = jnp.where(st.anchor[..., None, None], st.anchor_R, project_to_so(outR.X))
-    outt = _run_translations(st, st.gamma_inverse(xi, False), Rpad, t0, translation_iterations, tol, restart)
-    kR, kt = int(outR.k), int(outt.k)
+    Rpad = jnp.where(st.anchor[..., None, None], st.anchor_R, project_to_so(RX))
+    tX, ht, kt, convt = _run_translations(st, st.gamma_inverse(xi, False), Rpad, t0, translation_iterations, tol,
+                                          restart)
     info = DistributedChordalInfo(
         rotation_iterations=kR,
         translation_iterations=kt,
-        rotation_converged=bool(outR.done),
-        translation_converged=bool(outt.done),
-        rotation_history=np.asarray(outR.history)[: kR + 1],
-        translation_history=np.asarray(outt.history)[: kt + 1],
+        rotation_converged=convR,
+        translation_converged=convt,
+        rotation_history=hR,
+        translation_history=ht,
         num_robots=st.part.num_robots,
         xi=float(xi),
         tol=tol,
         restart=bool(restart),
     )
-    return Poses(_unpad(st, Rpad), _unpad(st, outt.X)), info
+    return Poses(_unpad(st, Rpad), _unpad(st, tX)), info

@@ -122,7 +122,7 @@ from .format import (  # noqa: F401 (limits and the families are re-exported: th
     _info_size,
 )
 from .reader import G2OFile, G2OPoses, _parse, _read, _rotations
-from .rows import _check_vertex_ids, _fmt_rows, _pose_arrays
+from .rows import _check_vertex_ids, _fmt_rows, _pose_arrays, writer_sizes
 from .tokens import _show, _tokenise  # noqa: F401 (tests reach the tokeniser through this module)
 from .toro import read_toro, write_toro
 from .tum import tum_lines
@@ -200,12 +200,7 @@ def g2o_lines(graph: PoseGraph, poses: Poses | None, *, vertex_ids=None, informa
               fixed=None) -> tuple[list[str], list[str], np.ndarray]:
     """The VERTEX lines (one per pose, [] without ``poses``) and EDGE lines (one per edge) of
     :func:`write_g2o`, and the (n,) fixed mask (checked; all False when ``fixed`` is None)."""
-    d = graph.dim
-    if d not in (2, 3):
-        raise ValueError(f"only 2D and 3D graphs can be written, got dimension {d}")
-    n, m = graph.num_poses, graph.num_edges
-    ids = _check_vertex_ids(vertex_ids, n)
-    ksz = _info_size(d)
+    d, n, m, ids, ksz = writer_sizes(graph, vertex_ids)
     if information is None:
         info = information_from_weights(np.asarray(graph.kappa), np.asarray(graph.tau), d)
     else:

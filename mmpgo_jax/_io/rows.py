@@ -9,6 +9,15 @@ from __future__ import annotations
 import numpy as np
 
 from .._core.pose_graph import Poses
+from .format import _info_size
+
+
+def writer_sizes(graph, vertex_ids) -> tuple[int, int, int, np.ndarray, int]:
+    """(d, n, m, checked vertex ids, information entries per edge) of a graph about to be written."""
+    d = graph.dim
+    if d not in (2, 3):
+        raise ValueError(f"only 2D and 3D graphs can be written, got dimension {d}")
+    return d, graph.num_poses, graph.num_edges, _check_vertex_ids(vertex_ids, graph.num_poses), _info_size(d)
 
 
 def _check_vertex_ids(vertex_ids, n: int) -> np.ndarray:

@@ -12,9 +12,9 @@ import numpy as np
 from .._core.geometry import angle_2d
 from .._core.pose_graph import PoseGraph, Poses
 from .atomic import atomic_write
-from .format import _TORO, _TORO_FORMATS, _TORO_INFO_SCALE, _full_to_upper, _info_size
+from .format import _TORO, _TORO_FORMATS, _TORO_INFO_SCALE, _full_to_upper
 from .reader import G2OFile, _read
-from .rows import _check_vertex_ids, _fmt_rows, _pose_arrays
+from .rows import _fmt_rows, _pose_arrays, writer_sizes
 from .weights import information_from_weights
 
 __all__ = ["read_toro", "write_toro"]
@@ -60,12 +60,7 @@ def write_toro(path, graph: PoseGraph, poses: Poses | None, *, vertex_ids=None, 
     roll/pitch/yaw coordinates: D^-1 I D^-1 of the g2o-layout ``information``, D = diag(1, 1, 1, 2,
     2, 2)); ``vertex_ids`` and ``information`` as for :func:`write_g2o`. TORO has no FIX lines.
     """
-    d = graph.dim
-    if d not in (2, 3):
-        raise ValueError(f"only 2D and 3D graphs can be written, got dimension {d}")
-    n, m = graph.num_poses, graph.num_edges
-    ids = _check_vertex_ids(vertex_ids, n)
-    ksz = _info_size(d)
+    d, n, m, ids, ksz = writer_sizes(graph, vertex_ids)
     info = information_from_weights(np.asarray(graph.kappa), np.asarray(graph.tau), d) if information is None \
         else np.asarray(information, dtype=np.float64)
     if info.shape != (m, ksz, ksz):

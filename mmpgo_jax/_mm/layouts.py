@@ -16,11 +16,11 @@ import contextlib
 import jax
 import numpy as np
 
-from .._core.partition import Partition, partition
+from .._core.partition import Partition, pad_partition, partition
 from .driver import compile_once
 from .solvers import Solver, run_chunk
 
-__all__ = ["OneDevice", "Placement"]
+__all__ = ["OneDevice", "Padded", "Placement"]
 
 
 class Placement:
@@ -47,6 +47,10 @@ class Placement:
     def checkpoint_options(self) -> dict:
         """``Checkpointer`` options (how the state reaches the host, which process writes)."""
         return {}
+
+    def build_options(self, graph, fixed) -> dict:
+        """``solver.build``'s keyword arguments this layout sets (shape padding, the fixed poses)."""
+        return dict(fixed=fixed)
 
     def place(self, problem, state):
         """(problem, state) on the layout's devices."""
@@ -87,3 +91,36 @@ class OneDevice:
 
     def __repr__(self) -> str:
         return "OneDevice()"
+
+
+class Padded:
+    """One device, the partition padded to a common shape: ``n_max`` slots per robot, ``e_max``
+    incident edges, ``robots`` robots, Γ^α's loop-closure list padded to ``couplings`` and one
+    coarse ``aggregate`` size, an all-free fixed-pose mask where a graph has no fixed poses
+    (``mask_fixed``), so that the configurations of a sweep's batch stack into one array each.
+    ``robots`` given to ``setup`` is the configuration's unpadded :class:`Partition` (host arrays)."""
+
+    def __init__(self, n_max: int, e_max: int, robots: int, *, couplings: int = 0, aggregate: int | None = None,
+                 mask_fixed: bool = False):
+        self.shape = (int(n_max), int(e_max), int(robots))
+        self.couplings, self.aggregate, self.mask_fixed = int(couplings), aggregate, bool(mask_fixed)
+
+    def setup(self, graph, robots: Partition) -> Placement:
+        return _PaddedPlacement(self, robots, pad_partition(robots, *self.shape))
+
+    def __repr__(self) -> str:
+        return f"Padded(n_max={self.shape[0]}, e_max={self.shape[1]}, robots={self.shape[2]})"
+
+
+class _PaddedPlacement(Placement):
+    def __init__(self, layout: Padded, user_part: Partition, part: Partition):
+        super().__init__(user_part, part)
+        self.layout = layout
+
+    def identity(self):
+        return ("padded", self.layout.shape)
+
+    def build_options(self, graph, fixed) -> dict:
+        if fixed is None and self.layout.mask_fixed:  # one pytree structure per batch: an all-free mask
+            fixed = np.zeros(graph.num_poses, dtype=bool)
+        return dict(fixed=fixed, min_couplings=self.layout.couplings, aggregate=self.layout.aggregate)

@@ -97,8 +97,9 @@ class Prepared:
 def prepare(graph: PoseGraph, solver: Solver, robots, layout, termination: Termination, *, start=None, initial=None,
             fixed=None, loss: RobustLoss | None = None, monitor: Monitor | None = None,
             checkpoint: str | os.PathLike | None = None, checkpoint_every: int = 1,
-            resume: str | os.PathLike | None = None) -> Prepared:
-    """Everything before the iterations (see the module docstring)."""
+            resume: str | os.PathLike | None = None, given_start: Poses | None = None) -> Prepared:
+    """Everything before the iterations (see the module docstring). ``given_start``: a start already
+    computed for this graph (a sweep computes each graph's start once for all its configurations)."""
     monitor = monitor or Monitor()
     clock = Clock()
     monitor.phase("initializing")
@@ -111,7 +112,9 @@ def prepare(graph: PoseGraph, solver: Solver, robots, layout, termination: Termi
                            num_robots=placement.user_part.num_robots, start=(start_method, start_options, initial),
                            config=solver, loss=loss, fixed=fixed, chunk_size=termination.chunk_size,
                            precision=graph.R.dtype, layout=placement.identity())
-        if resume is not None:  # every process reads the file: the same start everywhere
+        if given_start is not None:
+            X0 = given_start
+        elif resume is not None:  # every process reads the file: the same start everywhere
             snapshot = load_checkpoint(resume)
             snapshot.check(key, termination.iterations)
             X0 = Poses(*(jnp.asarray(x) for x in snapshot.X0))  # the start the checkpointed run was built from
@@ -125,7 +128,8 @@ def prepare(graph: PoseGraph, solver: Solver, robots, layout, termination: Termi
         X0 = jax.block_until_ready(placement.part.scatter(X0))
         clock.lap("initialize")
         monitor.phase("building")
-        problem = jax.block_until_ready(solver.build(placement.part, poses=X0, fixed=fixed, loss=loss))
+        problem = jax.block_until_ready(solver.build(placement.part, poses=X0, loss=loss,
+                                                     **placement.build_options(graph, fixed)))
         clock.lap("build")
         monitor.phase("compiling")
         structure = solver.start_structure(problem)

@@ -21,7 +21,6 @@ from .._core.gauge import FixedPoses
 from .._core.partition import Partition, partition
 from .._core.pose_graph import HostPoses, PoseGraph, Poses
 from .._core.precision import float64_enabled
-from .._distributed.layout import Sharded
 from .._init.start import initialize
 from .._mm.centralized import NewtonConfig, newton_optimum
 from .._mm.checkpoint import DEFAULT_EVERY
@@ -174,6 +173,8 @@ def solve_sharded(
     a checkpoint and process 0 writes it; to resume, every process reads the file (on several hosts it
     must be readable on each, e.g. a shared file system).
     """
+    from .._distributed.layout import Sharded  # the sharded machinery loads only when asked for
+
     if options.get("layout") is not None:
         raise ValueError("solve_sharded lays the robots out itself: call solve(..., layout=...) instead")
     options.pop("layout", None)

@@ -6,30 +6,11 @@ from __future__ import annotations
 
 import argparse
 
-from .._core.validate import finite_float
+from .._core.validate import finite_float, int_in
 
 __all__ = ["INT_MAX", "ITERATIONS", "ROBOTS", "add_common", "add_strict", "finite_float", "host_port", "int_in"]
 
 INT_MAX = 2**31 - 1  # iteration counts end up in int32 arrays in float32 mode
-
-
-def int_in(low: int, high: int | None = None):
-    """argparse ``type``: an integer with ``low <= value (<= high)``. Not
-    :func:`mmpgo_jax._core.validate.int_in`, which says "a non-negative integer" where the command
-    line's messages have always said "an integer >= 0"."""
-
-    def parse(text: str) -> int:
-        try:
-            value = int(text, 10)
-        except (TypeError, ValueError):
-            value = None
-        if value is None or value < low or (high is not None and value > high):
-            limits = f">= {low}" if high is None else f"between {low} and {high}"
-            raise argparse.ArgumentTypeError(f"must be an integer {limits}, got {text!r}")
-        return value
-
-    parse.__name__ = "integer"
-    return parse
 
 
 def host_port(text: str) -> str:

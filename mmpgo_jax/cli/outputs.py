@@ -174,12 +174,7 @@ def print_summary(result, fstar, data: LoadedInput | None = None) -> None:
 
 def print_timing(result, *, read: float, write: float) -> None:
     """The time line: every phase of the run, in the order it ran."""
-    # TODO(one-solve-path): solve's results time initialization and building apart, solve_sharded's
-    # only together (no build_seconds); branch on the entry point until both report the same fields.
-    if "initialize_seconds" in result.stats:
-        setup = f"initialize {result.initialize_seconds:.2f} s, build {result.build_seconds:.2f} s"
-    else:
-        setup = f"initialize and build {result.init_seconds:.2f} s"
+    setup = f"initialize {result.initialize_seconds:.2f} s, build {result.build_seconds:.2f} s"
     print(f"time        read {read:.2f} s, {setup}, compile {result.compile_seconds:.2f} s, "
           f"iterations {result.solve_seconds:.2f} s ({result.ms_per_iteration:.2f} ms/iteration), write {write:.2f} s")
 
