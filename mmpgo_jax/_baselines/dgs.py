@@ -76,6 +76,7 @@ from .._core.geometry import mT, project_to_so
 from .._core.lie import so
 from .._core.partition import Partition, partition
 from .._core.pose_graph import HostPoses, PoseGraph, Poses, component_labels, cost, host_view
+from .._core.validate import check_choice, check_count, check_real
 from .._init.start import initialize
 
 __all__ = ["DGSResult", "dgs", "flagged_order", "robot_adjacency"]
@@ -418,17 +419,12 @@ def _pose_stage(graph, part, lin, weights, free, active_first, order, kmax, tol,
 # --------------------------------------------------------------------------------------------
 
 
-def _check_choice(name: str, value, choices) -> None:
-    if value not in choices:
-        raise ValueError(f"{name} must be one of {', '.join(map(repr, choices))}, got {value!r}")
-
-
 def _robot_order(graph: PoseGraph, part: Partition, order) -> tuple[np.ndarray, bool]:
     """(update order, whether the first sweep drops separators to robots not yet updated): the flagged
     orders drop them (their ``useFlaggedInit``), a natural or given order does not."""
     A = part.num_robots
     if isinstance(order, str):
-        _check_choice("order", order, ORDERS)
+        check_choice(None, "order", order, ORDERS)
         if order == "natural":
             return np.arange(A, dtype=np.int32), False
         adj = robot_adjacency(graph, np.asarray(part.robot_of_pose))
@@ -466,7 +462,7 @@ def _start(graph: PoseGraph, start) -> tuple[Poses, bool]:
     """(start poses, whether their translations are replaced by 0 at the linearisation point)."""
     if isinstance(start, Poses):
         return initialize(graph, start), False
-    _check_choice("start", start, STARTS)
+    check_choice(None, "start", start, STARTS)
     if start == "chordal":
         return initialize(graph, "chordal"), False
     return initialize(graph, "odometry"), True
@@ -481,11 +477,9 @@ def _check_connected(graph: PoseGraph) -> None:
 
 def _budgets(iterations: int, rotation_iterations, pose_iterations, start) -> tuple[int, int | None]:
     """Stage 1's maximum (None: their code's, the whole budget; 0 for a given start) and stage 2's."""
-    for name, value in (("iterations", iterations), ("rotation_iterations", rotation_iterations),
-                        ("pose_iterations", pose_iterations)):
-        if (value is not None or name == "iterations") and (
-                isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 0):
-            raise ValueError(f"{name} must be an integer >= 0, got {value!r}")
+    check_count(None, "iterations", iterations, 0, scalar=True)
+    check_count(None, "rotation_iterations", rotation_iterations, 0, optional=True, scalar=True)
+    check_count(None, "pose_iterations", pose_iterations, 0, optional=True, scalar=True)
     if rotation_iterations is None:
         rotation_iterations = iterations if isinstance(start, str) and start == "code" else 0
     return min(int(rotation_iterations), iterations), None if pose_iterations is None else int(pose_iterations)
@@ -522,9 +516,8 @@ def dgs(
     * ``rotation_tol`` / ``pose_tol``: their change thresholds (defaults: ``distributedOptimizer``'s; their
       script ``runDistributedMapper`` passes 1e-1 for both, which stops stage 2 within a few sweeps).
     """
-    _check_choice("weights", weights, WEIGHTS)
-    if not np.isfinite(relaxation) or relaxation <= 0:
-        raise ValueError(f"relaxation must be a finite number > 0, got {relaxation!r}")
+    check_choice(None, "weights", weights, WEIGHTS)
+    check_real(None, "relaxation", relaxation, 0.0, low_open=True, scalar=True)
     rot_max, pose_max = _budgets(iterations, rotation_iterations, pose_iterations, start)
     _check_connected(graph)
     part = robots if isinstance(robots, Partition) else partition(graph, robots)

@@ -70,6 +70,7 @@ from .._core.gauge import FixedPoses, anchor_set
 from .._core.lie import SO2, SO3, so
 from .._core.pose_graph import PoseGraph, host_view
 from .._core.sparse import PardisoCholesky, factor_symmetric, pardiso_available, pose_order
+from .._core.validate import check_count, check_real
 from .driver import RESULTS, History, Monitor, Termination, drive
 
 __all__ = ["NewtonConfig", "newton_optimum"]
@@ -103,15 +104,12 @@ class NewtonConfig:
     reuse_contraction: float | None = None
 
     def __post_init__(self):
-        if not (np.isfinite(self.initial_damping) and self.initial_damping >= 0):
-            raise ValueError(f"initial_damping must be a finite number >= 0, got {self.initial_damping!r}")
-        if isinstance(self.max_retries, bool) or not isinstance(self.max_retries, int) or self.max_retries < 1:
-            raise ValueError(f"max_retries must be an integer >= 1, got {self.max_retries!r}")
-        steps = self.gauss_newton_steps
-        if steps is not None and (isinstance(steps, bool) or not isinstance(steps, int) or steps < 0):
-            raise ValueError(f"gauss_newton_steps must be None or an integer >= 0, got {steps!r}")
-        if self.reuse_contraction is not None and not (0.0 <= self.reuse_contraction < 1.0):
-            raise ValueError(f"reuse_contraction must be None or in [0, 1), got {self.reuse_contraction!r}")
+        owner = "NewtonConfig"
+        check_real(owner, "initial_damping", self.initial_damping, 0.0, scalar=True)
+        check_count(owner, "max_retries", self.max_retries, 1, scalar=True)
+        check_count(owner, "gauss_newton_steps", self.gauss_newton_steps, 0, optional=True, scalar=True)
+        check_real(owner, "reuse_contraction", self.reuse_contraction, 0.0, 1.0, high_open=True, optional=True,
+                   scalar=True)
 
     @functools.lru_cache(maxsize=64)  # noqa: B019 (frozen and hashable: a few configurations per process)
     def resolved(self, d: int, dense: bool = False) -> NewtonConfig:
