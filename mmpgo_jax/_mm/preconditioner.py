@@ -75,9 +75,10 @@ def _matvec(M, x):
     return out
 
 
-def _schur_correction(W):
+def _weingarten_term(W):
     """C(W) (p, p, n) for the Weingarten matrices W (d, d, n) (the group's ``trace_form``, tr(W)
-    summed in index order): the Schur complement at W is S_Gamma - C(W)."""
+    summed in index order): the Hessian's tangent block is Gamma's minus C(W), and so is the Schur
+    complement, S = S_Gamma - C(W)."""
     d = W.shape[0]
     tr = W[0, 0]
     for k in range(1, d):
@@ -125,7 +126,7 @@ class NewtonPreconditioner(eqx.Module):
         tangent vectors at Y to tangent vectors at Y."""
         R = Y[:, 1:]
         group = so(Y.shape[0])
-        S_inv, ok = group.inverse_spd(self.schur - _schur_correction(weingarten), first=True)
+        S_inv, ok = group.inverse_spd(self.schur - _weingarten_term(weingarten), first=True)
         S_gamma_inv, _ = group.inverse_spd(self.schur, first=True)
         S_inv = jnp.where(ok, S_inv, S_gamma_inv)
 
