@@ -44,7 +44,8 @@ import jax
 import jax.numpy as jnp
 
 from .._core.geometry import bmm, mT, nearest_rotations, sym
-from .._core.validate import check_choice, check_count, check_real, concrete_value  # noqa: F401 (outer, robust)
+from .._core.lie import so
+from .._core.validate import check_choice, check_count, check_real
 from .majorization import (
     GammaOperator,
     GammaSoA,
@@ -136,28 +137,10 @@ def _project_soa(M):
     return nearest_rotations(M, method="fast", layout="blocks-first")
 
 
-def _polar_step_3d(R, B):
-    """The nearest rotation to R + R Omega, Omega = skew(R^T B), in closed form (3D, structure of
-    arrays): polar(I + Omega) = (I + Omega)(I - Omega^2)^{-1/2} = I + Omega / s + Omega^2 / (s (s + 1)),
-    s = sqrt(1 + |omega|^2), as Omega^2 has eigenvalues -|omega|^2 (twice) and 0. For a tangent
-    step B = R Omega this is the polar retraction of R + B, a third of the work of the Newton
-    iteration (benchmarks/profile_step.md); used in float64 (see :func:`_retract_soa`)."""
-    Om = soa_bmm(soa_T(R), B)
-    Om = 0.5 * (Om - soa_T(Om))
-    s = jnp.sqrt(1.0 + 0.5 * jnp.sum(Om * Om, axis=(0, 1)))
-    ROm = soa_bmm(R, Om)
-    return R + ROm / s + soa_bmm(ROm, Om) / (s * (s + 1.0))
-
-
 def _retract_soa(Y, V):
     """Y + V with the rotations projected back to SO(d) (V tangent at Y): the polar retraction."""
     R, B = Y[:, 1:], V[:, 1:]
-    # The closed form keeps R's own distance from SO(3) and adds rounding: over 1000 MM iterations
-    # that drift is ~1e-13 in float64 but ~3e-5 in float32 (measured on sphere2500), where the
-    # Newton iteration, which re-projects at every step, stays at 3e-7.
-    closed = R.shape[0] == 3 and R.dtype == jnp.float64
-    rotations = _polar_step_3d(R, B) if closed else _project_soa(R + B)
-    return jnp.concatenate([Y[:, :1] + V[:, :1], rotations], axis=1)
+    return jnp.concatenate([Y[:, :1] + V[:, :1], so(R.shape[0]).retract(R, B)], axis=1)
 
 
 def _inner(a, b):
