@@ -39,9 +39,12 @@ class SolveResult:
     termination: Termination | None = None
     loss: RobustLoss | None = None  # the robust loss (its numbers filled in), None for least squares
     weights: np.ndarray | None = None  # (m,) final edge weights (robust losses), graph edge order
-    inliers: np.ndarray | None = None  # (m,) bool: final residual within the scale (robust losses)
+    # (m,) bool: final residual within the scale (robust losses), False on ``prefiltered`` edges; with a
+    # pre-filter and least squares it is ~prefiltered (None for least squares without one)
+    inliers: np.ndarray | None = None
     start: Poses | None = None  # the start X^0 in the frame of ``poses`` (None for the centralized solver)
     solver: Solver | None = None  # the solver that ran (None for the centralized Newton solver)
+    prefiltered: np.ndarray | None = None  # (m,) bool: edges a pre-filter (PCM) removed before the solve
 
     @property
     def partition(self) -> Partition:

@@ -26,10 +26,11 @@ from .._mm.centralized import NewtonConfig, newton_optimum
 from .._mm.checkpoint import DEFAULT_EVERY
 from .._mm.driver import RESULTS, History, Monitor, NonFiniteError, Termination, drive
 from .._mm.layouts import OneDevice
-from .._mm.robust import GNCConfig, RobustLoss, as_loss
+from .._mm.robust import GNC_LOSSES, GNCConfig, RobustLoss, as_loss
 from .._mm.solvers import MM, Solver, as_solver
 from .._mm.subproblem import SubproblemConfig
 from .build import ROBUST_START, Clock, as_termination, finish, prepare
+from .prefilter import PCM, apply_prefilter
 from .result import SolveResult, output_frame
 
 __all__ = ["RESULTS", "ROBUST_START", "History", "NonFiniteError", "SolveResult", "centralized_optimum", "output_frame",
@@ -67,6 +68,8 @@ def solve(
     checkpoint: str | os.PathLike | None = None,
     checkpoint_every: int = DEFAULT_EVERY,
     resume: str | os.PathLike | None = None,
+    prefilter: str | PCM | None = None,
+    distributed: bool = False,
 ) -> SolveResult:
     """Run ``solver`` on ``graph`` split among ``robots``, laid out by ``layout``.
 
@@ -122,6 +125,18 @@ def solve(
     poses, chunk size, precision) is refused with a :class:`~mmpgo_jax._mm.checkpoint.CheckpointError`
     naming what differs. Both may name the same file.
 
+    ``prefilter``: ``"pcm"`` or a :class:`~mmpgo_jax.PCM` removes the inter-robot loop closures that
+    PCM finds inconsistent before the start and the solve (:mod:`~mmpgo_jax._solve.prefilter`); f,
+    the history and ``partition`` are then those of the graph without them, ``result.prefiltered``
+    (m,) marks them, ``result.inliers`` marks them False (for least squares too, where it is then
+    ``~prefiltered``), ``result.weights`` holds 0 for them and ``stats["pcm_rejected"]`` counts them.
+
+    ``distributed=True``: refuse every step that gathers the whole graph in one place (the starts
+    "chordal", "gnc-chordal" and "odometry": ValueError naming it); the start is by default
+    "distributed-chordal" (Algorithm 3) and a tls / geman-mcclure loss runs GNC inside the
+    distributed solver (``gnc=GNCConfig()`` unless given). PCM is a per-robot-pair test and stays
+    allowed.
+
     Raises :class:`NonFiniteError` when f or its gradient stops being finite (data whose weights or
     residuals float arithmetic cannot represent). Numbers are checked (ValueError naming the
     parameter). A second call with the same shapes and configuration structure does not compile
@@ -129,19 +144,48 @@ def solve(
     """
     if init is not None and start is not None:
         raise ValueError("give start= (or its older name init=), not both")
+    start = start if init is None else init
+    if distributed:
+        start, gnc = _distributed_defaults(start, loss, gnc)
+    pre = apply_prefilter(graph, robots, prefilter)
+    if pre is not None:  # the solve runs on the kept edges; report() restores the original edge order
+        graph, robots = pre.graph, pre.robot_of_pose
     solver = as_solver(solver, method=method, xi=xi, restart=restart, subproblem=subproblem)
     termination = as_termination(termination, iterations=iterations, chunk_size=chunk_size, grad_tol=grad_tol,
                                  f_target=f_target, rel_decrease_tol=rel_decrease_tol,
                                  stop_when_stalled=stop_when_stalled)
     monitor = monitor or Monitor()
-    run = prepare(graph, solver, robots, layout or OneDevice(), termination, start=start if init is None else init,
+    run = prepare(graph, solver, robots, layout or OneDevice(), termination, start=start,
                   initial=initial, fixed=fixed, loss=as_loss(loss, loss_scale, gnc), monitor=monitor,
                   checkpoint=checkpoint, checkpoint_every=checkpoint_every, resume=resume)
     placement = run.placement
     out = drive(placement.compile_chunk(solver, run.problem), run.state, placement.start_record(run.start),
                 termination, fetch=placement.fetch, callback=callback, agree=placement.agree, monitor=monitor,
                 checkpoint=run.saver, history=None if run.snapshot is None else run.snapshot.history)
-    return finish(graph, solver, run, out, termination, fixed=fixed, frame=frame, ground_truth=ground_truth)
+    result = finish(graph, solver, run, out, termination, fixed=fixed, frame=frame, ground_truth=ground_truth)
+    return result if pre is None else pre.report(result)
+
+
+#: starts that need the whole graph in one place, and why (refused by ``distributed=True``)
+CENTRALIZED_STARTS = {
+    "chordal": "solves the chordal relaxation of the whole graph in one place",
+    "gnc-chordal": "runs GNC with chordal and Newton solves of the whole graph in one place",
+    "odometry": "composes a spanning tree of the whole graph in one place",
+}
+
+
+def _distributed_defaults(start, loss, gnc):
+    """(start, gnc) of a ``distributed=True`` run: a centralized start refused with its name; by
+    default the distributed chordal start, and GNC inside the solver for the kernels that have it."""
+    if isinstance(start, str) and start in CENTRALIZED_STARTS:
+        raise ValueError(f"distributed=True: the start {start!r} {CENTRALIZED_STARTS[start]}; "
+                         "use start='distributed-chordal'")
+    if start is None:
+        start = "distributed-chordal"
+    if gnc is None and isinstance(loss, str) and loss in GNC_LOSSES:
+        gnc = GNCConfig()
+    return start, gnc
+
 
 
 def solve_sharded(
