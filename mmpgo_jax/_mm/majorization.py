@@ -229,9 +229,13 @@ def gamma_couplings(edges: RobotEdges) -> int:
 
 
 def build_gamma_operator(edges: RobotEdges, xi: float, n_max: int, *, min_couplings: int = 0,
-                         host: bool = False) -> GammaOperator:
+                         host: bool = False, inter_weight: float = 2.0) -> GammaOperator:
     """Assemble the batched block-sparse Gamma^alpha of every robot from its incident edges (on the
-    host; ``host=True`` keeps its arrays there, as NumPy, for a caller that converts them anyway)."""
+    host; ``host=True`` keeps its arrays there, as NumPy, for a caller that converts them anyway).
+
+    ``inter_weight`` multiplies an inter-robot edge's block at its local end: 2 is the majorizer of
+    Eq. (5); 1 is the exact Hessian of F in the robot's poses with its neighbours held fixed (the
+    block problem of block-coordinate descent, :mod:`~mmpgo_jax._baselines.rbcd`)."""
     A, e_max = np.asarray(edges.kappa).shape
     d = np.asarray(edges.t).shape[-1]
     kappa = np.asarray(edges.kappa, np.float64).reshape(-1)
@@ -239,7 +243,7 @@ def build_gamma_operator(edges: RobotEdges, xi: float, n_max: int, *, min_coupli
     robot, si, sj, li, lj = _edge_slots(edges)
     own = li & lj
     inter = li ^ lj
-    w = np.where(inter, 2.0, 1.0)[:, None, None]
+    w = np.where(inter, inter_weight, 1.0)[:, None, None]
     diag = np.zeros((A, n_max, d + 1, d + 1))
     # data float arithmetic cannot represent: no NumPy warning here, the run stops on f = inf with
     # a one-line error of its own (NonFiniteError)
