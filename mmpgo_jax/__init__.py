@@ -37,6 +37,7 @@ from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:  # the same names, eagerly, for type checkers and IDEs
     from ._baselines.dgs import DGSResult, dgs
+    from ._baselines.rbcd import RBCD
     from ._core.compilation_cache import enable_compilation_cache
     from ._core.gauge import FixedPoses, express_in_frame
     from ._core.geometry import project_to_so, quaternion_to_rotation, rotation_2d
@@ -167,6 +168,7 @@ _LAZY = {  # public name -> the private module that defines it (imported on firs
     "PCMResult": "._robust.pcm",
     "DGSResult": "._baselines.dgs",
     "dgs": "._baselines.dgs",
+    "RBCD": "._baselines.rbcd",
     "pcm_filter": "._robust.pcm",
     "add_outlier_loop_closures": "._experiments.outliers",
     "outlier_scores": "._experiments.outliers",
@@ -257,6 +259,7 @@ __all__ = [
     "BENCHMARKS",
     "LOSSES",
     "MM",
+    "RBCD",
     "RESULTS",
     "CorruptedGraph",
     "DGSResult",
