@@ -27,6 +27,8 @@ Public API (the private modules are implementation details):
 * sweeps and accuracy: :func:`sweep`, :class:`SweepResult`, :func:`reference_optimum`,
   :func:`trajectory_accuracy`, :func:`absolute_trajectory_error`, :func:`relative_pose_error`,
   :func:`align_poses`
+* every CPU core: :func:`use_cpu_cores` (before the first JAX computation; ``solve`` then splits the robots
+  of large graphs over the cores)
 * sharding over devices and processes: :mod:`mmpgo_jax.sharding` (``solve_sharded``)
 * plots (imports matplotlib): :mod:`mmpgo_jax.plotting`
 * precision: :func:`enable_float64`; compilation: :func:`enable_compilation_cache` (JAX's persistent cache)
@@ -121,6 +123,7 @@ if TYPE_CHECKING:  # the same names, eagerly, for type checkers and IDEs
     from ._mm.solvers import AMM, MM, Solver
     from ._mm.subproblem import SubproblemConfig
     from ._robust.pcm import PCMResult, pcm_filter
+    from ._solve.devices import use_cpu_cores
     from ._solve.result import SolveResult, output_frame
     from ._solve.solve import centralized_optimum, solve
 
@@ -232,6 +235,7 @@ _LAZY = {  # public name -> the private module that defines it (imported on firs
     "output_frame": "._solve.result",
     "centralized_optimum": "._solve.solve",
     "solve": "._solve.solve",
+    "use_cpu_cores": "._solve.devices",
     "SubproblemConfig": "._mm.subproblem",
 }
 
@@ -358,6 +362,7 @@ __all__ = [
     "sweep",
     "symbol_keys",
     "trajectory_accuracy",
+    "use_cpu_cores",
     "write_g2o",
     "write_robot_folder",
     "write_robot_tum",

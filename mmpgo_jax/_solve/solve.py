@@ -25,11 +25,11 @@ from .._init.start import initialize
 from .._mm.centralized import NewtonConfig, newton_optimum
 from .._mm.checkpoint import DEFAULT_EVERY
 from .._mm.driver import RESULTS, History, Monitor, NonFiniteError, Termination, drive
-from .._mm.layouts import OneDevice
 from .._mm.robust import GNC_LOSSES, GNCConfig, RobustLoss, as_loss
 from .._mm.solvers import MM, Solver, as_solver
 from .._mm.subproblem import SubproblemConfig
 from .build import ROBUST_START, Clock, as_termination, finish, prepare
+from .devices import auto_layout
 from .prefilter import PCM, apply_prefilter
 from .result import SolveResult, output_frame
 
@@ -78,8 +78,10 @@ def solve(
     ``method`` ("mm" / "amm"), ``xi``, ``restart``, ``subproblem`` make one (not beside ``solver``).
     ``termination``: a :class:`~mmpgo_jax.Termination`; the shortcuts ``iterations`` (default 1000),
     ``chunk_size`` (50), ``grad_tol``, ``f_target``, ``rel_decrease_tol``, ``stop_when_stalled`` make
-    one (not beside ``termination``). ``layout``: :class:`~mmpgo_jax.OneDevice` (default) or
-    :class:`~mmpgo_jax.sharding.Sharded` (robots over a device mesh; :func:`solve_sharded`); the
+    one (not beside ``termination``). ``layout``: :class:`~mmpgo_jax.OneDevice` or
+    :class:`~mmpgo_jax.sharding.Sharded` (robots over a device mesh; :func:`solve_sharded`); by
+    default one device, or, when the process has several CPU devices (:func:`~mmpgo_jax.use_cpu_cores`)
+    and the graph has 1000 poses or more, the robots split over them, as ``mmpgo solve`` does. The
     result has the same fields either way. ``start`` (alias ``init``): the start, see below.
 
     ``robots``: a count (contiguous blocks, as in the paper), an (n,) robot-of-pose array, or a
@@ -155,7 +157,9 @@ def solve(
                                  f_target=f_target, rel_decrease_tol=rel_decrease_tol,
                                  stop_when_stalled=stop_when_stalled)
     monitor = monitor or Monitor()
-    run = prepare(graph, solver, robots, layout or OneDevice(), termination, start=start,
+    if layout is None:
+        layout = auto_layout(graph.num_poses, _robot_count(robots))
+    run = prepare(graph, solver, robots, layout, termination, start=start,
                   initial=initial, fixed=fixed, loss=as_loss(loss, loss_scale, gnc), monitor=monitor,
                   checkpoint=checkpoint, checkpoint_every=checkpoint_every, resume=resume)
     placement = run.placement
@@ -186,6 +190,11 @@ def _distributed_defaults(start, loss, gnc):
         gnc = GNCConfig()
     return start, gnc
 
+
+def _robot_count(robots) -> int:
+    if isinstance(robots, Partition):
+        return robots.num_robots
+    return int(np.max(robots)) + 1 if np.ndim(robots) else int(robots)
 
 
 def solve_sharded(

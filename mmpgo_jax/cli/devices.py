@@ -6,18 +6,14 @@ tests/test_architecture.py checks what ``mmpgo solve`` loads)."""
 from __future__ import annotations
 
 import contextlib
-import os
 
+from .._solve.devices import AUTO_THREAD_POSES, cpu_cores, use_cpu_cores
 from .options import finite_float, host_port, int_in
 
 # Defaults of the library, not imported at parse time (tests check they agree):
 HEARTBEAT_TIMEOUT_S = 30  # = mmpgo_jax._distributed.launcher.HEARTBEAT_TIMEOUT_S
 CHECKPOINT_EVERY = 1  # = mmpgo_jax._mm.checkpoint.DEFAULT_EVERY
 
-# A solve splits its robots over the CPU cores (one JAX CPU device each) from this many poses on:
-# measured on this project's 2-core machine (benchmarks/profile_step.md), MIT (808 poses) ran at the
-# same speed on 1 and 2 devices, intel (1728 poses) 1.7x faster on 2.
-AUTO_THREAD_POSES = 1000
 
 
 def add_cli_options(p) -> None:
@@ -71,13 +67,6 @@ def checkpoint_options(args) -> dict:
     return dict(checkpoint=args.checkpoint, checkpoint_every=args.checkpoint_every, resume=args.resume)
 
 
-def cpu_cores() -> int:
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        return os.cpu_count() or 1
-
-
 def configure_cpu_devices(args) -> None:
     """Give JAX's CPU backend one device per thread the command may use (``--threads``, default one
     per core; at least ``--devices``). It must run before JAX starts its backends: the command line
@@ -86,25 +75,18 @@ def configure_cpu_devices(args) -> None:
         return  # the launcher gives each process its CPU devices
     n = max(getattr(args, "threads", None) or cpu_cores(), getattr(args, "devices", None) or 1)
     if n > 1:
-        import jax
-
         # RuntimeError: backends already started (e.g. main() called twice in one process)
         with contextlib.suppress(RuntimeError):
-            jax.config.update("jax_num_cpu_devices", n)
+            use_cpu_cores(n)
 
 
 def thread_devices(args, num_poses: int, num_robots: int) -> list | None:
     """The CPU devices an (unsharded) ``solve`` splits its robots over, or None for one device: on
     a CPU backend, ``--threads`` (default: every core from ``AUTO_THREAD_POSES`` poses on), at most
     one device per robot."""
-    import jax
+    from .._solve.devices import auto_layout  # the library's rule: what solve() does by default
 
-    if jax.default_backend() != "cpu":
-        return None
-    n = args.threads or (cpu_cores() if num_poses >= AUTO_THREAD_POSES else 1)
-    devices = jax.devices("cpu")
-    n = min(n, num_robots, len(devices))
-    return devices[:n] if n > 1 else None
+    return getattr(auto_layout(num_poses, num_robots, threads=args.threads), "devices", None)
 
 
 def wants_sharding(args) -> bool:

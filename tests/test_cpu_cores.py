@@ -1,0 +1,47 @@
+"""Every CPU core from the Python API: use_cpu_cores() before JAX starts, then solve's default layout
+splits the robots of large graphs over the CPU devices, as `mmpgo solve` does."""
+
+import json
+import subprocess
+import sys
+import textwrap
+
+import pytest
+
+_CHILD = textwrap.dedent("""
+    import json, sys
+    import mmpgo_jax as mm
+    n = mm.use_cpu_cores(2)
+    import jax
+    jax.config.update("jax_enable_x64", True)
+    big = mm.cube_dataset(0, num_poses=1200, grid=6).graph
+    small = mm.cube_dataset(0, num_poses=300, grid=4).graph
+    a = mm.solve(big, 4, iterations=6, chunk_size=3)
+    b = mm.solve(big, 4, iterations=6, chunk_size=3, layout=mm.OneDevice())
+    c = mm.solve(small, 4, iterations=3, chunk_size=3)
+    try:
+        mm.use_cpu_cores(3)  # another count after the backend started
+        late = None
+    except RuntimeError as err:
+        late = str(err)
+    print(json.dumps(dict(n=n, devices=a.stats.get("devices"), one=b.stats.get("devices"), small=c.stats.get("devices"),
+                          fa=a.history.f.tolist(), fb=b.history.f.tolist(), late=late)))
+""")
+
+
+@pytest.fixture(scope="module")
+def child():
+    out = subprocess.run([sys.executable, "-c", _CHILD], capture_output=True, text=True, timeout=900)
+    assert out.returncode == 0, out.stderr[-3000:]
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def test_default_layout_uses_every_cpu_device_for_large_graphs(child):
+    assert child["n"] == 2 and child["devices"] == 2  # 1200 poses: split over both CPU devices
+    assert child["one"] is None and child["small"] is None  # asked for one device; below 1000 poses
+    assert child["fa"] == pytest.approx(child["fb"], rel=1e-12)  # the same iterates, laid out differently
+
+
+def test_use_cpu_cores_after_jax_started_is_a_one_line_error(child):
+    assert child["late"] is not None and "before the first JAX computation" in child["late"]
+    assert "\n" not in child["late"]
