@@ -79,7 +79,13 @@ if TYPE_CHECKING:  # the same names, eagerly, for type checkers and IDEs
     from ._experiments.certificate import OptimalityCertificate, certificate_matrix, certify
     from ._experiments.outliers import CorruptedGraph, OutlierScores, add_outlier_loop_closures, outlier_scores
     from ._experiments.sweep import SweepResult, reference_optimum, sweep
-    from ._experiments.synthetic import SyntheticDataset, cube_dataset, grid_2d_dataset
+    from ._experiments.synthetic import (
+        RobotTeamDataset,
+        SyntheticDataset,
+        cube_dataset,
+        grid_2d_dataset,
+        robot_team_dataset,
+    )
     from ._init.chordal import (
         chordal_initialization,
         load_poses,
@@ -124,6 +130,7 @@ if TYPE_CHECKING:  # the same names, eagerly, for type checkers and IDEs
     from ._mm.subproblem import SubproblemConfig
     from ._robust.pcm import PCMResult, pcm_filter
     from ._solve.devices import use_cpu_cores
+    from ._solve.prefilter import PCM
     from ._solve.result import SolveResult, output_frame
     from ._solve.solve import centralized_optimum, solve
 
@@ -180,6 +187,9 @@ _LAZY = {  # public name -> the private module that defines it (imported on firs
     "sweep": "._experiments.sweep",
     "SyntheticDataset": "._experiments.synthetic",
     "cube_dataset": "._experiments.synthetic",
+    "robot_team_dataset": "._experiments.synthetic",
+    "RobotTeamDataset": "._experiments.synthetic",
+    "PCM": "._solve.prefilter",
     "grid_2d_dataset": "._experiments.synthetic",
     "chordal_initialization": "._init.chordal",
     "initialize": "._init.start",
@@ -263,6 +273,7 @@ __all__ = [
     "BENCHMARKS",
     "LOSSES",
     "MM",
+    "PCM",
     "RBCD",
     "RESULTS",
     "CorruptedGraph",
@@ -289,6 +300,7 @@ __all__ = [
     "PoseGraph",
     "Poses",
     "RelativePoseError",
+    "RobotTeamDataset",
     "RobustLoss",
     "SolveResult",
     "Solver",
@@ -353,6 +365,7 @@ __all__ = [
     "riemannian_gradient",
     "riemannian_gradient_norm",
     "rigid_alignment",
+    "robot_team_dataset",
     "robots_from_symbols",
     "rotation_2d",
     "run",

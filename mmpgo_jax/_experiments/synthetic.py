@@ -90,6 +90,7 @@ from .._core.pose_graph import PoseGraph, Poses
 from .._core.precision import default_float_dtype, to_device
 
 __all__ = [
+    "RobotTeamDataset",
     "SyntheticDataset",
     "cube_dataset",
     "expected_edge_cost",
@@ -98,6 +99,7 @@ __all__ = [
     "langevin_expected_sq_angle",
     "langevin_expected_trace",
     "lattice_dataset",
+    "robot_team_dataset",
     "rotation_angle",
     "sample_langevin",
 ]
@@ -585,3 +587,153 @@ def grid_2d_dataset(
                            loop_closure_prob=loop_closure_prob,
                            loop_closure_radius=loop_closure_radius, sigma_t=sigma_t,
                            sigma_R=sigma_R, dtype=dtype, name=f"grid2d_seed{int(seed)}")
+
+
+# --------------------------------------------------------------------------------------------
+# Robot teams: long odometry chains with few loop closures
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class RobotTeamDataset(SyntheticDataset):
+    """A :func:`robot_team_dataset`: ``robot_of_pose`` (n,) (robot r owns poses r P .. r P + P - 1)
+    and the (m,) edge kinds (``odometry``, ``intra_robot`` loop closures, ``inter_robot`` ones)."""
+
+    robot_of_pose: np.ndarray = None
+    edge_kind: np.ndarray = None  # (m,) 0 odometry, 1 intra-robot loop closure, 2 inter-robot loop closure
+
+    @property
+    def num_odometry_edges(self) -> int:
+        return int((self.edge_kind == 0).sum())
+
+    @property
+    def inter_robot(self) -> np.ndarray:
+        return self.edge_kind == 2
+
+
+def _team_walk(rng: np.random.Generator, dim: int, grid: int, num_poses: int) -> np.ndarray:
+    """The lattice walk from the origin corner, moved to a random corner and axis order (a mirror
+    or permutation of the lattice), so that the robots start apart and cross each other's paths."""
+    pos = _lattice_walk(rng, dim, grid, num_poses)
+    flip = rng.random(dim) < 0.5
+    pos = np.where(flip, grid - pos, pos)
+    return pos[:, rng.permutation(dim)]
+
+
+def _pick(rng: np.random.Generator, pairs: np.ndarray, count: int) -> np.ndarray:
+    """``count`` of ``pairs`` (all when fewer), uniformly without replacement, in (i, j) order."""
+    if count >= len(pairs):
+        return pairs
+    chosen = pairs[np.sort(rng.choice(len(pairs), size=count, replace=False))]
+    return chosen
+
+
+def _inter_candidates(pos: np.ndarray, rop: np.ndarray, radius: float) -> np.ndarray:
+    """Pairs (i, j), i < j, of poses of different robots at most ``radius`` cells apart."""
+    from scipy.spatial import cKDTree
+
+    pairs = cKDTree(pos.astype(np.float64)).query_pairs(r=radius + 1e-9, output_type="ndarray").astype(np.int64)
+    pairs = np.sort(pairs, axis=1)
+    pairs = pairs[rop[pairs[:, 0]] != rop[pairs[:, 1]]]
+    return pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]
+
+
+def _connecting_closures(rng: np.random.Generator, cand: np.ndarray, rop: np.ndarray, robots: int) -> np.ndarray:
+    """One candidate closure per robot joining it to an earlier robot of a random order (a random
+    spanning tree of the robots), so that the team's graph is connected; fewer where no candidate
+    joins a robot to the others."""
+    ra, rb = rop[cand[:, 0]], rop[cand[:, 1]]
+    order = rng.permutation(robots)
+    joined = np.zeros(robots, bool)
+    joined[order[0]] = True
+    chosen = []
+    for r in order[1:]:  # robots, not poses: at most ``robots`` rounds
+        ok = np.flatnonzero(((ra == r) & joined[rb]) | ((rb == r) & joined[ra]))
+        if len(ok):
+            chosen.append(int(ok[rng.integers(len(ok))]))
+            joined[r] = True
+    return np.asarray(chosen, np.int64)
+
+
+def robot_team_dataset(
+    robots: int = 10,
+    poses_per_robot: int = 1500,
+    *,
+    intra_closures: int = 10,
+    inter_closures: int = 40,
+    dim: int = 2,
+    seed: int = 0,
+    grid: int | None = None,
+    side: float = 1.0,
+    sigma_t: float = 0.02,
+    sigma_R: float = 0.02 * np.pi,
+    loop_closure_radius: float = 1.0,
+    dtype=None,
+) -> RobotTeamDataset:
+    """A team of ``robots`` robots, each a long odometry chain with few loop closures: the case of
+    multi-robot SLAM where the robots' maps are tied together by a handful of inter-robot closures
+    and each chain drifts far between them (the Cube datasets' noise and walk, one walk per robot).
+
+    Robot r walks ``poses_per_robot`` poses (P) on the shared ``grid``^dim lattice (default
+    min(20, sqrt P) cells in 2D, min(12, P^(1/3)) in 3D), from a random corner
+    (:func:`_team_walk`); it has odometry edges only along its own chain (no edge joins the last
+    pose of one robot to the first of the next). Loop-closure candidates are pose pairs at most
+    ``loop_closure_radius`` cells apart (as in :func:`lattice_dataset`); each robot gets
+    ``intra_closures`` of its own, drawn uniformly, and the team ``inter_closures`` between
+    robots: first one per robot along a random spanning tree of the robots (so that the graph is
+    connected; ValueError when some robot never meets the others), the rest uniformly.
+    Measurements and weights as in :func:`lattice_dataset` (sigma_t, sigma_R). Edge order: each
+    robot's odometry, then the intra-robot closures, then the inter-robot ones. Deterministic in
+    ``seed``.
+    """
+    dim = _check_dim(dim)
+    robots, poses_per_robot, seed = int(robots), int(poses_per_robot), int(seed)
+    if robots < 1 or poses_per_robot < 2:
+        raise ValueError("robot_team_dataset needs robots >= 1 and poses_per_robot >= 2")
+    if int(intra_closures) < 0 or int(inter_closures) < 0:
+        raise ValueError("intra_closures and inter_closures must be >= 0")
+    if grid is None:  # a lattice each walk covers a good part of, so that the robots meet
+        grid = min(20, max(2, round(math.sqrt(poses_per_robot)))) if dim == 2 else \
+            min(12, max(2, round(poses_per_robot ** (1 / 3))))
+    grid = int(grid)
+    kappa, tau = kappa_tau_from_rmse(sigma_t, sigma_R, dim)
+    rng = np.random.default_rng(seed)
+    P = poses_per_robot
+    n = robots * P
+    rop = np.repeat(np.arange(robots), P)
+    walks = [_team_walk(rng, dim, grid, P) for _ in range(robots)]
+    pos = np.concatenate(walks)
+    Rgt = np.concatenate([_heading_frames(w) for w in walks])
+    tgt = side * pos.astype(np.float64)
+
+    odo = np.stack([np.arange(n - 1), np.arange(1, n)], 1)
+    odo = odo[rop[odo[:, 0]] == rop[odo[:, 1]]]
+    intra = [r * P + _pick(rng, _loop_closure_candidates(w, loop_closure_radius), int(intra_closures))
+             for r, w in enumerate(walks)]
+    intra = np.concatenate(intra).reshape(-1, 2)
+    cand = _inter_candidates(pos, rop, loop_closure_radius)
+    tree = _connecting_closures(rng, cand, rop, robots)
+    if len(tree) < robots - 1:
+        raise ValueError(f"robot_team_dataset: some robots' walks never come within {loop_closure_radius} cells of "
+                         f"the others' (seed {seed}): use a smaller grid or more poses_per_robot")
+    rest = np.setdiff1d(np.arange(len(cand)), tree)
+    extra = _pick(rng, rest[:, None], max(0, int(inter_closures) - len(tree)))[:, 0]
+    inter = cand[np.sort(np.concatenate([tree, extra]))]
+    edges = np.concatenate([odo, intra, inter]).astype(np.int64)
+    kind = np.repeat([0, 1, 2], [len(odo), len(intra), len(inter)])
+    I, J = edges[:, 0], edges[:, 1]
+    m = len(I)
+
+    Rrel = np.swapaxes(Rgt[I], 1, 2) @ Rgt[J]
+    trel = np.einsum("mba,mb->ma", Rgt[I], tgt[J] - tgt[I])
+    Rn = sample_langevin(rng, kappa, m, dim)
+    tn = np.zeros((m, dim)) if math.isinf(tau) else rng.standard_normal((m, dim)) / math.sqrt(tau)
+    kap_w = 1.0 if math.isinf(kappa) else kappa
+    tau_w = 1.0 if math.isinf(tau) else tau
+    graph = PoseGraph.from_arrays(I, J, Rrel @ Rn, trel + tn, np.full(m, kap_w), np.full(m, tau_w),
+                                  num_poses=n, dtype=dtype)
+    fdt = np.dtype(dtype or default_float_dtype())
+    gt = Poses(to_device(Rgt, fdt), to_device(tgt, fdt))
+    return RobotTeamDataset(name=f"team{robots}x{P}_{dim}d_seed{seed}", graph=graph, ground_truth=gt,
+                            sigma_t=float(sigma_t), sigma_R=float(sigma_R), seed=seed, robot_of_pose=rop,
+                            edge_kind=kind)

@@ -21,6 +21,17 @@ from .robots import read_input, robot_split
 
 SOLVE_STARTS = ("chordal", "distributed-chordal", "gnc-chordal", "vertices", "odometry")
 OPTIMUM_STARTS = ("chordal", "vertices", "odometry")
+#: what ``--distributed`` refuses: the option and value, and why it is centralized
+CENTRALIZED_OPTIONS = {
+    ("init", "chordal"): "the start 'chordal' gathers the whole graph in one place; use --init distributed-chordal",
+    ("init", "gnc-chordal"): "the start 'gnc-chordal' gathers the whole graph in one place; use --init "
+                             "distributed-chordal (a tls or geman-mcclure --loss then runs GNC in the solver)",
+    ("init", "odometry"): "the start 'odometry' composes a spanning tree of the whole graph in one place; use --init "
+                          "distributed-chordal",
+    ("certify", True): "--certify checks the dual certificate of the whole graph in one place",
+    ("robots_from", "metis"): "--robots-from metis partitions the whole graph in one place; use blocks or the "
+                              "robots of the data (symbols, labels, files)",
+}
 
 
 def resolve_file(name: str, data: str | None, *, announce: bool = True) -> Path:
@@ -162,6 +173,18 @@ def reference_fstar(data: LoadedInput):
     return info.fstar_reference
 
 
+def check_solve_flags(args) -> None:
+    """Refuse, before anything is read, the option combinations of ``--pcm`` and ``--distributed``
+    that cannot run: a centralized step under ``--distributed`` (one line naming the option)."""
+    if getattr(args, "pcm_confidence", None) is not None and not getattr(args, "pcm", False):
+        raise CLIError("--pcm-confidence applies with --pcm")
+    if not getattr(args, "distributed", False):
+        return
+    for (attr, value), why in CENTRALIZED_OPTIONS.items():
+        if getattr(args, attr, None) == value:
+            raise CLIError(f"--distributed: {why}")
+
+
 def solve_options(args, data: LoadedInput) -> dict:
     """The keyword arguments of ``solve`` / ``solve_sharded`` from ``mmpgo solve``'s options (the
     start resolved, FIX poses and the input's frame; the robots are ``data.robot_of_pose``)."""
@@ -172,6 +195,13 @@ def solve_options(args, data: LoadedInput) -> dict:
     if robust and getattr(args, "gnc", False):
         robust["gnc"] = GNCConfig()
     restart = {"restart": args.restart} if args.method == "amm" else {}  # MM has no restart rule
+    check_solve_flags(args)
+    if getattr(args, "pcm", False):
+        from .._solve.prefilter import PCM
+
+        robust["prefilter"] = PCM(confidence=0.99 if args.pcm_confidence is None else args.pcm_confidence)
+    if getattr(args, "distributed", False):
+        robust["distributed"] = True
     return dict(method=args.method, iterations=args.iterations, init=data.start(args.init, SOLVE_STARTS),
                 initial=data.initial, xi=args.xi, chunk_size=args.chunk, grad_tol=args.grad_tol,
                 stop_when_stalled=not args.all_iterations, fixed=data.fixed, frame=data.frame, **restart,

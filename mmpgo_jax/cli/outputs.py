@@ -137,11 +137,13 @@ def finish_solve(args, data: LoadedInput, result, fstar) -> None:
         print(f"wrote {path}")
 
 
-def _rejected_lines(result, data: LoadedInput | None) -> str:
-    """"; lines 12, 40 and 3 more of FILE" for the rejected edges, when they come from one file as read."""
+def _rejected_lines(result, data: LoadedInput | None, mask=None) -> str:
+    """"; lines 12, 40 and 3 more of FILE" for the rejected edges (``mask``, default ``~inliers``),
+    when they come from one file as read."""
     lines = None if data is None or data.keep is not None else getattr(data.g2o, "edge_line", None)
-    rejected = np.flatnonzero(~np.asarray(result.inliers))
-    if lines is None or len(rejected) == 0 or len(lines) != len(result.inliers):
+    mask = ~np.asarray(result.inliers) if mask is None else np.asarray(mask)
+    rejected = np.flatnonzero(mask)
+    if lines is None or len(rejected) == 0 or len(lines) != len(mask):
         return ""
     which = "line" if len(rejected) == 1 else "lines"
     return f"; {which} {join_items(lines[rejected].tolist(), 60)} of {data.path.name}"
@@ -159,11 +161,20 @@ def print_summary(result, fstar, data: LoadedInput | None = None) -> None:
         print(f"f*          {fstar.value:.12g} ({fstar.label})")
         print(f"gap         {fstar.gap(h.f[-1]):.3e} = (f - f*)/f*, relative to the {fstar.label}")
     print(f"|grad F|    {h.grad_norm[-1]:.3e}")
+    prefiltered = getattr(result, "prefiltered", None)
+    if prefiltered is not None:
+        stats = result.stats
+        print(f"pcm         {stats['pcm_rejected']} of {stats['pcm_closures']} inter-robot loop closures rejected "
+              f"before the solve (confidence {stats['pcm_confidence']:g}){_rejected_lines(result, data, prefiltered)}")
+        if stats["pcm_components"] > 1:
+            print(f"            the graph without them has {stats['pcm_components']} connected components: each "
+                  "is solved in its own frame (its first pose at the identity), not placed relative to the others")
     if result.loss is not None:
-        rejected = int((~result.inliers).sum())
+        robust = ~result.inliers if prefiltered is None else ~result.inliers & ~prefiltered
+        used = len(result.inliers) - (0 if prefiltered is None else int(prefiltered.sum()))
         gnc = f", GNC {result.stats['gnc_stages']} stages" if bool(result.loss.use_gnc) else ""
-        print(f"loss        {result.loss.name} (c = {float(result.loss.scale):.4g}{gnc}): {rejected} of "
-              f"{len(result.inliers)} edges rejected (f = sum of rho(r^2)){_rejected_lines(result, data)}")
+        print(f"loss        {result.loss.name} (c = {float(result.loss.scale):.4g}{gnc}): {int(robust.sum())} of "
+              f"{used} edges rejected (f = sum of rho(r^2)){_rejected_lines(result, data, robust)}")
     if result.accuracy is not None:
         a = result.accuracy
         print(f"ATE         {a.ate:.6g} RMSE, {a.ate_max:.6g} max (positions after rigid alignment); "

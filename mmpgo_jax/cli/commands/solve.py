@@ -71,6 +71,10 @@ def _add_solver_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--chunk", type=int_in(1, INT_MAX), default=50,
                    help="iterations per compiled chunk, >= 1 (progress granularity; default 50)")
     p.add_argument("--largest-component", action="store_true", help="solve only the largest connected component")
+    p.add_argument("--distributed", action="store_true",
+                   help="refuse every centralized step (the chordal, gnc-chordal and odometry starts, --certify, "
+                        "--robots-from metis): start from distributed-chordal, and a tls / geman-mcclure --loss "
+                        "runs GNC inside the distributed solver")
     p.add_argument("--no-progress", action="store_true", help="do not show a progress bar")
 
 
@@ -91,6 +95,22 @@ def _add_robust_options(p: argparse.ArgumentParser) -> None:
                    help="write every edge's final weight and inlier flag as CSV (i, j, weight, inlier; original ids)")
     g.add_argument("--drop-outliers", action="store_true",
                    help="--out / --out-dir keep only the inlier edges (by default every edge is written)")
+    g.add_argument("--pcm", action="store_true",
+                   help="remove the inter-robot loop closures that PCM (pairwise consistency maximization) finds "
+                        "inconsistent before the start and the solve; the count and lines are printed")
+    g.add_argument("--pcm-confidence", metavar="Q", type=_confidence, default=None,
+                   help="chi-square quantile of PCM's pairwise test, in (0, 1) (default 0.99)")
+
+
+def _confidence(text: str) -> float:
+    """argparse ``type`` of --pcm-confidence: a number in (0, 1)."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not 0.0 < value < 1.0:
+        raise argparse.ArgumentTypeError(f"must lie in (0, 1), got {text!r}")
+    return value
 
 
 def preload() -> None:
@@ -107,7 +127,9 @@ def preload() -> None:
 def run(args) -> int:
     from ..devices import wants_sharding
     from ..errors import CLIError
+    from ..inputs import check_solve_flags
 
+    check_solve_flags(args)  # before anything is read, on every path
     if wants_sharding(args):
         from ..sharded_solve import cli_solve
 
@@ -131,10 +153,12 @@ def _solve(args) -> int:
 
     args.file = str(resolve_file(args.file, args.data))
     check_outputs(args)
-    if args.loss == "l2" and (args.edge_weights or args.drop_outliers or args.loss_scale is not None or args.gnc):
+    if args.loss == "l2" and (args.edge_weights or (args.drop_outliers and not args.pcm) or args.loss_scale is not None
+                              or args.gnc):
         flag = ("--edge-weights" if args.edge_weights else "--drop-outliers" if args.drop_outliers
                 else "--gnc" if args.gnc else "--loss-scale")
-        raise CLIError(f"{flag} needs a robust --loss (huber, cauchy, geman-mcclure, welsch or tls)")
+        alternative = " or --pcm" if flag == "--drop-outliers" else ""
+        raise CLIError(f"{flag} needs a robust --loss (huber, cauchy, geman-mcclure, welsch or tls){alternative}")
     if args.gnc and args.loss not in GNC_LOSSES:
         raise CLIError(f"--gnc applies to --loss {' and '.join(GNC_LOSSES)}, not {args.loss}")
     with progress_bar(f"{args.method.upper()}-PGO", args.iterations, disable=args.no_progress,
@@ -157,6 +181,9 @@ def _solve(args) -> int:
     print_summary(result, fstar, data)
     if devices is not None:
         print(f"threads     {len(devices)} (the robots split over {len(devices)} CPU devices)")
+    if args.distributed:
+        gnc = ", GNC in the solver" if result.loss is not None and bool(result.loss.use_gnc) else ""
+        print(f"distributed no centralized step: start {args.init or 'distributed-chordal'}{gnc}")
     t = time.perf_counter()
     finish_solve(args, data, result, fstar)
     print_timing(result, read=read, write=time.perf_counter() - t)
