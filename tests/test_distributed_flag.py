@@ -1,0 +1,69 @@
+"""``solve(..., distributed=True)`` and ``mmpgo solve --distributed``: every centralized step refused
+with its name, the distributed chordal start and in-solver GNC used by default."""
+
+import numpy as np
+import pytest
+
+import mmpgo_jax as mm
+
+
+def _team():
+    ds = mm.robot_team_dataset(3, 40, intra_closures=2, inter_closures=6, dim=2, seed=0, sigma_t=0.01,
+                               sigma_R=0.01)
+    return ds.graph, ds.robot_of_pose
+
+
+@pytest.mark.parametrize("start", ["chordal", "gnc-chordal", "odometry"])
+@pytest.mark.parametrize("keyword", ["start", "init"])
+def test_centralized_starts_are_refused_by_name(start, keyword):
+    graph, rop = _team()
+    with pytest.raises(ValueError, match=f"distributed=True: the start '{start}'") as info:
+        mm.solve(graph, rop, distributed=True, **{keyword: start})
+    assert "\n" not in str(info.value)
+
+
+def test_default_start_is_the_distributed_chordal_one_and_tls_runs_gnc_in_the_solver():
+    graph, rop = _team()
+    r = mm.solve(graph, rop, distributed=True, iterations=0)
+    ref = mm.solve(graph, rop, start="distributed-chordal", iterations=0)
+    chordal = mm.solve(graph, rop, iterations=0)
+    np.testing.assert_array_equal(np.asarray(r.start.t), np.asarray(ref.start.t))
+    assert not np.allclose(np.asarray(r.start.t), np.asarray(chordal.start.t), atol=1e-9)
+    robust = mm.solve(graph, rop, distributed=True, loss="tls", iterations=20)
+    assert bool(robust.loss.use_gnc) and "gnc_stages" in robust.stats
+    huber = mm.solve(graph, rop, distributed=True, loss="huber", iterations=0)  # no GNC schedule: kept as is
+    assert not bool(huber.loss.use_gnc)
+    np.testing.assert_array_equal(np.asarray(huber.start.t), np.asarray(ref.start.t))
+    given = mm.solve(graph, rop, distributed=True, start="vertices", initial=ref.start, iterations=0)
+    np.testing.assert_allclose(np.asarray(given.start.t), np.asarray(ref.start.t), atol=1e-12)
+
+
+@pytest.mark.parametrize("argv, named", [
+    (["--init", "chordal"], "the start 'chordal' gathers the whole graph in one place; use --init distributed-chordal"),
+    (["--init", "gnc-chordal"], "the start 'gnc-chordal'"),
+    (["--init", "odometry"], "the start 'odometry'"),
+    (["--certify"], "--certify"),
+    (["--robots-from", "metis"], "--robots-from metis"),
+])
+def test_cli_refuses_each_centralized_option_in_one_line(tmp_path, capsys, argv, named):
+    from mmpgo_jax.cli import main
+
+    graph, _ = _team()
+    path = tmp_path / "team.g2o"
+    mm.write_g2o(path, graph, mm.initialize(graph, "odometry"))
+    rc = main(["solve", str(path), "-A", "3", "--distributed", "--no-progress", *argv])
+    err = capsys.readouterr().err.strip()
+    assert rc != 0 and f"--distributed: {named}" in err
+    assert len([line for line in err.splitlines() if "--distributed" in line]) == 1
+
+
+def test_cli_distributed_runs_without_a_centralized_step(tmp_path, capsys):
+    from mmpgo_jax.cli import main
+
+    graph, _ = _team()
+    path = tmp_path / "team.g2o"
+    mm.write_g2o(path, graph, mm.initialize(graph, "odometry"))
+    rc = main(["solve", str(path), "-A", "3", "--distributed", "--loss", "tls", "-n", "30", "--no-progress"])
+    out = capsys.readouterr().out
+    assert rc == 0, out
+    assert "no centralized step: start distributed-chordal, GNC in the solver" in out
