@@ -28,6 +28,17 @@ def test_termination_validates_and_decides():
     assert RESULTS.grad_tol.describe(t) == "||grad F|| <= 0.001"
 
 
+def test_relative_change_rule_does_not_take_an_increase_for_convergence():
+    """rel_change_tol (the distributed chordal start's rule: momentum, f not monotone): |change| <= tol
+    |f| stops, a rise beyond it does not (rel_decrease_tol, for monotone methods, stops on a rise)."""
+    t = Termination(100, 10, rel_change_tol=1e-6)
+    rise = ([np.array([5.0]), np.array([6.0])], [np.array([1.0]), np.array([1.0])])
+    assert t(*rise) is None
+    assert Termination(100, 10, rel_decrease_tol=1e-6)(*rise) is RESULTS.rel_decrease_tol
+    assert t([np.array([5.0]), np.array([5.0 - 1e-7])], [np.array([1.0]), np.array([1.0])]) is RESULTS.rel_change_tol
+    assert RESULTS.rel_change_tol.describe(t) == "f changed by at most a relative 1e-06 over the last chunk"
+
+
 def test_solve_result_is_a_solution(cube):
     res = mm.solve(cube, 4, iterations=30, chunk_size=10, grad_tol=1e9)
     assert res.result is RESULTS.grad_tol and res.stop_reason == "grad_tol" and res.iterations == 10

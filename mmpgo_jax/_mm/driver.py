@@ -35,6 +35,7 @@ class RESULTS(enum.Enum):
     grad_tol = "grad_tol"
     f_target = "f_target"
     rel_decrease_tol = "rel_decrease_tol"
+    rel_change_tol = "rel_change_tol"
     stalled = "stalled"
     callback = "callback"
 
@@ -48,6 +49,8 @@ class RESULTS(enum.Enum):
             return f"f <= {t.f_target:g}"
         if self is RESULTS.rel_decrease_tol:
             return f"f fell by less than a relative {t.rel_decrease_tol:g} over the last chunk"
+        if self is RESULTS.rel_change_tol:
+            return f"f changed by at most a relative {t.rel_change_tol:g} over the last chunk"
         if self is RESULTS.stalled:
             return (f"stationary: f moved by at most {STALL_EPS} x machine epsilon (relative) over the last "
                     f"{t.length} iterations, i.e. only by rounding")
@@ -98,7 +101,8 @@ class History:
 class Termination:
     """When a driven run stops: after ``iterations`` (an upper bound), or — checked after each chunk
     of ``chunk_size`` iterations — when ||grad F|| <= ``grad_tol``, f <= ``f_target``, f fell by less
-    than a relative ``rel_decrease_tol`` over the last chunk, or (``stop_when_stalled``, on by
+    than a relative ``rel_decrease_tol`` over the last chunk, f changed by at most a relative
+    ``rel_change_tol`` (up or down) over it, or (``stop_when_stalled``, on by
     default) f stayed within ``STALL_EPS`` machine epsilons (relative) of its value before the chunk
     at every iteration of it: the iterations change f only by rounding, so more of them would be
     work that does nothing (e.g. a robust run whose start is already a critical point). Checked when
@@ -110,6 +114,7 @@ class Termination:
     f_target: float | None = None
     rel_decrease_tol: float | None = None
     stop_when_stalled: bool = True
+    rel_change_tol: float | None = None
 
     def __post_init__(self):
         check_count(None, "iterations", self.iterations, 0, scalar=True)
@@ -118,6 +123,7 @@ class Termination:
         check_real(None, "f_target", self.f_target, optional=True, scalar=True)
         check_real(None, "rel_decrease_tol", self.rel_decrease_tol, 0.0, optional=True, scalar=True)
         check_flag(None, "stop_when_stalled", self.stop_when_stalled)
+        check_real(None, "rel_change_tol", self.rel_change_tol, 0.0, optional=True, scalar=True)
 
     @property
     def length(self) -> int:
@@ -135,6 +141,11 @@ class Termination:
             before = fs[-2][-1]
             if before - fs[-1][-1] <= self.rel_decrease_tol * abs(before):
                 return RESULTS.rel_decrease_tol
+        # |f before the chunk - f| <= tol |f|: for methods whose f is not monotone (momentum without
+        # a monotone restart), where an increase must not read as convergence
+        if self.rel_change_tol is not None and len(fs) > 1 and \
+                abs(fs[-2][-1] - fs[-1][-1]) <= self.rel_change_tol * abs(fs[-1][-1]):
+            return RESULTS.rel_change_tol
         if self.stop_when_stalled and len(fs) > 1 and stalled(fs[-2][..., -1], fs[-1]):
             return RESULTS.stalled
         return None
@@ -259,7 +270,7 @@ def drive(
     check_finite(fs[0], gs[0], 0)
     lazy = fetch is None
     t = termination
-    rules = (t.grad_tol, t.f_target, t.rel_decrease_tol)
+    rules = (t.grad_tol, t.f_target, t.rel_decrease_tol, t.rel_change_tol)
     if lazy and any(v is not None for v in (callback, agree, monitor, checkpoint, *rules)):
         raise ValueError("fetch=None needs a run without stopping rules, callback, monitor or checkpoint")
     compile_seconds = solve_seconds = 0.0
