@@ -68,15 +68,17 @@ def check_outputs(args) -> None:
         check_figure_path(args.plot, "--plot")
 
 
-def print_certificate(data: LoadedInput, poses, *, hint: bool) -> None:
+def print_certificate(data: LoadedInput, poses, *, hint: bool, graph=None) -> None:
+    """SE-Sync's certificate of ``poses`` on ``graph`` (default the file's graph)."""
     from .._experiments.certificate import certify
 
     if data.fixed is not None and len(data.fixed) > 1:
         print(f"certificate not applicable: {len(data.fixed)} FIX poses constrain the problem "
               "(the dual certificate covers PGO with at most one fixed pose)")
         return
-    cert = certify(data.graph, poses)
-    print(f"certificate {cert.summary()}")
+    cert = certify(data.graph if graph is None else graph, poses)
+    note = "" if graph is None else " (of the graph without the closures --pcm removed)"
+    print(f"certificate {cert.summary()}{note}")
     if hint and not cert.certified:
         print("            (the certificate decides only at a critical point: run to a tight --grad-tol, "
               "e.g. --robots 1)")
@@ -115,8 +117,12 @@ def finish_solve(args, data: LoadedInput, result, fstar) -> None:
     :class:`~mmpgo_jax.FStarReference` of the plot's gaps, or None."""
     from .._io.atomic import atomic_group
 
+    fstar = comparable_fstar(result, fstar)
     if args.certify:
-        print_certificate(data, result.poses, hint=True)
+        prefiltered = getattr(result, "prefiltered", None)
+        removed = prefiltered is not None and np.any(prefiltered)
+        print_certificate(data, result.poses, hint=True,
+                          graph=data.graph.select_edges(~prefiltered) if removed else None)
     keep = result.inliers if getattr(args, "drop_outliers", False) else None
     with atomic_group():
         written = write_estimate(args, data, result.poses, keep)
@@ -149,8 +155,16 @@ def _rejected_lines(result, data: LoadedInput | None, mask=None) -> str:
     return f"; {which} {join_items(lines[rejected].tolist(), 60)} of {data.path.name}"
 
 
+def comparable_fstar(result, fstar):
+    """``fstar``, or None when a pre-filter removed edges: f is then that of a smaller graph, and a
+    gap to the whole file's f* would mean nothing (it can be negative)."""
+    prefiltered = getattr(result, "prefiltered", None)
+    return None if prefiltered is not None and np.any(prefiltered) else fstar
+
+
 def print_summary(result, fstar, data: LoadedInput | None = None) -> None:
     """The result of a solve; ``fstar``: the :class:`~mmpgo_jax.FStarReference` of its gap, or None."""
+    fstar = comparable_fstar(result, fstar)
     h = result.history
     split = f" ({data.robots_label})" if data is not None and data.robots_label else ""
     restart = f", restart={result.config.restart}" if result.config.method == "amm" else ""  # MM has none
