@@ -655,6 +655,9 @@ def _connecting_closures(rng: np.random.Generator, cand: np.ndarray, rop: np.nda
     return np.asarray(chosen, np.int64)
 
 
+_TEAM_GRID_CAP = {2: 20, 3: 12}  # lattice sides at most: 400 cells in 2D, 1728 in 3D
+
+
 def robot_team_dataset(
     robots: int = 10,
     poses_per_robot: int = 1500,
@@ -693,8 +696,7 @@ def robot_team_dataset(
     if int(intra_closures) < 0 or int(inter_closures) < 0:
         raise ValueError("intra_closures and inter_closures must be >= 0")
     if grid is None:  # a lattice each walk covers a good part of, so that the robots meet
-        grid = min(20, max(2, round(math.sqrt(poses_per_robot)))) if dim == 2 else \
-            min(12, max(2, round(poses_per_robot ** (1 / 3))))
+        grid = min(_TEAM_GRID_CAP[dim], max(2, round(poses_per_robot ** (1 / dim))))
     grid = int(grid)
     kappa, tau = kappa_tau_from_rmse(sigma_t, sigma_R, dim)
     rng = np.random.default_rng(seed)
