@@ -1,0 +1,152 @@
+"""Against the authors' C++ code, in the same run on this machine: ``mmpgo solve`` and the authors'
+MM-PGO / AMM-PGO (MurpheyLab/DPGO @ da0157f, built by ``../shared/anchors/build_dpgo.sh`` with
+``-O3 -march=native``, one thread, robots one after another: ``run_dpgo.sh FILE 10 1000 amm``).
+
+Both run AMM with their own adaptive restart, 10 robots (contiguous blocks), the centralized chordal
+start, 1000 iterations; ours with its defaults (float64, every iteration: ``--all-iterations``) and a
+warm compilation cache (one untimed run first). Interleaved run by run (authors', ours, authors',
+...), so that both see the same machine load; medians of ``--repeats``. Reported: ms per iteration
+(theirs: their driver's nanosecond clock around iterate()+update(); ours: the compiled iterations),
+the whole process's wall seconds, its processor seconds (user + sys of the child), and f at 1000
+(both f = 2F of the same objective). ``--start`` adds the distributed initializations: the
+authors' ``dist_pgo --dist_init true --iters 1`` against ``mmpgo solve --init distributed-chordal
+--iterations 0`` (whole process; f at the start).
+
+    DPGO_MIRROR=... bash ../shared/anchors/build_dpgo.sh      # once per machine
+    python benchmarks/vs_authors.py --repeats 3 --start --out benchmarks/vs_authors.md
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import os
+import re
+import resource
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parents[1]
+ANCHORS = HERE.parent / "shared" / "anchors"
+FILES = {"MITb": "MIT.g2o", "intel": "intel.g2o", "M3500": "M3500.g2o", "city10000": "city10000.g2o",
+         "sphere2500": "sphere2500.g2o", "torus3D": "torus3D.g2o", "garage": "parking-garage.g2o"}
+
+
+def _timed(cmd: list[str], env: dict | None = None) -> tuple[str, float, float]:
+    """(stdout, wall seconds, processor seconds of the child) of one process."""
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t = time.perf_counter()
+    out = subprocess.run(cmd, capture_output=True, text=True, env=env, check=True).stdout
+    wall = time.perf_counter() - t
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    return out, wall, cpu
+
+
+def authors(file: str) -> dict:
+    out, wall, cpu = _timed(["bash", str(ANCHORS / "run_dpgo.sh"), file, "10", "1000", "amm"])
+    last = out.strip().splitlines()[-1]
+    ms = float(re.search(r"ms_per_iter=([0-9.eE+-]+)", last).group(1))
+    f1000 = float(re.search(r"f1000=([0-9.eE+-]+)", last).group(1))
+    return dict(ms=ms, wall=wall, cpu=cpu, f=f1000)
+
+
+def ours(file: str) -> dict:
+    env = dict(os.environ, PYTHONPATH=str(HERE))
+    out, wall, cpu = _timed([sys.executable, "-m", "mmpgo_jax.cli", "solve", file, "--robots", "10",
+                             "--iterations", "1000", "--all-iterations"], env)
+    ms = float(re.search(r"\(([0-9.]+) ms/iteration\)", out).group(1))
+    f = float(re.search(r"f = 2F\s+\S+ -> (\S+)", out).group(1))
+    return dict(ms=ms, wall=wall, cpu=cpu, f=f)
+
+
+def authors_start(file: str) -> dict:
+    root = Path(os.environ.get("DPGO_ROOT", Path.home() / ".cache" / "dpgo-build"))
+    env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
+    out, wall, cpu = _timed([str(root / "build" / "bin" / "dist_pgo"), "--dataset", file, "--num_nodes", "10",
+                             "--iters", "1", "--dist_init", "true", "--save", "false"], env)
+    # after "Distributed PGO": "0: f |grad|" is the objective at the start (its 2F convention)
+    f = re.findall(r"^0: ([0-9.eE+-]+) [0-9.eE+-]+$", out, re.M)
+    return dict(wall=wall, cpu=cpu, f=float(f[-1]) if f else float("nan"))
+
+
+def ours_start(file: str) -> dict:
+    env = dict(os.environ, PYTHONPATH=str(HERE))
+    out, wall, cpu = _timed([sys.executable, "-m", "mmpgo_jax.cli", "solve", file, "--robots", "10",
+                             "--init", "distributed-chordal", "--iterations", "0"], env)
+    f = float(re.search(r"f = 2F\s+(\S+)", out).group(1))
+    return dict(wall=wall, cpu=cpu, f=f)
+
+
+def _median(rows: list[dict], key: str) -> float:
+    return statistics.median(r[key] for r in rows)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--files", nargs="+", default=list(FILES))
+    ap.add_argument("--start", action="store_true", help="also the distributed initializations")
+    ap.add_argument("--out", type=Path)
+    args = ap.parse_args()
+    data = Path(os.environ.get("MMPGO_DATA", HERE.parent / "shared" / "datasets"))
+    load0 = os.getloadavg()
+    lines = []
+    solve_rows, start_rows = [], []
+    for name in args.files:
+        file = str(data / FILES[name])
+        ours(file)  # warm the compilation cache (untimed)
+        a, o = [], []
+        for _ in range(args.repeats):
+            a.append(authors(file))
+            o.append(ours(file))
+        row = (name, *(_median(a, k) for k in ("ms", "wall", "cpu")), *(_median(o, k) for k in ("ms", "wall", "cpu")),
+               a[0]["f"], o[0]["f"])
+        solve_rows.append(row)
+        print(row, flush=True)
+        if args.start:
+            ours_start(file)  # warm
+            sa, so = [], []
+            for _ in range(args.repeats):
+                sa.append(authors_start(file))
+                so.append(ours_start(file))
+            start_rows.append((name, _median(sa, "wall"), _median(so, "wall"), _median(sa, "cpu"), _median(so, "cpu"),
+                               sa[0]["f"], so[0]["f"]))
+            print(start_rows[-1], flush=True)
+    model = next((ln.split(":", 1)[1].strip() for ln in Path("/proc/cpuinfo").read_text().splitlines()
+                  if ln.startswith("model name")), "unknown CPU")
+    lines += [
+        "# Against the authors' C++ code (same run, same machine)",
+        "",
+        f"Command: `python benchmarks/vs_authors.py --repeats {args.repeats}{' --start' if args.start else ''}`; "
+        f"{datetime.date.today().isoformat()}, {model}, {os.cpu_count()} logical CPUs, load average "
+        f"{load0[0]:.2f} at the start, {os.getloadavg()[0]:.2f} at the end. Authors: MurpheyLab/DPGO @ da0157f, "
+        "Release `-O3 -march=native`, one thread (`run_dpgo.sh FILE 10 1000 amm`). Ours: `mmpgo solve FILE "
+        "--robots 10 --iterations 1000 --all-iterations` (defaults, float64, warm compilation cache). "
+        "Interleaved run by run; medians.",
+        "",
+        "| file | authors' ms/it | ours ms/it | ratio (ours / theirs) | whole run s, authors' / ours | "
+        "processor s (user+sys), authors' / ours | f at 1000, authors' / ours |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for name, ams, awall, acpu, oms, owall, ocpu, af, of in solve_rows:
+        lines.append(f"| {name} | {ams:.2f} | {oms:.2f} | {oms / ams:.2f} | {awall:.2f} / {owall:.2f} | "
+                     f"{acpu:.2f} / {ocpu:.2f} ({ocpu / acpu:.2f}x) | {af:.6f} / {of:.6f} |")
+    if start_rows:
+        lines += ["", "Distributed initialization, 10 robots, whole process (authors: `dist_pgo --dist_init true "
+                  "--iters 1`; ours: `mmpgo solve FILE --init distributed-chordal --iterations 0`):", "",
+                  "| file | authors' s | ours s | processor s, authors' / ours | f at the start, authors' / ours |",
+                  "|---|---|---|---|---|"]
+        for name, aw, ow, ac, oc, af, of in start_rows:
+            lines.append(f"| {name} | {aw:.2f} | {ow:.2f} | {ac:.2f} / {oc:.2f} | {af:.4f} / {of:.4f} |")
+    text = "\n".join(lines) + "\n"
+    print(text)
+    if args.out:
+        args.out.write_text(text)
+
+
+if __name__ == "__main__":
+    main()
