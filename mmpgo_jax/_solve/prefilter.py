@@ -27,6 +27,7 @@ import numpy as np
 
 from .._core.partition import Partition, split_robots
 from .._core.pose_graph import PoseGraph, component_labels
+from .._core.validate import check_count, check_real
 
 __all__ = ["PCM", "Prefiltered", "apply_prefilter", "as_prefilter"]
 
@@ -41,12 +42,9 @@ class PCM:
     min_clique_size: int = 1
 
     def __post_init__(self):
-        if not 0.0 < float(self.confidence) < 1.0:
-            raise ValueError(f"PCM: confidence must lie in (0, 1), got {self.confidence!r}")
-        if self.max_pair_closures is not None and int(self.max_pair_closures) < 1:
-            raise ValueError(f"PCM: max_pair_closures must be >= 1 or None, got {self.max_pair_closures!r}")
-        if int(self.min_clique_size) < 1:
-            raise ValueError(f"PCM: min_clique_size must be >= 1, got {self.min_clique_size!r}")
+        check_real("PCM", "confidence", self.confidence, 0.0, 1.0, low_open=True, high_open=True, scalar=True)
+        check_count("PCM", "max_pair_closures", self.max_pair_closures, 1, optional=True, scalar=True)
+        check_count("PCM", "min_clique_size", self.min_clique_size, 1, scalar=True)
 
 
 def as_prefilter(prefilter) -> PCM | None:
