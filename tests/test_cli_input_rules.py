@@ -239,6 +239,8 @@ BAD_OPTIONS = [
     (["solve", _F, "--iterations", str(2**31)], "--iterations/-n", "between 0 and 2147483647"),
     (["solve", _F, "--chunk", "0"], "--chunk", "between 1 and"),
     (["solve", _F, "--chunk", "-1"], "--chunk", "between 1 and"),
+    (["solve", _F, "--pcm-confidence", "1"], "--pcm-confidence", "finite number in (0, 1)"),
+    (["solve", _F, "--pcm-confidence", "0"], "--pcm-confidence", "finite number in (0, 1)"),
     (["solve", _F, "--xi", "nan"], "--xi", "finite number >= 0"),
     (["solve", _F, "--xi", "inf"], "--xi", "finite number >= 0"),
     (["solve", _F, "--xi", "-inf"], "--xi", "finite number >= 0"),
@@ -324,7 +326,7 @@ def _numeric_actions():
 def test_every_numeric_option_is_validated_and_swept():
     """No option parses with a bare int/float, and the sweep above covers every typed option."""
     swept = {(a[0], opt.split("/")[0]) for a, opt, _ in BAD_OPTIONS}
-    assert len(swept) == 31  # info 1, solve 16, optimum 2, demo 4, bench 3, sweep 5
+    assert len(swept) == 32  # info 1, solve 17, optimum 2, demo 4, bench 3, sweep 5
     for name, action in _numeric_actions():
         assert action.type not in (int, float), f"{name} {action.option_strings}: unchecked {action.type}"
         assert action.type.__name__ in ("integer", "number", "host_port"), (name, action.option_strings)

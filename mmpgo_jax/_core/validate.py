@@ -43,11 +43,13 @@ def param_name(owner: str | None, name: str) -> str:
     return f"{owner}.{name}" if owner else name
 
 
-def count_text(low: int, high: int | None = None) -> str:
-    """The allowed range of an integer, e.g. "an integer >= 1" or "an integer between 0 and 9"."""
+def count_text(low: int, high: int | None = None, *, symbols: bool = False) -> str:
+    """The allowed range of an integer, e.g. "an integer >= 1" or "an integer between 0 and 9";
+    ``low`` 0 reads "a non-negative integer" in the library's messages and "an integer >= 0" with
+    ``symbols`` (the command line's options, which state every range as a comparison)."""
     if high is not None:
         return f"an integer between {low} and {high}"
-    return "a non-negative integer" if low == 0 else f"an integer >= {low}"
+    return "a non-negative integer" if low == 0 and not symbols else f"an integer >= {low}"
 
 
 def real_text(low: float | None = None, high: float | None = None, *,
@@ -139,23 +141,26 @@ def int_in(low: int, high: int | None = None):
         except (TypeError, ValueError):
             value = None
         if value is None or value < low or (high is not None and value > high):
-            raise argparse.ArgumentTypeError(f"must be {count_text(low, high)}, got {text!r}")
+            raise argparse.ArgumentTypeError(f"must be {count_text(low, high, symbols=True)}, got {text!r}")
         return value
 
     parse.__name__ = "integer"
     return parse
 
 
-def finite_float(low: float, *, strict: bool = False):
-    """argparse ``type``: a finite number ``>= low`` (``> low`` with ``strict``)."""
+def finite_float(low: float, *, strict: bool = False, below: float | None = None):
+    """argparse ``type``: a finite number ``>= low`` (``> low`` with ``strict``) and, with ``below``,
+    ``< below``."""
 
     def parse(text: str) -> float:
         try:
             value = float(text)
         except (TypeError, ValueError):
             value = math.nan
-        if not math.isfinite(value) or value < low or (strict and value == low):
-            raise argparse.ArgumentTypeError(f"must be {real_text(low, low_open=strict)}, got {text!r}")
+        if not math.isfinite(value) or value < low or (strict and value == low) or \
+                (below is not None and value >= below):
+            allowed = real_text(low, below, low_open=strict, high_open=below is not None)
+            raise argparse.ArgumentTypeError(f"must be {allowed}, got {text!r}")
         return value
 
     parse.__name__ = "number"

@@ -98,19 +98,8 @@ def _add_robust_options(p: argparse.ArgumentParser) -> None:
     g.add_argument("--pcm", action="store_true",
                    help="remove the inter-robot loop closures that PCM (pairwise consistency maximization) finds "
                         "inconsistent before the start and the solve; the count and lines are printed")
-    g.add_argument("--pcm-confidence", metavar="Q", type=_confidence, default=None,
+    g.add_argument("--pcm-confidence", metavar="Q", type=finite_float(0.0, strict=True, below=1.0), default=None,
                    help="chi-square quantile of PCM's pairwise test, in (0, 1) (default 0.99)")
-
-
-def _confidence(text: str) -> float:
-    """argparse ``type`` of --pcm-confidence: a number in (0, 1)."""
-    try:
-        value = float(text)
-    except ValueError:
-        value = float("nan")
-    if not 0.0 < value < 1.0:
-        raise argparse.ArgumentTypeError(f"must lie in (0, 1), got {text!r}")
-    return value
 
 
 def preload() -> None:
