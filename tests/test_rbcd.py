@@ -212,6 +212,7 @@ def test_converges_to_the_centralized_optimum(cube):
     assert abs(r.history.f[-1] - fstar) <= 1e-6 * fstar
 
 
+@pytest.mark.slow  # 9 s: a 400-pose comparison (the default run keeps RBCD++'s descent and optimum tests)
 def test_acceleration_needs_fewer_iterations():
     """Measured (cube, 400 poses, 8 robots, chordal start): gap 1e-3 after 422 RBCD / 131 RBCD++ greedy
     iterations; 2D grid (400 poses, 8 robots): > 1500 / 253. Asserted: RBCD++ needs at most half."""
@@ -266,6 +267,7 @@ _CHILD = textwrap.dedent("""
 """)
 
 
+@pytest.mark.slow  # 30 s: a child process with two devices (test_one_solve_path checks the layouts by default)
 def test_sharded_run_gives_the_same_history():
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
     proc = subprocess.run([sys.executable, "-c", _CHILD], capture_output=True, text=True, env=env, timeout=900)
