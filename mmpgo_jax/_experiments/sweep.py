@@ -535,13 +535,18 @@ class _Plan:
         """The configuration's solver (``xi=None``: the batch's, whose xi each problem carries)."""
         return MM(xi, self.subproblem) if method == "mm" else AMM(xi, self.restart, self.subproblem)
 
-    def start_of(self, gi: int, a: int, li: int) -> Poses:
-        """The start of (graph, robots, loss), computed once (per robot count only when it depends on it)."""
-        fix = self.fixed_of[self.names[gi]]
+    def _start_key(self, gi: int, a: int, li: int) -> tuple:
+        """(cache key, start method, options, whether it depends on the robot count) of a start."""
         method, options = start_for(self.init, self.loss_of[self.labels[li]])
         per_robots = isinstance(method, str) and method == "distributed-chordal"
         key = (gi, a) if per_robots else (gi, str(method) if isinstance(method, str) else id(method),
                                           tuple(sorted(options.items())))
+        return key, method, options, per_robots
+
+    def start_of(self, gi: int, a: int, li: int) -> Poses:
+        """The start of (graph, robots, loss), computed once (per robot count only when it depends on it)."""
+        fix = self.fixed_of[self.names[gi]]
+        key, method, options, per_robots = self._start_key(gi, a, li)
         if key not in self.starts:
             t0 = time.perf_counter()
             robots_kw = {"robots": self.rops[(gi, a)]} if per_robots else {}
@@ -551,10 +556,7 @@ class _Plan:
 
     def initialize_seconds(self, gi: int, a: int, li: int) -> float:
         """Partition and start seconds of a configuration (a shared start counted whole for each)."""
-        method, options = start_for(self.init, self.loss_of[self.labels[li]])
-        per_robots = isinstance(method, str) and method == "distributed-chordal"
-        key = (gi, a) if per_robots else (gi, str(method) if isinstance(method, str) else id(method),
-                                          tuple(sorted(options.items())))
+        key = self._start_key(gi, a, li)[0]
         return self.seconds[(gi, a)] + self.seconds.get(("start", key), 0.0)
 
 
