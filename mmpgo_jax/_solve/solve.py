@@ -30,6 +30,7 @@ from .._mm.solvers import MM, Solver, as_solver
 from .._mm.subproblem import SubproblemConfig
 from .build import ROBUST_START, Clock, as_termination, finish, prepare
 from .devices import auto_layout
+from .methods import check_loss, solver_for
 from .prefilter import PCM, apply_prefilter
 from .result import SolveResult, output_frame
 
@@ -45,7 +46,7 @@ def solve(
     start=None,
     termination: Termination | None = None,
     layout=None,
-    method: Literal["mm", "amm"] | None = None,
+    method: str | None = None,
     iterations: int | None = None,
     init=None,
     initial: Poses | None = None,
@@ -73,9 +74,14 @@ def solve(
 ) -> SolveResult:
     """Run ``solver`` on ``graph`` split among ``robots``, laid out by ``layout``.
 
-    ``solver``: a :class:`~mmpgo_jax.Solver`, e.g. :class:`~mmpgo_jax.AMM` (default) or
-    :class:`~mmpgo_jax.MM`, which owns its settings (xi, restart rule, subproblem); the shortcuts
-    ``method`` ("mm" / "amm"), ``xi``, ``restart``, ``subproblem`` make one (not beside ``solver``).
+    ``solver``: a :class:`~mmpgo_jax.Solver`, e.g. :class:`~mmpgo_jax.AMM` (default),
+    :class:`~mmpgo_jax.MM` or ``RBCD(...)``, which owns its settings (xi, restart rule, subproblem);
+    the shortcuts ``method``, ``xi``, ``restart``, ``subproblem`` make one (not beside ``solver``).
+    ``method``: a name of :data:`~mmpgo_jax._solve.methods.METHOD_NAMES` ("mm", "amm", "rbcd",
+    "rbcd++", "rbcd-parallel", "rbcd++-parallel", ..., "dgs"; :func:`~mmpgo_jax._solve.methods.solver_for`);
+    ``xi``, ``restart`` and ``subproblem`` apply to "mm" and "amm" only (ValueError with another
+    method: its settings are its solver object's). RBCD and DGS minimise the least-squares F only:
+    a robust ``loss`` with them is a ValueError naming the method.
     ``termination``: a :class:`~mmpgo_jax.Termination`; the shortcuts ``iterations`` (default 1000),
     ``chunk_size`` (50), ``grad_tol``, ``f_target``, ``rel_decrease_tol``, ``stop_when_stalled`` make
     one (not beside ``termination``). ``layout``: :class:`~mmpgo_jax.OneDevice` or
@@ -152,7 +158,12 @@ def solve(
     pre = apply_prefilter(graph, robots, prefilter)
     if pre is not None:  # the solve runs on the kept edges; report() restores the original edge order
         graph, robots = pre.graph, pre.robot_of_pose
-    solver = as_solver(solver, method=method, xi=xi, restart=restart, subproblem=subproblem)
+    if solver is not None or method is None:
+        solver = as_solver(solver, method=method, xi=xi, restart=restart, subproblem=subproblem)
+    else:  # by name: MM / AMM exactly as as_solver makes them, the other methods from the registry
+        solver = solver_for(method, xi=xi, restart=restart, subproblem=subproblem)
+    loss = as_loss(loss, loss_scale, gnc)
+    check_loss(solver, loss)
     termination = as_termination(termination, iterations=iterations, chunk_size=chunk_size, grad_tol=grad_tol,
                                  f_target=f_target, rel_decrease_tol=rel_decrease_tol,
                                  stop_when_stalled=stop_when_stalled)
@@ -160,7 +171,7 @@ def solve(
     if layout is None:
         layout = auto_layout(graph.num_poses, _robot_count(robots))
     run = prepare(graph, solver, robots, layout, termination, start=start,
-                  initial=initial, fixed=fixed, loss=as_loss(loss, loss_scale, gnc), monitor=monitor,
+                  initial=initial, fixed=fixed, loss=loss, monitor=monitor,
                   checkpoint=checkpoint, checkpoint_every=checkpoint_every, resume=resume)
     placement = run.placement
     out = drive(placement.compile_chunk(solver, run.problem), run.state, placement.start_record(run.start),
