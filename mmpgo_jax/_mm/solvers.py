@@ -82,6 +82,11 @@ class Solver(eqx.Module):
         its statistics; ``to_host`` brings a (possibly sharded) array to the host."""
         return {}, {}
 
+    def final_poses(self, problem, part, X):
+        """The stacked poses (A, n_max, d, d+1) a result reports, from the final iterate ``X`` (host
+        array): ``X`` itself; a solver whose iterates are not poses (RBCD's lifted rank) maps them here."""
+        return X
+
     def iteration(self, state):
         """The outer iterations ``state`` has done (traced)."""
         return state.iteration

@@ -150,7 +150,7 @@ def finish(graph: PoseGraph, solver: Solver, run: Prepared, driven, termination:
            frame=None, ground_truth=None) -> SolveResult:
     """The :class:`SolveResult` of a driven run (poses and start in the requested frame)."""
     placement = run.placement
-    X = placement.to_host(driven.state.X)
+    X = solver.final_poses(run.problem, placement.part, placement.to_host(driven.state.X))
     poses = output_frame(placement.part.gather(unstack(X)), fixed, frame)  # sliced on the host
     outcome, robust_stats = solver.outcome(run.problem, graph, placement.part, driven.state, poses, placement.to_host)
     return SolveResult(
