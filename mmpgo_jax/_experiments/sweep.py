@@ -83,18 +83,20 @@ from .._mm.robust import GNC_LOSSES, GNCConfig, RobustLoss, as_loss, loss_code
 from .._mm.solvers import AMM, MM, Solver, run_chunk
 from .._mm.subproblem import SubproblemConfig
 from .._solve.build import finish, prepare, start_for
+from .._solve.methods import MAJORIZATION, check_loss, method_name, solver_for
 from .._solve.result import SolveResult
 from .outliers import outlier_scores
 
 __all__ = ["TRACE_COUNTS", "SweepResult", "default_max_batch_bytes", "reference_optimum", "sweep"]
 
 #: How many times the batched chunk was traced (= compiled: each trace is followed by exactly one
-#: compilation), per method. Incremented at trace time only; tests read it.
+#: compilation), per method (its registry name, :func:`~mmpgo_jax._solve.methods.method_name`).
+#: Incremented at trace time only; tests read it.
 TRACE_COUNTS: Counter = Counter()
 
 
 def _sweep_chunk_impl(solver: Solver, problem, state, length: int, limit):
-    TRACE_COUNTS[solver.name] += 1  # runs only while tracing
+    TRACE_COUNTS[method_name(solver)] += 1  # runs only while tracing
     chunk = run_chunk.__wrapped__
     if jax.tree.leaves(state)[0].shape[0] == 1:
         # A batch of one runs unbatched: under vmap the AMM step's lax.cond (MM fallback only when a
@@ -366,12 +368,12 @@ def _per_graph(value, names, what):
 def sweep(
     graphs,
     robots: Sequence[int] | int = (5, 10, 50),
-    methods: Sequence[str] | str = ("mm", "amm"),
+    methods: Sequence[str | Solver] | Mapping[str, str | Solver] | str | Solver = ("mm", "amm"),
     iterations: int = 1000,
     *,
     init=None,
-    xi: float | Sequence[float] = 1e-3,
-    restart: Literal["paper", "adaptive", "average"] = "adaptive",
+    xi: float | Sequence[float] | None = None,
+    restart: Literal["paper", "adaptive", "average"] | None = None,
     fstar: Mapping[str, float] | Sequence[float] | float | str | None = None,
     max_batch_bytes: int | None = None,
     max_batch_configs: int | None = None,
@@ -388,6 +390,17 @@ def sweep(
     gnc: GNCConfig | None = None,
 ) -> SweepResult:
     """Run every (graph, robot count) configuration of each method as one batched computation.
+
+    ``methods``: method names of :data:`~mmpgo_jax._solve.methods.METHOD_NAMES` ("mm", "amm",
+    "rbcd", "rbcd++", "rbcd-parallel", ..., "dgs") or :class:`~mmpgo_jax.Solver` objects (e.g.
+    ``RBCD(selection="uniform", seed=1)``), or a mapping label -> name or solver. Results are keyed
+    by the name (a solver's: :func:`~mmpgo_jax._solve.methods.method_name`, e.g. "rbcd++",
+    "rbcd-parallel"; or the mapping's label); two methods with one name are refused. Each method is
+    its own compiled batch. ``xi``, ``restart`` and ``subproblem`` apply to "mm" and "amm" given by
+    name (defaults 1e-3, "adaptive", :class:`~mmpgo_jax.SubproblemConfig`); every other method (and
+    a solver object) keeps its own settings, so a sequence of xi with such a method, or a shortcut
+    that no method of the sweep takes, is refused (ValueError). RBCD and DGS minimise the
+    least-squares F only: a robust ``loss`` with them is refused, naming the method.
 
     ``graphs``: a PoseGraph, a dataset with ``.graph`` (and ``.ground_truth``, used for ATE/RPE
     unless ``ground_truth`` is given), or a sequence / name-keyed mapping of them (same d; n may
@@ -428,7 +441,8 @@ def sweep(
     geman-mcclure). Robust configurations report their final ``weights`` and ``inliers``.
 
     Equivalent, configuration by configuration, to ``solve(graph, robots, method=..., iterations,
-    init, xi, restart, subproblem, fixed, loss, loss_scale, gnc, stop_when_stalled=False)`` (for
+    init, xi, restart, subproblem, fixed, loss, loss_scale, gnc, stop_when_stalled=False)`` (for a
+    solver object: ``solve(graph, robots, solver=..., ...)``) (for
     ``"l2"`` swept among robust losses: ``loss=RobustLoss("l2", loss_scale)``): a batch runs every
     iteration, since one configuration cannot stop alone. ``results`` holds each configuration's
     :class:`~mmpgo_jax.SolveResult` (the fields a ``solve`` returns; timings are the configuration's
@@ -440,24 +454,20 @@ def sweep(
         raise ValueError(f"group_by must be 'auto', 'method' or 'robots', got {group_by!r}")
     if group_by == "auto":
         group_by = "robots" if jax.default_backend() == "cpu" else "method"
-    methods = [methods] if isinstance(methods, str) else list(dict.fromkeys(methods))
-    for m in methods:
-        if m not in ("mm", "amm"):
-            raise ValueError(f"unknown method {m!r}: use 'mm' or 'amm'")
-    plan = _Plan.make(graphs, robots, iterations, init=init, xi=xi, fstar=fstar, ground_truth=ground_truth,
-                      fixed=fixed, split=split, seed=seed, loss=loss, loss_scale=loss_scale, gnc=gnc,
-                      chunk_size=chunk_size, subproblem=subproblem, restart=restart)
+    plan = _Plan.make(graphs, robots, iterations, methods=methods, init=init, xi=xi, fstar=fstar,
+                      ground_truth=ground_truth, fixed=fixed, split=split, seed=seed, loss=loss, loss_scale=loss_scale,
+                      gnc=gnc, chunk_size=chunk_size, subproblem=subproblem, restart=restart)
     if max_batch_bytes is None:
         max_batch_bytes = default_max_batch_bytes()
     say = progress or (lambda msg: None)
     out = _Outputs()
-    for method in methods:
+    for method in plan.methods:
         keys = [(gi, a, x, li) for a in plan.all_robots for gi in range(len(plan.glist)) if a in plan.robots_of[gi]
                 for x in plan.xis for li in range(len(plan.labels))]
         groups = [keys] if group_by == "method" else [[k for k in keys if k[1] == a] for a in plan.all_robots]
         for gkeys in groups:
             _run_group(plan, method, gkeys, out, max_batch_bytes, max_batch_configs, say)
-    return out.result(plan, methods)
+    return out.result(plan, list(plan.methods))
 
 
 @dataclass
@@ -472,6 +482,7 @@ class _Plan:
     corrupt: dict
     loss_of: dict
     labels: list
+    methods: dict  # label -> "mm" / "amm" (made per configuration) or the Solver of every configuration
     robots_of: dict
     all_robots: list
     unpadded: dict
@@ -489,11 +500,14 @@ class _Plan:
     starts: dict = field(default_factory=dict)
 
     @staticmethod
-    def make(graphs, robots, iterations, *, init, xi, fstar, ground_truth, fixed, split, seed, loss, loss_scale, gnc,
-             chunk_size, subproblem, restart) -> _Plan:
+    def make(graphs, robots, iterations, *, methods, init, xi, fstar, ground_truth, fixed, split, seed, loss,
+             loss_scale, gnc, chunk_size, subproblem, restart) -> _Plan:
         names, glist, gts, fixed_of, corrupt = _normalize_graphs(graphs)
         loss_of = _loss_values(loss, loss_scale, gnc)
         labels = list(loss_of)
+        xis = _xi_values(1e-3 if xi is None else xi)
+        methods = _methods(methods, xi=xi, several_xi=len(xis) > 1, restart=restart, subproblem=subproblem,
+                           loss=next((v for v in loss_of.values() if v is not None), None))
         if fixed is not None:
             fixed_of = _per_graph(fixed, names, "fixed")
         for name, g in zip(names, glist, strict=False):
@@ -510,14 +524,13 @@ class _Plan:
             needs[(gi, a)] = (p.max_poses, p.max_edges, gamma_couplings(p.edges), aggregate_size(real, glist[gi].dim))
             unpadded[(gi, a)] = jax.device_get(p)
             seconds[(gi, a)] = time.perf_counter() - t0
-        xis = _xi_values(xi)
         axes = (("xi",) if len(xis) > 1 else ()) + (("loss",) if len(labels) > 1 else ())
         return _Plan(names=names, glist=glist, gts=gts, fixed_of=fixed_of, corrupt=corrupt, loss_of=loss_of,
-                     labels=labels, robots_of=robots_of,
+                     labels=labels, methods=methods, robots_of=robots_of,
                      all_robots=list(dict.fromkeys(a for gi in range(len(glist)) for a in robots_of[gi])),
                      unpadded=unpadded, needs=needs, rops=rops, fstars=_fstars(fstar, names, glist), xis=xis,
                      axes=axes, init=init, iterations=iterations, chunk_size=chunk_size,
-                     subproblem=subproblem or SubproblemConfig(), restart=restart, seconds=seconds)
+                     subproblem=subproblem or SubproblemConfig(), restart=restart or "adaptive", seconds=seconds)
 
     @property
     def robust(self) -> bool:
@@ -532,8 +545,24 @@ class _Plan:
         return (self.names[gi], a, method, *(v for ax in self.axes for v in extra[ax]))
 
     def solver(self, method: str, xi) -> Solver:
-        """The configuration's solver (``xi=None``: the batch's, whose xi each problem carries)."""
-        return MM(xi, self.subproblem) if method == "mm" else AMM(xi, self.restart, self.subproblem)
+        """The configuration's solver (``xi=None``: the batch's, whose xi each problem carries; a solver
+        given as an object is every configuration's)."""
+        given = self.methods[method]
+        if given == "mm":
+            return MM(xi, self.subproblem)
+        if given == "amm":
+            return AMM(xi, self.restart, self.subproblem)
+        return given
+
+    def aggregate(self, method: str) -> int | None:
+        """The coarse aggregate size the method's settings fix (None: automatic)."""
+        given = self.methods[method]
+        if isinstance(given, str):
+            sub = self.subproblem
+        else:
+            config = getattr(given, "config", None)
+            sub = getattr(config, "subproblem", None) or getattr(given, "inner", None)
+        return getattr(sub, "aggregate", None)
 
     def _start_key(self, gi: int, a: int, li: int) -> tuple:
         """(cache key, start method, options, whether it depends on the robot count) of a start."""
@@ -633,7 +662,7 @@ def _run_group(plan: _Plan, method: str, gkeys: list, out: _Outputs, max_batch_b
     """One compiled group: the configurations ``gkeys`` padded to one shape, run in batches."""
     n_max, e_max, kc = (max(plan.needs[k[:2]][i] for k in gkeys) for i in range(3))
     # one coarse aggregate size per batch (a static field): the config's, else the largest automatic one
-    agg = plan.subproblem.aggregate or max(plan.needs[k[:2]][3] for k in gkeys)
+    agg = plan.aggregate(method) or max(plan.needs[k[:2]][3] for k in gkeys)
     A = max(k[1] for k in gkeys)
     layout = Padded(n_max, e_max, A, couplings=kc, aggregate=agg, mask_fixed=plan.any_fixed)
     termination = Termination(plan.iterations, plan.chunk_size, stop_when_stalled=False)
@@ -692,7 +721,7 @@ def _run_batch(plan: _Plan, method: str, bkeys: list, runs: list, per_batch: int
         return lambda st, lim: compiled(solver, problem, st, lim)
 
     # sweeps never stop early: the driver keeps the records on the device and fetches f once
-    traces = TRACE_COUNTS[method]
+    traces = sum(TRACE_COUNTS.values())
     try:
         driven = drive(compile_chunk, state, start, termination, fetch=None)
     except NonFiniteError as err:
@@ -701,7 +730,7 @@ def _run_batch(plan: _Plan, method: str, bkeys: list, runs: list, per_batch: int
         raise NonFiniteError(f"sweep ({method}), in a batch of {which}: {err}") from None
     if b == 0:
         group["compile_seconds"] = driven.compile_seconds
-        group["traces"] = TRACE_COUNTS[method] - traces  # 1 (0: jax's trace cache hit)
+        group["traces"] = sum(TRACE_COUNTS.values()) - traces  # 1 (0: jax's trace cache hit)
     final = jax.device_get(driven.state)
     for c, (key, run) in enumerate(zip(bkeys, runs, strict=True)):
         one = Driven(state=jax.tree.map(lambda x, c=c: x[c], final),
@@ -787,6 +816,51 @@ def _loss_values(loss, scale, gnc) -> dict[str, RobustLoss | None]:
         trust = {v.trust_odometry for v in out.values()}
         if len(trust) > 1:
             raise ValueError("the losses of one sweep must agree on trust_odometry (a static setting)")
+    return out
+
+
+def _methods(methods, *, xi, several_xi: bool, restart, subproblem, loss) -> dict:
+    """label -> "mm" / "amm" (made per configuration with the sweep's xi, restart and subproblem) or
+    the :class:`Solver` of every configuration, of ``sweep``'s ``methods``; a shortcut that no method
+    takes, a sequence of xi beside a method with its own settings, a robust ``loss`` (the first
+    robust :class:`RobustLoss`, None: none) beside a least-squares method and two methods with one
+    label are refused."""
+    if isinstance(methods, (str, Solver)):
+        items = [(None, methods)]
+    elif isinstance(methods, Mapping):
+        items = [(str(k), v) for k, v in methods.items()]
+    elif isinstance(methods, Sequence):
+        items, seen = [], set()
+        for m in methods:
+            if isinstance(m, str) and m in seen:
+                continue  # a name given twice runs once
+            seen.add(m if isinstance(m, str) else id(m))
+            items.append((None, m))
+    else:
+        raise TypeError(f"methods: expected method names or solvers (a sequence or a mapping label -> method), got "
+                        f"{type(methods).__name__}")
+    if not items:
+        raise ValueError("methods: give at least one method")
+    out: dict = {}
+    for label, m in items:
+        value = m if isinstance(m, str) and m in MAJORIZATION else solver_for(m)
+        label = (m if isinstance(value, str) else method_name(value)) if label is None else label
+        if label in out:
+            raise ValueError(f"two methods of the sweep are named {label!r} (e.g. two RBCD solvers with other "
+                             "settings): give the methods as a mapping label -> method")
+        out[label] = value
+    by_name = [v for v in out.values() if isinstance(v, str)]
+    own = [k for k, v in out.items() if not isinstance(v, str)]
+    for option, value, takers in (("xi", xi, MAJORIZATION), ("restart", restart, ("amm",)),
+                                  ("subproblem", subproblem, MAJORIZATION)):
+        if value is not None and not set(by_name) & set(takers):
+            raise ValueError(f"{option} applies to the methods {' and '.join(map(repr, takers))} given by name; no "
+                             f"method of this sweep takes it ({', '.join(map(repr, out))})")
+    if several_xi and own:
+        raise ValueError(f"a sequence of xi sweeps the proximal term of 'mm' / 'amm' given by name; {own[0]!r} keeps "
+                         "its own settings: sweep it apart")
+    for k in own:
+        check_loss(out[k], loss)
     return out
 
 
