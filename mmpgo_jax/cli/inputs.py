@@ -174,8 +174,10 @@ def reference_fstar(data: LoadedInput):
 
 
 def check_solve_flags(args) -> None:
-    """Refuse, before anything is read, the option combinations of ``--pcm`` and ``--distributed``
-    that cannot run: a centralized step under ``--distributed`` (one line naming the option)."""
+    """Refuse, before anything is read, the option combinations that cannot run: ``--xi`` /
+    ``--restart`` / a robust ``--loss`` with a method that does not take them, and of ``--pcm`` and
+    ``--distributed``: a centralized step under ``--distributed`` (one line naming the option)."""
+    check_method_flags(args)
     if getattr(args, "pcm_confidence", None) is not None and not getattr(args, "pcm", False):
         raise CLIError("--pcm-confidence applies with --pcm")
     if not getattr(args, "distributed", False):
@@ -183,6 +185,22 @@ def check_solve_flags(args) -> None:
     for (attr, value), why in CENTRALIZED_OPTIONS.items():
         if getattr(args, attr, None) == value:
             raise CLIError(f"--distributed: {why}")
+
+
+def check_method_flags(args) -> None:
+    """``--xi`` (mm, amm), ``--restart`` (amm) and a robust ``--loss`` (mm, amm) refused, in one line,
+    with a ``--method`` that does not take them."""
+    from .._solve.methods import MAJORIZATION
+
+    method = getattr(args, "method", "amm")
+    if getattr(args, "xi", None) is not None and method not in MAJORIZATION:
+        raise CLIError(f"--xi applies to --method mm and amm, not {method} (a proximal term of MM)")
+    if getattr(args, "restart", None) is not None and method != "amm":
+        raise CLIError(f"--restart applies to --method amm, not {method} (a restart rule of AMM's momentum)")
+    loss = getattr(args, "loss", "l2")
+    if loss != "l2" and method not in MAJORIZATION:
+        raise CLIError(f"--loss {loss}: --method {method} minimises the least-squares F only (robust losses run "
+                       "with --method mm or amm)")
 
 
 def solve_options(args, data: LoadedInput) -> dict:
@@ -194,7 +212,8 @@ def solve_options(args, data: LoadedInput) -> dict:
     robust = {} if getattr(args, "loss", "l2") == "l2" else dict(loss=args.loss, loss_scale=args.loss_scale)
     if robust and getattr(args, "gnc", False):
         robust["gnc"] = GNCConfig()
-    restart = {"restart": args.restart} if args.method == "amm" else {}  # MM has no restart rule
+    # the methods' own defaults where not given (--xi and --restart only with the methods that take them)
+    shortcuts = {k: getattr(args, k) for k in ("xi", "restart") if getattr(args, k) is not None}
     check_solve_flags(args)
     if getattr(args, "pcm", False):
         from .._solve.prefilter import PCM
@@ -203,6 +222,6 @@ def solve_options(args, data: LoadedInput) -> dict:
     if getattr(args, "distributed", False):
         robust["distributed"] = True
     return dict(method=args.method, iterations=args.iterations, init=data.start(args.init, SOLVE_STARTS),
-                initial=data.initial, xi=args.xi, chunk_size=args.chunk, grad_tol=args.grad_tol,
-                stop_when_stalled=not args.all_iterations, fixed=data.fixed, frame=data.frame, **restart,
+                initial=data.initial, chunk_size=args.chunk, grad_tol=args.grad_tol,
+                stop_when_stalled=not args.all_iterations, fixed=data.fixed, frame=data.frame, **shortcuts,
                 **robust, **checkpoint_options(args))

@@ -167,8 +167,12 @@ def print_summary(result, fstar, data: LoadedInput | None = None) -> None:
     fstar = comparable_fstar(result, fstar)
     h = result.history
     split = f" ({data.robots_label})" if data is not None and data.robots_label else ""
-    restart = f", restart={result.config.restart}" if result.config.method == "amm" else ""  # MM has none
-    print(f"method      {result.config.method.upper()}-PGO, {result.partition.num_robots} robots{split}{restart}")
+    from .._solve.methods import method_label, method_name
+
+    cfg = result.config  # MM / AMM's settings (None for another method)
+    restart = f", restart={cfg.restart}" if cfg is not None and cfg.method == "amm" else ""  # MM has none
+    label = method_label(method_name(result.solver))
+    print(f"method      {label}, {result.partition.num_robots} robots{split}{restart}")
     print(f"iterations  {h.iterations} ({result.stop_description})")
     print(f"f = 2F      {h.f[0]:.6f} -> {h.f[-1]:.6f}")
     if fstar is not None:

@@ -131,6 +131,7 @@ def _cli_solve_sharded(args) -> int:
     """Mirror of ``mmpgo solve`` (:mod:`mmpgo_jax.cli.commands.solve`) with :func:`solve_sharded`; process 0 writes."""
     import jax
 
+    from .._solve.methods import method_label
     from ..sharding import solve_sharded
     from .errors import CLIError
     from .inputs import load_for_solve, reference_fstar, resolve_file, solve_options
@@ -140,7 +141,7 @@ def _cli_solve_sharded(args) -> int:
     writer = jax.process_index() == 0
     args.file = str(resolve_file(args.file, args.data, announce=writer))
     quiet = (not writer) or args.no_progress
-    with progress_bar(f"{args.method.upper()}-PGO", args.iterations, disable=quiet,
+    with progress_bar(method_label(args.method), args.iterations, disable=quiet,
                       show_gradient=args.grad_tol is not None) as progress:
         progress.phase("reading")
         t = time.perf_counter()

@@ -1,4 +1,5 @@
-"""``mmpgo solve FILE``: MM-PGO / AMM-PGO on one device, the CPU cores of this one (``--threads``),
+"""``mmpgo solve FILE``: MM-PGO / AMM-PGO (``--method``: any name of the methods registry,
+:mod:`mmpgo_jax._solve.methods`) on one device, the CPU cores of this one (``--threads``),
 or sharded over devices and processes (``--devices``, ``--processes``, multi-host: handed over to
 :mod:`mmpgo_jax.cli.sharded_solve`). The solvers are imported inside :func:`run`, the sharded one
 only when asked for (tests/test_architecture.py checks what this command loads)."""
@@ -14,7 +15,7 @@ from ..robots import FILE_HELP, add_robots_from
 
 
 def register(sub) -> None:
-    p = sub.add_parser("solve", help="run MM-PGO / AMM-PGO on a g2o file")
+    p = sub.add_parser("solve", help="run MM-PGO / AMM-PGO (or a baseline: RBCD, RBCD++, DGS) on a g2o file")
     p.add_argument("file", help=FILE_HELP)
     _add_solver_options(p)
     p.add_argument("--out", "-o", help="write the estimate as g2o (VERTEX lines + the original edges)")
@@ -49,7 +50,12 @@ def _add_solver_options(p: argparse.ArgumentParser) -> None:
                    help="number of robots, >= 1 and at most the number of poses (for --robots-from blocks, metis, "
                         "random; default 10)")
     add_robots_from(p)
-    p.add_argument("--method", choices=("amm", "mm"), default="amm", help="AMM-PGO (default) or MM-PGO")
+    from ..._solve.methods import METHOD_NAMES  # names only: no solver is imported here
+
+    p.add_argument("--method", choices=METHOD_NAMES, default="amm", metavar="METHOD",
+                   help="amm (AMM-PGO, default), mm (MM-PGO), rbcd / rbcd++ (Riemannian block-coordinate descent, "
+                        "greedy block; ++: accelerated), rbcd[++]-uniform, rbcd[++]-round-robin, rbcd[++]-parallel "
+                        "(other block selections), dgs (distributed Gauss-Seidel)")
     p.add_argument("--iterations", "-n", type=ITERATIONS, default=1000,
                    help="at most this many outer iterations, >= 0 (default 1000); the run stops earlier when f "
                         "moves only by rounding (see --all-iterations) or at --grad-tol")
@@ -62,10 +68,10 @@ def _add_solver_options(p: argparse.ArgumentParser) -> None:
              "chordal stages, not bent by outliers), distributed-chordal, vertices, odometry, or a .g2o/.npz file "
              "of poses",
     )
-    p.add_argument("--restart", choices=("adaptive", "average", "paper"), default="adaptive",
-                   help="AMM restart rule (default adaptive; see README)")
-    p.add_argument("--xi", type=finite_float(0.0), default=1e-3,
-                   help="proximal weight xi of Eq. (13), finite and >= 0 (default 1e-3)")
+    p.add_argument("--restart", choices=("adaptive", "average", "paper"), default=None,
+                   help="AMM restart rule (default adaptive; see README); --method amm only")
+    p.add_argument("--xi", type=finite_float(0.0), default=None,
+                   help="proximal weight xi of Eq. (13), finite and >= 0 (default 1e-3); --method mm and amm only")
     p.add_argument("--grad-tol", type=finite_float(0.0, strict=True), default=None,
                    help="stop when ||grad F|| falls below this (finite, > 0)")
     p.add_argument("--chunk", type=int_in(1, INT_MAX), default=50,
@@ -134,6 +140,7 @@ def _solve(args) -> int:
 
     from ... import solve
     from ..._mm.robust import GNC_LOSSES
+    from ..._solve.methods import method_label
     from ..devices import thread_devices
     from ..errors import CLIError
     from ..inputs import load_for_solve, reference_fstar, resolve_file, solve_options
@@ -150,7 +157,7 @@ def _solve(args) -> int:
         raise CLIError(f"{flag} needs a robust --loss (huber, cauchy, geman-mcclure, welsch or tls){alternative}")
     if args.gnc and args.loss not in GNC_LOSSES:
         raise CLIError(f"--gnc applies to --loss {' and '.join(GNC_LOSSES)}, not {args.loss}")
-    with progress_bar(f"{args.method.upper()}-PGO", args.iterations, disable=args.no_progress,
+    with progress_bar(method_label(args.method), args.iterations, disable=args.no_progress,
                       show_gradient=args.grad_tol is not None) as progress:
         progress.phase("reading")
         t = time.perf_counter()
