@@ -17,7 +17,8 @@ Public API (the private modules are implementation details):
   :func:`loss_weight` (the edge weight rho'(s)) of a kernel by name (or code, :func:`loss_code`), at scale c
 * outlier experiments: :func:`add_outlier_loop_closures` (seeded wrong loop closures, a
   :class:`CorruptedGraph`), :func:`outlier_scores` (precision / recall of rejected edges, :class:`OutlierScores`)
-* baselines: :func:`dgs` (distributed Gauss–Seidel, the paper's DGS column, a :class:`DGSResult`)
+* baselines: :class:`DGS` (distributed Gauss–Seidel, the paper's DGS column, a solver of :func:`solve`) and
+  :func:`dgs` (both of its stages, a :class:`DGSResult`)
 * consistency pre-filter: :func:`pcm_filter` (PCM: the maximum pairwise-consistent set of inter-robot loop
   closures per robot pair, a :class:`PCMResult`)
 * solvers: :func:`solve` (one path: a :class:`Solver` — :class:`AMM`, :class:`MM` —, a start, a
@@ -38,7 +39,7 @@ import importlib
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:  # the same names, eagerly, for type checkers and IDEs
-    from ._baselines.dgs import DGSResult, dgs
+    from ._baselines.dgs import DGS, DGSResult, dgs
     from ._baselines.rbcd import RBCD
     from ._core.compilation_cache import enable_compilation_cache
     from ._core.gauge import FixedPoses, express_in_frame
@@ -176,6 +177,7 @@ _LAZY = {  # public name -> the private module that defines it (imported on firs
     "CorruptedGraph": "._experiments.outliers",
     "OutlierScores": "._experiments.outliers",
     "PCMResult": "._robust.pcm",
+    "DGS": "._baselines.dgs",
     "DGSResult": "._baselines.dgs",
     "dgs": "._baselines.dgs",
     "RBCD": "._baselines.rbcd",
@@ -277,6 +279,7 @@ __all__ = [
     "RBCD",
     "RESULTS",
     "CorruptedGraph",
+    "DGS",
     "DGSResult",
     "DatasetNotFoundError",
     "FStarReference",

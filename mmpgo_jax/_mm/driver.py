@@ -38,6 +38,7 @@ class RESULTS(enum.Enum):
     rel_change_tol = "rel_change_tol"
     stalled = "stalled"
     callback = "callback"
+    converged = "converged"
 
     def describe(self, termination: Termination) -> str:
         t = termination
@@ -54,6 +55,8 @@ class RESULTS(enum.Enum):
         if self is RESULTS.stalled:
             return (f"stationary: f moved by at most {STALL_EPS} x machine epsilon (relative) over the last "
                     f"{t.length} iterations, i.e. only by rounding")
+        if self is RESULTS.converged:
+            return "the solver's own stopping rule held"
         return "stopped by the callback"
 
 
@@ -223,6 +226,17 @@ class Driven:
     solve_seconds: float
 
 
+def converged_at(state) -> int | None:
+    """The iteration after which the solver's own stopping rule held, read from a state with a
+    ``converged_at`` field (-1 while it has not; a sweep's configurations: once all have, the last
+    of them), or None. Such a solver leaves its state unchanged after that iteration."""
+    at = getattr(state, "converged_at", None)
+    if at is None:
+        return None
+    at = np.asarray(jax.device_get(at))
+    return int(at.max()) if np.all(at >= 0) else None
+
+
 def _chunks_of(history: History, length: int) -> tuple[list, list, list]:
     """The driver's lists of a history: the start, then chunks of ``length`` iterations."""
     K = history.iterations
@@ -254,7 +268,9 @@ def drive(
     grad_norm (restarted: (..., length, A)); leading axes (a sweep's configurations) are kept.
     ``fetch=None``: the run cannot stop early (no tolerance, no callback), so the records stay on
     the device and are fetched once at the end. ``callback(k, f)`` after each chunk (k iterations
-    so far; True stops the run). ``agree``: the stop decision every process takes (multi-process).
+    so far; True stops the run). A solver with its own stopping rule reports it in its state
+    (:func:`converged_at`): the run stops after that chunk with ``RESULTS.converged`` and its history
+    ends at that iteration. ``agree``: the stop decision every process takes (multi-process).
     ``monitor``: told of the "compiling" and "iterating" phases and of each chunk (:class:`Monitor`).
     ``checkpoint(done, length, state, fs, gs, rs)``: after every chunk the run goes on from (the
     iterations done, the chunk length, the state, the history so far as lists of chunks), e.g. a
@@ -307,6 +323,8 @@ def drive(
             monitor.chunk(done, fs[-1], gs[-1])
             if callback is not None and callback(done, f[..., :take]):
                 reason = reason or RESULTS.callback
+            if converged_at(state) is not None:
+                reason = RESULTS.converged
             if agree is not None:
                 reason = agree(reason)
             if reason is not None:
@@ -325,4 +343,9 @@ def drive(
             solve_seconds = time.perf_counter() - t
             termination(fs, gs)  # the non-finite guard
     history = History(np.concatenate(fs, -1), np.concatenate(gs, -1), np.concatenate(rs, -2))
+    at = converged_at(state)
+    if at is not None:  # the history ends at the iteration where the solver's rule held
+        keep = at + 1
+        history = History(history.f[..., :keep], history.grad_norm[..., :keep], history.restarts[..., :keep, :])
+        result = RESULTS.converged
     return Driven(state, history, result, compile_seconds, solve_seconds)
