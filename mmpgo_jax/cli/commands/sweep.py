@@ -1,7 +1,8 @@
-"""``mmpgo sweep``: MM / AMM over several robot counts (and files) in one compiled computation per
-shape, with the split of ``--robots-from`` (blocks, metis, random); the command-line face of
-:func:`mmpgo_jax.sweep`. ``--losses`` adds robust kernels as an axis and ``--outlier-rates`` runs
-each file again with seeded wrong loop closures added
+"""``mmpgo sweep``: MM / AMM (``--methods``: any names of the methods registry,
+:mod:`mmpgo_jax._solve.methods`, e.g. rbcd, rbcd++, dgs) over several robot counts (and files) in one
+compiled computation per method and shape, with the split of ``--robots-from`` (blocks, metis,
+random); the command-line face of :func:`mmpgo_jax.sweep`. ``--losses`` adds robust kernels as an
+axis and ``--outlier-rates`` runs each file again with seeded wrong loop closures added
 (:func:`mmpgo_jax._experiments.outliers.add_outliers`), scored by precision and recall."""
 
 from __future__ import annotations
@@ -29,16 +30,20 @@ percent.__name__ = "number"
 
 
 def register(sub) -> None:
-    p = sub.add_parser("sweep", help="MM / AMM over several robot counts in one compiled computation per shape")
+    p = sub.add_parser("sweep", help="MM / AMM (or baselines: RBCD, RBCD++, DGS) over several robot counts in one "
+                                     "compiled computation per method and shape")
     p.add_argument("files", nargs="+", metavar="FILE", help=FILE_HELP + " (one or more, same dimension)")
     p.add_argument("--robots", "-A", type=ROBOTS, nargs="+", default=[5, 10, 50],
                    help="robot counts, each >= 1 and at most the poses of every file (default 5 10 50)")
     add_robots_from(p, ("blocks", "metis", "random"))
-    p.add_argument("--methods", nargs="+", choices=("mm", "amm"), default=["mm", "amm"],
-                   help="methods (default mm amm)")
+    from ..._solve.methods import METHOD_NAMES  # names only: no solver is imported here
+
+    p.add_argument("--methods", nargs="+", choices=METHOD_NAMES, metavar="METHOD", default=["mm", "amm"],
+                   help="methods (default mm amm): mm, amm, rbcd, rbcd++, rbcd[++]-uniform, rbcd[++]-round-robin, "
+                        "rbcd[++]-parallel, dgs (as mmpgo solve --method)")
     p.add_argument("--iterations", "-n", type=int_in(1, INT_MAX), default=1000, help="outer iterations (default 1000)")
-    p.add_argument("--restart", choices=("adaptive", "paper", "average"), default="adaptive",
-                   help="AMM restart rule (default adaptive)")
+    p.add_argument("--restart", choices=("adaptive", "paper", "average"), default=None,
+                   help="AMM restart rule (default adaptive); needs amm among --methods")
     p.add_argument("--fstar", choices=("registry", "centralized", "none"), default="registry",
                    help="reference optimum of the gaps: the registry's certified f* where the file is a known "
                         "benchmark, else the centralized optimum (registry, default); always the centralized "
@@ -70,6 +75,8 @@ def run(args: argparse.Namespace) -> int:
     from ..inputs import resolve_file
     from ..robots import read_input
 
+    methods = tuple(dict.fromkeys(args.methods))
+    _check_methods(args, methods)
     rates = None if args.outlier_rates is None else list(dict.fromkeys(args.outlier_rates))
     robust = args.losses is not None and any(k != "l2" for k in args.losses)
     gaps = args.fstar != "none" and not robust and not any(rates or [])
@@ -96,7 +103,7 @@ def run(args: argparse.Namespace) -> int:
             fstar[key] = reference_optimum(graph)
     say = None if args.no_progress else (lambda line: print(line, flush=True))
     t = time.perf_counter()
-    res = sweep(graphs, sorted(set(args.robots)), tuple(args.methods), args.iterations, restart=args.restart,
+    res = sweep(graphs, sorted(set(args.robots)), methods, args.iterations, restart=args.restart,
                 fstar=fstar or None, split=args.robots_from or "blocks", seed=args.seed, progress=say,
                 loss=list(dict.fromkeys(args.losses)) if args.losses else None)
     print(f"{len(res.configs)} configurations in {time.perf_counter() - t:.1f} s "
@@ -108,6 +115,23 @@ def run(args: argparse.Namespace) -> int:
         if args.configs:
             res.configs_to_csv(args.configs)
     return 0
+
+
+def _check_methods(args, methods: tuple) -> None:
+    """Before any file is read: ``--restart`` without amm, robust ``--losses`` with a least-squares
+    method and a method that cannot run (dgs before it is a solver) refused in one line."""
+    from ..._solve.methods import MAJORIZATION, solver_for
+    from ..errors import CLIError
+
+    if args.restart is not None and "amm" not in methods:
+        raise CLIError(f"--restart applies to amm, which is not among --methods {' '.join(methods)}")
+    robust = [k for k in args.losses or () if k != "l2"]
+    others = [m for m in methods if m not in MAJORIZATION]
+    if robust and others:
+        raise CLIError(f"--losses {robust[0]}: {others[0]} minimises the least-squares F only (robust losses run "
+                       "with mm or amm)")
+    for m in others:
+        solver_for(m)  # ValueError (one line) where the method is not available
 
 
 def _with_outliers(key: str, graph, rates, seed: int) -> dict:
