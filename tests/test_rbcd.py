@@ -1,7 +1,9 @@
 """RBCD / RBCD++ (mmpgo_jax._baselines.rbcd) against independent references: the block problem is F
 with the neighbours fixed (an exact quadratic), its minimiser by SciPy's exact-Hessian trust region in a chart, the block-gradient
 norms from the graph's own Riemannian gradient, descent, colour classes, the centralized optimum,
-fixed poses, and the same run sharded over two devices."""
+fixed poses, and the same run sharded over two devices. The lifted rank r > d: iterates on the
+Stiefel manifold, descent, the lifted gradient against autodiff and finite differences, the rounded
+result against the optimum, r = d bit for bit as rank=None; checkpoints; the communication counts."""
 
 import json
 import os
@@ -16,9 +18,11 @@ import pytest
 import scipy.optimize
 
 import mmpgo_jax as mm
-from mmpgo_jax._baselines.rbcd import RBCD, robot_colouring
+from mmpgo_jax._baselines.rbcd import RBCD, boundary_poses_sent, rbcd_poses_sent, robot_colouring
+from mmpgo_jax._baselines.rbcd_lifted import lift_matrix
 from mmpgo_jax._mm.driver import Termination
 from mmpgo_jax._mm.majorization import build_gamma_operator, soa_to_gamma, stack, unstack
+from mmpgo_jax._mm.solvers import run_chunk
 from mmpgo_jax._mm.weighting import gradients
 
 SELECTIONS = ("greedy", "uniform", "round-robin", "parallel")
@@ -240,8 +244,10 @@ def test_fixed_poses_do_not_move(cube):
 def test_arguments_are_checked(cube):
     with pytest.raises(ValueError, match="selection"):
         RBCD("random")
-    with pytest.raises(ValueError, match="not implemented"):
-        mm.solve(cube, 2, solver=RBCD(rank=5), iterations=1)
+    with pytest.raises(ValueError, match="at least d = 3"):
+        mm.solve(cube, 2, solver=RBCD(rank=2), iterations=1)
+    with pytest.raises(ValueError, match="block-Jacobi only"):
+        mm.solve(cube, 2, solver=RBCD(rank=5, inner=mm.SubproblemConfig()), iterations=1)
     with pytest.raises(ValueError, match="least-squares"):
         mm.solve(cube, 2, solver=RBCD(), loss="cauchy", iterations=1)
 
@@ -278,3 +284,116 @@ def test_sharded_run_gives_the_same_history():
         assert sharded["devices"] == 2 and len(one["f"]) == 31
         np.testing.assert_allclose(sharded["f"], one["f"], rtol=1e-10, atol=0, err_msg=name)
         assert sharded["restarts"] == one["restarts"]
+
+
+# --- the lifted rank r > d ---------------------------------------------------------------------
+
+LIFTED = [("cube", 5), ("grid", 3)]  # (dataset, r): d = 3 lifted to 5, d = 2 to 3
+
+
+@pytest.mark.parametrize(("dataset", "rank"), LIFTED)
+def test_lifted_iterates_stay_on_the_stiefel_manifold_and_descend(dataset, rank, request):
+    graph = request.getfixturevalue(dataset)
+    d = graph.dim
+    solver = RBCD("round-robin", rank=rank)
+    part, problem, X, _ = _setup(graph, 4, solver)
+    state, rec0 = jax.jit(solver.init)(problem, unstack(X))
+    state, recs = run_chunk(solver, problem, state, 30)
+    mask = np.asarray(part.pose_mask)
+    Y = np.asarray(state.X)[mask]
+    assert Y.shape[1:] == (rank, d + 1)
+    R = Y[..., 1:]
+    np.testing.assert_allclose(np.swapaxes(R, -1, -2) @ R, np.broadcast_to(np.eye(d), (len(R), d, d)), rtol=0,
+                               atol=1e-10)
+    f = np.concatenate([[float(rec0.f)], np.asarray(recs.f)])
+    np.testing.assert_allclose(f[0], 2 * _F(graph, *_global(part, X)), rtol=1e-12)  # the lift keeps f
+    np.testing.assert_allclose(f[-1], 2 * _F(graph, *_global(part, state.X)), rtol=1e-12)  # F on lifted poses
+    assert np.all(np.diff(f) <= 1e-12 * f[0]), np.diff(f).max()
+    assert f[-1] < 0.8 * f[0]
+
+
+@pytest.mark.parametrize(("dataset", "rank"), LIFTED)
+def test_lifted_gradient(dataset, rank, request):
+    """grad F on lifted poses (the solver's gradients) equals autodiff of F written from the edges, and
+    central differences of F along random directions (F is quadratic: exact up to rounding)."""
+    graph = request.getfixturevalue(dataset)
+    d = graph.dim
+    part, problem, X, _ = _setup(graph, 3, RBCD(rank=rank))
+    rng = np.random.default_rng(1)
+    Q, _ = np.linalg.qr(rng.standard_normal((*X.shape[:2], rank, d)))  # random Stiefel blocks
+    Y = np.concatenate([rng.standard_normal((*X.shape[:2], rank, 1)), Q], axis=-1)
+    Y = np.where(np.asarray(part.pose_mask)[..., None, None], Y, 0.0)
+    grad = np.asarray(jax.jit(gradients)(problem, jnp.asarray(Y))[0])
+    R, t = _global(part, Y)
+    gR, gt = jax.grad(_F, argnums=(1, 2))(graph, jnp.asarray(R), jnp.asarray(t))
+    Pg = part.gather(unstack(grad))
+    np.testing.assert_allclose(Pg.R, gR, rtol=0, atol=1e-10 * np.abs(gR).max())
+    np.testing.assert_allclose(Pg.t, gt, rtol=0, atol=1e-10 * np.abs(gt).max())
+    for _ in range(3):
+        D = rng.standard_normal(Y.shape) * np.asarray(part.pose_mask)[..., None, None]
+        h = 1e-3
+        fd = (_F(graph, *_global(part, Y + h * D)) - _F(graph, *_global(part, Y - h * D))) / (2 * h)
+        np.testing.assert_allclose(fd, np.sum(grad * D), rtol=1e-8)
+
+
+@pytest.mark.parametrize(("dataset", "rank"), LIFTED)
+def test_rounded_result_is_near_the_optimum(dataset, rank, request):
+    graph = request.getfixturevalue(dataset)
+    fstar = mm.centralized_optimum(graph).f
+    r = mm.solve(graph, 4, solver=RBCD("greedy", accelerated=True, rank=rank),
+                 termination=Termination(600, 50, f_target=fstar * (1 + 1e-6)))
+    lifted, rounded = r.stats["rbcd_lifted_f"], r.stats["rbcd_rounded_f"]
+    np.testing.assert_allclose(lifted, r.history.f[-1], rtol=1e-12)
+    R, t = np.asarray(r.poses.R), np.asarray(r.poses.t)
+    assert R.shape[-2:] == (graph.dim, graph.dim) and t.shape[-1] == graph.dim
+    np.testing.assert_allclose(rounded, 2 * _F(graph, R, t), rtol=1e-12)
+    np.testing.assert_allclose(np.swapaxes(R, -1, -2) @ R, np.broadcast_to(np.eye(graph.dim), R.shape), atol=1e-12)
+    assert np.all(np.linalg.det(R) > 0)
+    # the iterates keep the lift's rank d, so rounding loses nothing but the iterates' rounding errors
+    assert rounded >= lifted * (1 - 1e-9), (rounded, lifted)
+    assert rounded <= fstar * (1 + 1e-5), rounded / fstar - 1
+
+
+@pytest.mark.parametrize("accelerated", [False, True])
+def test_rank_d_is_rank_none_bit_for_bit(cube, accelerated):
+    term = Termination(25, 25, stop_when_stalled=False)
+    a = mm.solve(cube, 4, solver=RBCD("greedy", accelerated=accelerated), termination=term)
+    b = mm.solve(cube, 4, solver=RBCD("greedy", accelerated=accelerated, rank=3), termination=term)
+    np.testing.assert_array_equal(a.history.f, b.history.f)
+    np.testing.assert_array_equal(a.poses.R, b.poses.R)
+    np.testing.assert_array_equal(a.poses.t, b.poses.t)
+    assert not any(k.startswith("rbcd_") for k in b.stats)
+
+
+def test_lift_matrix_is_fixed_and_orthonormal():
+    P = lift_matrix(5, 3)
+    np.testing.assert_allclose(P.T @ P, np.eye(3), atol=1e-15)
+    np.testing.assert_array_equal(P, lift_matrix(5, 3))
+
+
+@pytest.mark.parametrize("rank", [None, 5])
+def test_resumed_rbcd_plus_plus_equals_the_uninterrupted_run(tmp_path, cube, rank):
+    """As tests/test_checkpoint.py does for MM: stopped after 30 iterations (checkpoints every 20),
+    resumed from the checkpoint, the f history and the poses equal the uninterrupted run's."""
+    ck = tmp_path / "rbcd.ckpt"
+    opts = dict(solver=RBCD("greedy", accelerated=True, rank=rank), iterations=50, chunk_size=10)
+    full = mm.solve(cube, 4, **opts)
+    cut = mm.solve(cube, 4, callback=lambda k, f: k >= 30, checkpoint=ck, checkpoint_every=2, **opts)
+    assert cut.iterations == 30 and cut.stop_reason == "callback"
+    resumed = mm.solve(cube, 4, resume=ck, **opts)
+    assert resumed.iterations == full.iterations
+    np.testing.assert_array_equal(resumed.history.f, full.history.f)
+    np.testing.assert_array_equal(resumed.history.restarts, full.history.restarts)
+    np.testing.assert_array_equal(resumed.poses.R, full.poses.R)
+    np.testing.assert_array_equal(resumed.poses.t, full.poses.t)
+
+
+def test_poses_sent(grid):
+    part = mm.partition(grid, 6)
+    sent = boundary_poses_sent(part)
+    np.testing.assert_array_equal(sent, mm.partition_stats(grid, part.robot_of_pose).sent_poses)
+    total = sent.sum()
+    assert rbcd_poses_sent(part, "round-robin") == total / 6 == rbcd_poses_sent(part, "greedy")
+    C = robot_colouring(part).max() + 1
+    assert rbcd_poses_sent(part, "parallel") == total / C
+    assert rbcd_poses_sent(part, "uniform", accelerated=True) == total / 6 + total

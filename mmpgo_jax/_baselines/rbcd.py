@@ -49,6 +49,7 @@ import networkx as nx
 import numpy as np
 
 from .._core.partition import Partition
+from .._core.pose_graph import Poses, cost, host_graph
 from .._core.precision import to_device
 from .._core.validate import check_choice, check_count, check_flag, check_real
 from .._mm.majorization import GammaSoA, build_gamma_operator, host_soa, stack
@@ -57,8 +58,10 @@ from .._mm.preconditioner import NewtonPreconditioner, build_newton_precondition
 from .._mm.solvers import Solver
 from .._mm.subproblem import SubproblemConfig, project_rotations, solve_subproblem, tangent_projection
 from .._mm.weighting import LOCAL, Collectives, gradients
+from .rbcd_lifted import LiftedPreconditioner, lift_matrix, round_lifted
 
-__all__ = ["RBCD", "SELECTIONS", "RBCDProblem", "RBCDState", "robot_colouring"]
+__all__ = ["RBCD", "SELECTIONS", "RBCDProblem", "RBCDState", "boundary_poses_sent", "rbcd_poses_sent",
+           "robot_colouring"]
 
 SELECTIONS = ("greedy", "uniform", "round-robin", "parallel")
 
@@ -85,6 +88,40 @@ def robot_colouring(part: Partition) -> np.ndarray:
     return colour
 
 
+def boundary_poses_sent(part: Partition) -> np.ndarray:
+    """(A,) poses each robot sends in one neighbour exchange: its poses at the ends of inter-robot
+    edges, once per neighbour that needs them (host; = :func:`~mmpgo_jax.partition_stats`'s
+    ``sent_poses``, read from the partition's own edge lists). One MM/AMM iteration sends their sum."""
+    e = part.edges
+    local_i = np.asarray(e.local_i)
+    inter = local_i ^ np.asarray(e.local_j)  # one end elsewhere: received by the edge list's owner
+    owner = np.broadcast_to(np.arange(part.num_robots)[:, None], inter.shape)[inter]
+    sender = np.where(local_i, np.asarray(e.robot_j), np.asarray(e.robot_i))[inter]
+    pose = np.where(local_i, np.asarray(e.slot_j), np.asarray(e.slot_i))[inter]
+    triples = np.unique(np.stack([owner, sender, pose], 1), axis=0)
+    return np.bincount(triples[:, 1], minlength=part.num_robots).astype(np.int64)
+
+
+def rbcd_poses_sent(part: Partition, selection: str = "greedy", accelerated: bool = False) -> float:
+    """Poses one RBCD / RBCD++ iteration sends (logical volume, mean over iterations), against
+    ``boundary_poses_sent(part).sum()`` for one MM/AMM iteration: the updated robots' boundary poses
+    -- one robot's for "greedy", "uniform" and "round-robin" (the mean over robots: exact over a
+    round-robin cycle, the expectation for "uniform", an estimate for "greedy", whose choice depends
+    on the data), a colour class's for "parallel" (the mean over classes: every robot once per C
+    iterations). RBCD++ adds every robot's boundary poses of Y (its neighbours evaluate the selected
+    block's problem at Y and set their blocks to Y); an adaptive restart's second pass (rare) sends
+    the re-selected block once more and is not counted. Scalars are not counted: greedy's two
+    ``max`` reductions of one number per robot, the f of the record (and RBCD++'s restart test)."""
+    check_choice("rbcd_poses_sent", "selection", selection, SELECTIONS)
+    sent = boundary_poses_sent(part)
+    total = float(sent.sum())
+    if selection == "parallel":
+        per_iteration = total / max(int(robot_colouring(part).max(initial=-1)) + 1, 1)
+    else:
+        per_iteration = total / max(int(np.asarray(part.pose_mask).any(axis=1).sum()), 1)
+    return per_iteration + (total if accelerated else 0.0)
+
+
 class RBCDProblem(eqx.Module):
     """Constant data of an RBCD run: the block Gamma_b of every robot (structure of arrays), its
     preconditioner data, the fixed-pose mask (None: no pose fixed) and the selection's tables, kept
@@ -100,11 +137,12 @@ class RBCDProblem(eqx.Module):
     robots: jax.Array  # () int32: robots with poses (N)
     colours: jax.Array  # () int32: colour classes (C)
     xi: jax.Array  # () the proximal term in Gamma_b
+    lift: jax.Array | None = None  # (A, r, d): the lift of the start, one copy per robot (None: rank d)
 
 
 class RBCDState(eqx.Module):
-    """X^k (stacked, (A, n_max, d, d+1)), grad F(X^k) per robot block, the objective shares, the
-    iteration count; RBCD++ adds V and gamma (None for RBCD)."""
+    """X^k (stacked, (A, n_max, d, d+1); r rows for a lifted rank r), grad F(X^k) per robot block, the
+    objective shares, the iteration count; RBCD++ adds V and gamma (None for RBCD)."""
 
     X: jax.Array
     grad: jax.Array
@@ -188,9 +226,12 @@ class RBCD(Solver):
         if loss is not None:
             raise ValueError("RBCD minimises the least-squares F only: give no loss")
         d = partition.edges.t.shape[-1]
-        if self.rank not in (None, d):
-            raise ValueError(f"RBCD: rank {self.rank} > d = {d} (a lifted rank with rounding) is not implemented; "
-                             "give rank=None")
+        lifted = self.rank not in (None, d)
+        if lifted and self.rank < d:
+            raise ValueError(f"RBCD: rank must be None or at least d = {d}, got {self.rank}")
+        if lifted and self.inner.preconditioner == "two-level":
+            raise ValueError("RBCD with a lifted rank preconditions the block solve by block-Jacobi only: give "
+                             "inner=SubproblemConfig(preconditioner='block-jacobi', ...)")
         n_max = partition.max_poses
         gamma = build_gamma_operator(partition.edges, float(self.xi), n_max, min_couplings=min_couplings, host=True,
                                      inter_weight=1.0)
@@ -206,11 +247,12 @@ class RBCD(Solver):
         order = np.where(real, np.cumsum(real) - 1, -1)
         colour = robot_colouring(partition)
         i32 = np.int32
+        lift = np.broadcast_to(lift_matrix(self.rank, d), (partition.num_robots, self.rank, d)) if lifted else None
         return RBCDProblem(partition=partition, gamma_soa=soa, newton=newton, free=_free_mask(partition, fixed),
                            index=to_device(np.arange(partition.num_robots), i32), order=to_device(order, i32),
                            colour=to_device(colour, i32), robots=to_device(max(int(real.sum()), 1), i32),
                            colours=to_device(max(int(colour.max(initial=-1)) + 1, 1), i32),
-                           xi=to_device(float(self.xi), dtype))
+                           xi=to_device(float(self.xi), dtype), lift=None if lift is None else to_device(lift, dtype))
 
     def check(self, problem) -> None:
         if not isinstance(problem, RBCDProblem):
@@ -223,6 +265,8 @@ class RBCD(Solver):
 
     def init(self, problem: RBCDProblem, X0):
         X = stack(X0)
+        if problem.lift is not None:  # Y_i = P X_i, P the fixed r x d Stiefel matrix of every robot
+            X = jnp.einsum("ard,andc->anrc", problem.lift, X)
         grad, share, _ = gradients(problem, X)
         A = share.shape[0]
         V, gamma = (X, jnp.zeros((), X.dtype)) if self.accelerated else (None, None)
@@ -257,6 +301,8 @@ class RBCD(Solver):
             return solve_subproblem(G, P, x, x, gx, self.inner, free)[0]
 
         pre = problem.newton if self.inner.preconditioner == "two-level" else problem.newton.without_coarse()
+        if problem.lift is not None:
+            pre = LiftedPreconditioner(pre, problem.gamma_soa.diag)
         if self.selection == "parallel":
             axis = None if problem.free is None else 0
             Y = jax.vmap(solve, in_axes=(0, 0, 0, 0, axis))(problem.gamma_soa, pre, X, g, problem.free)
@@ -314,6 +360,22 @@ class RBCD(Solver):
                               restarted=jnp.broadcast_to(restart, (A,)) & (problem.order >= 0),
                               settled=jnp.ones((), bool))
         return new, rec
+
+    def final_poses(self, problem: RBCDProblem, part, X):
+        """X itself at rank d; a lifted X rounded to SE(d) (:func:`~.rbcd_lifted.round_lifted`)."""
+        if problem.lift is None:
+            return X
+        free = None if problem.free is None else np.asarray(problem.free)
+        return round_lifted(X, np.asarray(part.pose_mask), np.asarray(problem.lift)[0], free)
+
+    def outcome(self, problem: RBCDProblem, graph, part, state: RBCDState, poses, to_host=np.asarray):
+        """A lifted run's statistics: ``rbcd_lifted_f`` (f = 2F of the final lifted iterate, the last
+        history value) and ``rbcd_rounded_f`` (f of the rounded poses the result reports)."""
+        if problem.lift is None:
+            return {}, {}
+        lifted = 2.0 * float(np.sum(to_host(state.share)))
+        rounded = cost(host_graph(graph), Poses(np.asarray(poses.R), np.asarray(poses.t)))
+        return {}, dict(rbcd_lifted_f=lifted, rbcd_rounded_f=float(rounded))
 
     def skipped(self, state: RBCDState) -> IterationRecord:
         nan = jnp.full((), jnp.nan, state.share.dtype)

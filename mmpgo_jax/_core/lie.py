@@ -28,7 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
-__all__ = ["GROUPS", "SO2", "SO3", "newton_polar", "project_svd", "so"]
+__all__ = ["GROUPS", "SO2", "SO3", "inverse_sym", "newton_polar", "project_svd", "so", "stiefel_polar"]
 
 
 def _xp(*arrays):
@@ -103,6 +103,43 @@ def newton_polar(M, max_iterations: int = 6, settled: float | None = None):
                              (0, M, jnp.asarray(jnp.inf, M.dtype)))
     det = jnp.sum(X[0] * jnp.cross(X[1], X[2], axis=0), axis=0)
     return X.at[2].multiply(jnp.where(det < 0, -1.0, 1.0))
+
+
+def inverse_sym(S):
+    """Inverse of symmetric d x d blocks S (d, d, ...) entries first, d = 2 or 3, by the adjugate (no
+    LAPACK call), and whether each block is positive definite."""
+    if S.shape[0] == 3:
+        return SO3.inverse_spd(S, first=True)  # a symmetric 3 x 3 adjugate, whatever the block means
+    a, b, c = S[0, 0], S[0, 1], S[1, 1]
+    det = a * c - b * b
+    ok = (a > 0) & (det > 0)
+    inv = jnp.stack([jnp.stack([c, -b]), jnp.stack([-b, a])])
+    return inv / jnp.where(ok | (det != 0), det, 1.0), ok
+
+
+def stiefel_polar(M, max_iterations: int = 20, settled: float | None = None):
+    """Orthogonal polar factor U V^T of tall blocks (r, d, ...) (entries first, r > d, d = 2 or 3):
+    the projection onto the Stiefel manifold St(d, r), no determinant fix. Scaled Newton iteration
+    X <- (s X + X (X^T X)^-1 / s) / 2, :func:`newton_polar`'s iteration with the pseudo-inverse of a
+    full-rank tall matrix (each singular value goes to 1, the singular vectors stay): no LAPACK call,
+    so it runs inside sharded programs. It stops once a step changed no entry by more than
+    ``settled`` (default sqrt(eps)), when the error left is of order eps."""
+    def step(X):
+        Xi, _ = inverse_sym(_bmm_first(jnp.swapaxes(X, 0, 1), X))
+        Xi = _bmm_first(X, Xi)  # (X^+)^T
+        scale = jnp.sqrt(jnp.sqrt(jnp.sum(Xi**2, axis=(0, 1)) / jnp.sum(X**2, axis=(0, 1))))
+        scale = jnp.where(jnp.isfinite(scale) & (scale > 0), scale, 1.0)
+        return 0.5 * (scale * X + Xi / scale)
+
+    def body(carry):
+        k, X, _ = carry
+        X_next = step(X)
+        return k + 1, X_next, jnp.max(jnp.abs(X_next - X), initial=0.0)
+
+    settled = jnp.sqrt(jnp.finfo(M.dtype).eps) if settled is None else settled
+    _, X, _ = lax.while_loop(lambda c: (c[0] < max_iterations) & (c[2] > settled), body,
+                             (0, M, jnp.asarray(jnp.inf, M.dtype)))
+    return X
 
 
 def _half_cot(theta, xp):

@@ -35,6 +35,12 @@ Manopt's trust regions) is what lets a near-exact inner solve (one robot, A = 1)
 instead of stalling on noise. Everything is fixed-shape and ``vmap``-able (robots that have met
 the criterion wait, masked, for the others); Gamma is applied as a block-sparse operator (band +
 loop closures).
+
+Lifted poses (RBCD's rank r > d, :mod:`~mmpgo_jax._baselines.rbcd`): Y_i = [t_i | R_i] with r rows,
+R_i on the Stiefel manifold St(d, r). Gamma acts from the right, so the value, the gradients, the
+tangent projection and the Weingarten term read the same; only the retraction (the polar factor)
+depends on the row count, chosen by shape, and the preconditioner is the caller's (anything with
+``at``). Square blocks compile to the same code as before.
 """
 
 from __future__ import annotations
@@ -44,7 +50,7 @@ import jax
 import jax.numpy as jnp
 
 from .._core.geometry import bmm, mT, nearest_rotations, sym
-from .._core.lie import so
+from .._core.lie import so, stiefel_polar
 from .._core.validate import check_choice, check_count, check_real
 from .majorization import (
     GammaOperator,
@@ -115,12 +121,18 @@ class SubproblemConfig(eqx.Module):
 
 def project_rotations(M):
     """Nearest rotation to each block (..., d, d): closed form (d = 2), Newton polar (d = 3), SVD
-    otherwise -- :func:`~mmpgo_jax._core.geometry.nearest_rotations` with ``method="fast"``."""
+    otherwise -- :func:`~mmpgo_jax._core.geometry.nearest_rotations` with ``method="fast"``. Tall
+    blocks (..., r, d), r > d (a lifted rank): the nearest point of the Stiefel manifold, the polar
+    factor (:func:`~mmpgo_jax._core.lie.stiefel_polar`)."""
+    if M.shape[-2] > M.shape[-1]:
+        return jnp.moveaxis(stiefel_polar(jnp.moveaxis(M, (-2, -1), (0, 1))), (0, 1), (-2, -1))
     return nearest_rotations(M, method="fast")
 
 
 def tangent_projection(Y, V):
-    """Orthogonal projection of an ambient direction V onto T_Y (stacked layout (..., n, d, d+1))."""
+    """Orthogonal projection of an ambient direction V onto T_Y (stacked layout (..., n, d, d+1)):
+    B - R sym(R^T B) on the rotation columns, for SO(d) and, with r rows (..., n, r, d+1), the
+    Stiefel manifold St(d, r) alike."""
     R, VR = Y[..., 1:], V[..., 1:]
     return V.at[..., 1:].add(-bmm(R, sym(bmm(mT(R), VR))))
 
@@ -138,9 +150,12 @@ def _project_soa(M):
 
 
 def _retract_soa(Y, V):
-    """Y + V with the rotations projected back to SO(d) (V tangent at Y): the polar retraction."""
+    """Y + V with the rotations projected back to SO(d) (V tangent at Y): the polar retraction; tall
+    rotation blocks (r > d rows, a lifted rank) are projected to the Stiefel manifold."""
     R, B = Y[:, 1:], V[:, 1:]
-    return jnp.concatenate([Y[:, :1] + V[:, :1], so(R.shape[0]).retract(R, B)], axis=1)
+    r, d = R.shape[:2]
+    rotations = stiefel_polar(R + B) if r > d else so(d).retract(R, B)
+    return jnp.concatenate([Y[:, :1] + V[:, :1], rotations], axis=1)
 
 
 def _inner(a, b):
