@@ -28,7 +28,7 @@ def graphs():
     }
 
 
-def _solve(graph, solver, iterations, robots=ROBOTS, chunk_size=50):
+def _solve(graph, solver, iterations, robots=ROBOTS, chunk_size=25):  # dgs()'s chunk: one compilation
     return mm.solve(graph, robots, solver=solver, iterations=iterations, chunk_size=chunk_size,
                     stop_when_stalled=False)
 
