@@ -36,8 +36,34 @@ restart is adaptive, as the paper's: when f(X^{k+1}) > f(X^k) the iteration is r
 RBCD step from X^k (its own selection), and gamma = 0, V = X^{k+1}. F is therefore non-increasing
 for RBCD++ too; ``restarted`` records the restarts (every robot's momentum at once: gamma is shared).
 
-Not done: the lifted rank r > d with rounding (``rank`` must be None or d), robust losses, and
-certification of the result (see :func:`mmpgo_jax.certify`).
+**Lifted rank** (``rank=r > d``; dpgo uses r = 5): poses in (St(d, r) x R^r)^n, Y_i = [t_i | R_i]
+with r rows and R_i^T R_i = I (:mod:`~mmpgo_jax._baselines.rbcd_lifted`). F is the same quadratic
+form (it acts on the right, rows are free), so Gamma_b, the gradients, the tangent projection
+Z - Y sym(Y^T Z) and the Weingarten term are those of rank d; the retraction and projection are the
+polar factor (no determinant fix), chosen by the blocks' shape in the block solve; its
+preconditioner is the lifted block-Jacobi (:class:`~.rbcd_lifted.LiftedPreconditioner`; the
+two-level one is refused). The start is lifted by one fixed r x d Stiefel matrix P (seeded random,
+as dpgo's ``fixedStiefelVariable``): Y_i = P X_i. F's gradient and the polar retraction keep the
+rows in P's span, so from this rank-d start the run optimises over O(d) per block (SO(d) without
+the determinant constraint) inside that span. The result's poses are rounded to SE(d) as SE-Sync
+and dpgo do (:func:`~.rbcd_lifted.round_lifted`: the top d left singular directions of all poses
+side by side, a reflection if most rotation blocks have det < 0, each block projected to SO(d),
+translations following); ``stats`` gets ``rbcd_lifted_f`` (f = 2F of the last lifted iterate, the
+history's last value) and ``rbcd_rounded_f`` (f of the reported poses; equal to the lifted f up to
+the iterates' rounding errors while they keep rank d). ``rank=None`` or d is the SO(d) code,
+unchanged bit for bit.
+
+**Communication** (logical volume, what the algorithm needs; :func:`rbcd_poses_sent`): one MM/AMM
+iteration sends every robot's boundary poses (:func:`boundary_poses_sent`, summed); one RBCD
+iteration the selected robot's only (greedy adds two ``max`` reductions of one number per robot),
+"parallel" a colour class's; RBCD++ adds every robot's boundary poses of Y. Poses per iteration,
+10 robots (``mm.partition(graph, 10)``), MM / RBCD greedy / RBCD++ greedy / parallel / parallel++:
+sphere2500 900 / 90 / 990 / 450 / 1350; M3500 1292 / 129 / 1421 / 258 / 1550; parking-garage
+2151 / 215 / 2366 / 430 / 2581; intel 1220 / 122 / 1342 / 244 / 1464. A lifted rank sends r(d+1)
+numbers per pose instead of d(d+1). The sharded program itself exchanges every boundary pose each
+iteration (the halo exchange does not skip unselected robots).
+
+Not done: robust losses, and certification of the result (see :func:`mmpgo_jax.certify`).
 """
 
 from __future__ import annotations
@@ -189,7 +215,7 @@ def _project(problem: RBCDProblem, M, keep):
 class RBCD(Solver):
     """RBCD / RBCD++ (module docstring). ``selection``: "greedy", "uniform", "round-robin" or
     "parallel"; ``accelerated``: RBCD++ (Nesterov momentum with adaptive restart); ``rank``: None or
-    d (lifted ranks are not implemented); ``inner``: the block solve's
+    d (SO(d)), or r > d (the lifted rank with rounding; block-Jacobi inner preconditioner); ``inner``: the block solve's
     :class:`~mmpgo_jax.SubproblemConfig` (default :func:`default_inner`); ``xi``: a proximal term in
     the block problem (default 0: exact block minimisation); ``seed``: the "uniform" draws."""
 
