@@ -84,23 +84,13 @@ def newton_polar(M, max_iterations: int = 6, settled: float | None = None):
     proper rotation by flipping the last row's sign (not the nearest rotation: :func:`project_svd`
     is exact for those); the solver's accept/reject test guards against such poor points.
     """
-    def step(X):
+    def inverse_T(X):
         r0, r1, r2 = X[0], X[1], X[2]
         c0, c1, c2 = jnp.cross(r1, r2, axis=0), jnp.cross(r2, r0, axis=0), jnp.cross(r0, r1, axis=0)  # det(X) X^{-T}
         det = jnp.sum(r0 * c0, axis=0)
-        invT = jnp.stack([c0, c1, c2]) / det
-        scale = jnp.sqrt(jnp.sqrt(jnp.sum(invT**2, axis=(0, 1)) / jnp.sum(X**2, axis=(0, 1))))
-        scale = jnp.where(jnp.isfinite(scale) & (scale > 0), scale, 1.0)
-        return 0.5 * (scale * X + invT / scale)
+        return jnp.stack([c0, c1, c2]) / det
 
-    def body(carry):
-        k, X, _ = carry
-        X_next = step(X)
-        return k + 1, X_next, jnp.max(jnp.abs(X_next - X), initial=0.0)
-
-    settled = jnp.sqrt(jnp.finfo(M.dtype).eps) if settled is None else settled
-    _, X, _ = lax.while_loop(lambda c: (c[0] < max_iterations) & (c[2] > settled), body,
-                             (0, M, jnp.asarray(jnp.inf, M.dtype)))
+    X = _scaled_newton(inverse_T, M, max_iterations, settled)
     det = jnp.sum(X[0] * jnp.cross(X[1], X[2], axis=0), axis=0)
     return X.at[2].multiply(jnp.where(det < 0, -1.0, 1.0))
 
@@ -124,12 +114,21 @@ def stiefel_polar(M, max_iterations: int = 20, settled: float | None = None):
     full-rank tall matrix (each singular value goes to 1, the singular vectors stay): no LAPACK call,
     so it runs inside sharded programs. It stops once a step changed no entry by more than
     ``settled`` (default sqrt(eps)), when the error left is of order eps."""
+    def pseudo_inverse_T(X):  # (X^+)^T = X (X^T X)^-1
+        return _bmm_first(X, inverse_sym(_bmm_first(jnp.swapaxes(X, 0, 1), X))[0])
+
+    return _scaled_newton(pseudo_inverse_T, M, max_iterations, settled)
+
+
+def _scaled_newton(inverse_T, M, max_iterations: int, settled: float | None):
+    """The scaled Newton polar iteration X <- (s X + inverse_T(X) / s) / 2 (Frobenius scaling s)
+    from M, entries first, until a step changes no entry by more than ``settled`` (default
+    sqrt(eps)) or after ``max_iterations`` steps."""
     def step(X):
-        Xi, _ = inverse_sym(_bmm_first(jnp.swapaxes(X, 0, 1), X))
-        Xi = _bmm_first(X, Xi)  # (X^+)^T
-        scale = jnp.sqrt(jnp.sqrt(jnp.sum(Xi**2, axis=(0, 1)) / jnp.sum(X**2, axis=(0, 1))))
+        invT = inverse_T(X)
+        scale = jnp.sqrt(jnp.sqrt(jnp.sum(invT**2, axis=(0, 1)) / jnp.sum(X**2, axis=(0, 1))))
         scale = jnp.where(jnp.isfinite(scale) & (scale > 0), scale, 1.0)
-        return 0.5 * (scale * X + Xi / scale)
+        return 0.5 * (scale * X + invT / scale)
 
     def body(carry):
         k, X, _ = carry
