@@ -1,5 +1,12 @@
 """Parameter sweeps: many (graph x robot count) configurations of one method in ONE ``vmap``.
 
+A method is a name of the methods registry (:mod:`~mmpgo_jax._solve.methods`: "mm", "amm",
+"rbcd", "rbcd++", "rbcd-parallel", ..., "dgs") or a :class:`~mmpgo_jax.Solver` object; each runs
+as its own compiled batch through the same padded layout. RBCD's per-problem scalars (the robot
+and colour-class counts its selection reads) are arrays of its problem, so configurations with
+different robot counts stack like MM's; under ``vmap`` RBCD++'s redo-after-increase loop runs
+until every configuration of the batch is done (results unchanged).
+
 Every configuration (graph, robot count) of a method is built with the library's own padding
 (:func:`~mmpgo_jax._partition.partition` with ``min_max_poses`` / ``min_max_edges`` /
 ``num_robots``, :meth:`MMProblem.build` with ``min_couplings``) to a common shape: the largest
