@@ -57,7 +57,10 @@ Departures (documented where they are made):
   at their own copy of the neighbour's relaxed rotation, up to one sweep older (the same once stage 1 has
   converged; no difference for ``start="chordal"``).
 * gauge: the first pose of robot 0 is held exactly at its start (the project's anchor), where their code
-  puts a prior of variance 1e-12 on it (stage 2) and a unit-weight prior through an anchor key (stage 1).
+  puts a prior of variance 1e-12 on it (stage 2) and a unit-weight prior through an anchor key (stage 1);
+  ``solve(..., fixed=...)`` holds the fixed poses instead.
+* the solver's records also hold ||grad F|| (Riemannian, over the free poses) after every sweep, which
+  their code does not compute.
 * 2D graphs are solved in 2D (their code is 3D only; a planar problem embedded in 3D decouples, with
   zero out-of-plane increments, so the iterates are the same).
 * a robot whose first-sweep system is singular (a local component without any active separator or
