@@ -1,8 +1,9 @@
 """One entry point for every kind of start: :func:`initialize` (a method name, ``Poses`` or a file).
 
 The methods live in :mod:`~mmpgo_jax._init.chordal` (chordal, odometry, pose files),
-:mod:`~mmpgo_jax._init.distributed_chordal` (Algorithm 3) and :mod:`~mmpgo_jax._init.robust_start`
-(the GNC-chordal start of robust losses).
+:mod:`~mmpgo_jax._init.distributed_chordal` (Algorithm 3), :mod:`~mmpgo_jax._init.robust_start`
+(the GNC-chordal start of robust losses) and :mod:`~mmpgo_jax._init.robust_distributed` (the
+distributed robust start: each robot's own GNC, then the robots' frames from their closures).
 """
 
 from __future__ import annotations
@@ -12,13 +13,16 @@ from pathlib import Path
 
 import numpy as np
 
-from .._core.gauge import FixedPoses
+from .._core.gauge import FixedPoses, express_in_frame
 from .._core.pose_graph import HostPoses, PoseGraph, Poses
 from .chordal import chordal_initialization, load_poses, odometry_initialization, poses_from_arrays
 
 __all__ = ["INITIALIZATION_METHODS", "initialize"]
 
-INITIALIZATION_METHODS = ("chordal", "distributed-chordal", "gnc-chordal", "odometry", "vertices")
+INITIALIZATION_METHODS = ("chordal", "distributed-chordal", "distributed-robust", "gnc-chordal", "odometry",
+                          "vertices")
+#: the methods that take keyword options
+_WITH_OPTIONS = ("distributed-chordal", "distributed-robust", "gnc-chordal")
 
 
 def initialize(
@@ -42,6 +46,11 @@ def initialize(
     * ``"gnc-chordal"`` -- :func:`~mmpgo_jax._init.robust_start.gnc_chordal_initialization`: a start
       that outlier loop closures do not bend (GNC-TLS whose stages are chordal solves refined by
       Newton), the default start of robust losses; ``options``: ``scale``, ``trust_odometry``;
+    * ``"distributed-robust"`` -- :func:`~mmpgo_jax._init.robust_distributed.distributed_robust_initialization`
+      with ``robots`` (as for distributed-chordal; default min(10, n) contiguous robots): every
+      robot's own GNC-chordal start, then the robots' frames from a robust solve of the frame
+      hypotheses of their inter-robot closures (Kimera-Multi / dpgo's robust initialization);
+      ``options``: ``scale``, ``quantile``, ``min_inliers``, ``frames``, ``map_sigma``, ``trust_odometry``;
     * ``"odometry"`` -- :func:`odometry_initialization`;
     * ``"vertices"`` -- the file's VERTEX estimates, given as ``initial``;
     * a :class:`Poses` -- used as given (shapes checked, rotations projected to SO(d));
@@ -67,13 +76,20 @@ def _initial_poses(graph, method, initial, robots, fixed, options, host=False) -
     if isinstance(method, Poses):
         return poses_from_arrays(graph, method.R, method.t, host=host)
     if isinstance(method, str) and method in INITIALIZATION_METHODS:
-        if options and method not in ("distributed-chordal", "gnc-chordal"):
-            raise ValueError(f"options {sorted(options)} only apply to 'distributed-chordal' and 'gnc-chordal'")
+        if options and method not in _WITH_OPTIONS:
+            raise ValueError(f"options {sorted(options)} only apply to {', '.join(map(repr, _WITH_OPTIONS))}")
         if method == "gnc-chordal":
             from .robust_start import gnc_chordal_initialization
 
             start = gnc_chordal_initialization(graph, fixed=fixed, **options)
             return poses_from_arrays(graph, start.poses.R, start.poses.t)
+        if method == "distributed-robust":
+            from .robust_distributed import distributed_robust_initialization
+
+            start = distributed_robust_initialization(
+                graph, min(10, graph.num_poses) if robots is None else robots, **options)
+            poses = start.poses if fixed is None else express_in_frame(start.poses, fixed)  # gauge: 1st fixed pose
+            return poses_from_arrays(graph, poses.R, poses.t, host=host)
         if method == "chordal":
             return chordal_initialization(graph, fixed)
         if method == "odometry":

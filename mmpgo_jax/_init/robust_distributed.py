@@ -1,0 +1,414 @@
+"""A distributed robust start: each robot's own robust map, then the robots' frames from their
+inter-robot loop closures (the robust initialization of Kimera-Multi and mit-acl/dpgo).
+
+**Local maps.** Every robot solves its own graph (its poses, its odometry and intra-robot loop
+closures) with the GNC-chordal start (:func:`~mmpgo_jax._init.robust_start.gnc_chordal_initialization`:
+its own GNC-TLS). All robots are solved by one call on the union of their subgraphs, i.e. the graph
+with every inter-robot edge removed: a disconnected graph whose components are solved independently
+by the chordal relaxation and Newton (each anchored at its first pose, :func:`~mmpgo_jax._core.gauge.anchor_set`),
+with no loop over robots. A *local map* is a connected component of that graph (one per robot when
+its odometry is complete; a robot whose odometry has gaps has several, each placed on its own and
+counted in ``DistributedRobustStart.maps_of_robot``). The GNC schedule (mu and its stages) is shared
+by the components: mu_0 is set by the largest residual of all robots, which for a robot with smaller
+residuals is a more convex first surrogate than its own mu_0 (GNC needs mu_0 *at most* c^2 / (2
+s_max - c^2)), and the stages go on until every robot's weights are binary, which for a robot already
+binary re-solves the same weighted problem (its weights change only for residuals within the
+narrowing band around c^2 of the later stages). Its final weights were checked against one
+GNC-chordal call per robot (tests/test_robust_distributed_start.py).
+
+**Frame hypotheses.** An inter-robot closure Z_e from pose i of map a to pose j of map b says where
+b's frame is in a's: with the local solutions T_i, T_j, M_e = T_i Z_e T_j^-1 (F_a^-1 F_b, F the
+maps' frames in the world). It becomes an edge a -> b of a *frame graph* of K nodes (the local maps)
+with the closure's weights kappa_e, tau_e; its cost at frames F is the closure's cost at the poses
+F T up to the lever arm of the rotation error (equal when the rotation residual is zero).
+
+**Pair averaging** (:func:`pair_average`, vectorised over all map pairs with segment sums): per pair,
+GNC-TLS on the rotations (a kappa-weighted chordal mean, residual kappa_e ||R_e - R_ab||_F^2 against
+chi^2_{d(d-1)/2}(``quantile``)), then the tau-weighted mean of the translations of the rotation
+inliers, residual tau_e ||t_e - t_ab||^2 against chi^2_d(``quantile``); a pair is usable with at
+least ``min_inliers`` inliers. With one closure a pair has nothing to check; with two that disagree
+both residuals are equal (the mean lies between them) and both are rejected, or both kept.
+
+**Frames** (``frames=``):
+
+* ``"graph"`` (default): GNC-TLS (chordal + Newton stages, the same solver) on the frame graph with
+  one edge per closure, scale sqrt(chi^2_{d(d+1)/2}(``quantile``)), no edge trusted. A closure is then
+  checked against every other closure of its pair *and* every cycle of maps through it (robot
+  triples and longer): a pair's single closure is judged by the other pairs. The accepted closures
+  of a pair with fewer than ``min_inliers`` of them are dropped and the frames re-solved from the
+  rest (one weighted chordal + Newton solve).
+* ``"tree"``: dpgo's order: the pair averages, then the maps placed along a maximum spanning tree of
+  the usable pairs (weights: inlier counts; scipy's minimum spanning tree of the negated counts),
+  the frames composed along it (an exact chordal solve of the tree's graph). Closures of usable pairs
+  off the tree are then accepted when their residual at the composed frames is within the scale.
+
+The frame graph is small (K nodes, one edge per inter-robot closure, (d^2 + d + 2) numbers each,
+the closures' implied transforms): no step gathers a robot's poses or its own edges. Where the
+frame graph is solved is left to the caller (here: in the process that calls the start).
+
+**What it cannot decide.** A closure of a pair that is a bridge of the accepted pair graph (no cycle
+of maps through it) and the pair's only closure is unverified: nothing else constrains it, so it is
+accepted if it is the only link (``DistributedRobustStart.unverified``). Maps that no accepted closure
+joins to the map of pose 0 are not placed in its frame (``placed`` False; ``unplaced_robots``): each
+group of maps joined among themselves keeps the frame of its first map (a map alone: its local frame).
+Residuals are judged against the closures' own information: drift of the local maps is not in the
+test, so long noisy chains inflate the residuals of correct closures (benchmarks/robust_teams.md).
+
+**Result.** X^0 = each map's local solution moved to its frame; ``weights`` (m,) in {0, 1}: the local
+GNC's on intra-robot edges (1 on odometry) and the acceptance of each inter-robot closure. The
+robust solver does not take weights: it starts with rho'(s) at X^0 (TLS: 1 where s <= c^2).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .._core.geometry import project_to_so
+from .._core.pose_graph import HostPoses, PoseGraph, component_labels, host_graph
+from .._mm.robust import TLS, chi2_scale, gnc_initial_mu, gnc_weight
+from .chordal import chordal_initialization
+from .robust_start import gnc_chordal_initialization
+
+__all__ = ["FRAME_METHODS", "DistributedRobustStart", "PairAverages", "chain_variances",
+           "distributed_robust_initialization", "pair_average"]
+
+FRAME_METHODS = ("graph", "tree")
+
+
+@dataclass(frozen=True)
+class PairAverages:
+    """Robust averages of the frame hypotheses per map pair (rows of ``pairs``, a < b): ``R``, ``t``
+    (b's frame in a's), ``closures`` and ``inliers`` per pair; ``inlier`` (h,) per hypothesis; ``pair``
+    (h,) the row of each hypothesis."""
+
+    pairs: np.ndarray
+    R: np.ndarray
+    t: np.ndarray
+    closures: np.ndarray
+    inliers: np.ndarray
+    inlier: np.ndarray
+    pair: np.ndarray
+
+
+@dataclass(frozen=True)
+class DistributedRobustStart:
+    """The distributed robust start (module docstring). Per pose: ``poses`` (world), ``local`` (in its
+    map's frame), ``map_of_pose``; per edge: ``weights`` (m,) in {0, 1}, ``inter`` (inter-robot);
+    per map: ``robot_of_map``, ``frames`` (HostPoses (K,)), ``placed``; ``pairs`` the pair averages
+    (:class:`PairAverages`); per inter-robot closure (in edge order): ``unverified`` (accepted but
+    checked by nothing); ``unplaced_robots``; ``local_stages`` and ``frame_stages`` (GNC stages)."""
+
+    poses: HostPoses
+    local: HostPoses
+    map_of_pose: np.ndarray
+    robot_of_map: np.ndarray
+    frames: HostPoses
+    placed: np.ndarray
+    weights: np.ndarray
+    inter: np.ndarray
+    unverified: np.ndarray
+    pairs: PairAverages
+    unplaced_robots: np.ndarray
+    local_stages: int
+    frame_stages: int
+
+    @property
+    def accepted(self) -> np.ndarray:
+        """(m,) bool: the inter-robot closures accepted (False on the other edges)."""
+        return self.inter & (self.weights > 0.5)
+
+    @property
+    def maps_of_robot(self) -> np.ndarray:
+        """(A,) number of local maps of each robot (1 with complete odometry)."""
+        return np.bincount(self.robot_of_map)
+
+
+def _robot_of_pose(graph, robots) -> np.ndarray:
+    from .._core.partition import Partition, contiguous_robots
+
+    n = graph.num_poses
+    if robots is None:
+        raise ValueError("distributed-robust needs robots= (a count, an (n,) robot-of-pose array or a Partition)")
+    if isinstance(robots, Partition):
+        rop = np.asarray(robots.robot_of_pose, np.int64)
+    elif np.ndim(robots) == 0:
+        rop = contiguous_robots(n, int(robots))
+    else:
+        rop = np.asarray(robots, np.int64).reshape(-1)
+    if rop.shape != (n,) or (n and rop.min() < 0):
+        raise ValueError(f"robots: need a non-negative robot index for each of the {n} poses, got shape {rop.shape}")
+    return rop
+
+
+def _segment_sum(values, index, size):
+    out = np.zeros((size, *values.shape[1:]))
+    np.add.at(out, index, values)
+    return out
+
+
+def _inverse(R, t):
+    Rt = np.swapaxes(R, -1, -2)
+    return Rt, -np.einsum("...ab,...b->...a", Rt, t)
+
+
+def _compose(Ra, ta, Rb, tb):
+    return Ra @ Rb, np.einsum("...ab,...b->...a", Ra, tb) + ta
+
+
+def _gnc_tls_mean(x, w0, pair, num_pairs, c2, mean, residual, max_stages=100, factor=1.4, tol=1e-4):
+    """GNC-TLS of a weighted mean per segment (vectorised over segments): ``mean(weights)`` gives the
+    (P, ...) means, ``residual(means)`` the (h,) residuals s; mu per segment from its own largest
+    residual. Returns (means, inlier (h,) bool)."""
+    w = np.ones(len(pair))
+    m = mean(w0 * w)
+    s = residual(m)
+    s_max = np.full(num_pairs, 0.0)
+    np.maximum.at(s_max, pair, s)
+    mu = np.asarray(gnc_initial_mu(TLS, s_max, c2))
+    for _ in range(max_stages):  # GNC stages (a loop over stages, every pair at once)
+        active = np.isfinite(mu)
+        if not active.any():
+            break
+        w_new = np.asarray(gnc_weight(TLS, s, c2, np.where(active, mu, 1.0)[pair]))
+        w = np.where(active[pair], w_new, (s <= c2).astype(np.float64))
+        m = mean(w0 * w)
+        s = residual(m)
+        between = (w > tol) & (w < 1 - tol)
+        open_pair = np.zeros(num_pairs, bool)
+        open_pair[pair[between]] = True
+        mu = np.where(open_pair, mu * factor, np.inf)
+    inlier = s <= c2
+    return m, inlier
+
+
+def pair_average(pair, R, t, kappa, tau, num_pairs: int, *, quantile: float = 0.9):
+    """Robust per-pair averages of hypotheses (R (h, d, d), t (h, d)) of segment ``pair`` (h,):
+    rotations first (GNC-TLS on a kappa-weighted chordal mean, chi^2_{d(d-1)/2}(quantile)), then
+    translations of the rotation inliers (GNC-TLS on a tau-weighted mean, chi^2_d(quantile)).
+    Returns (R (P, d, d), t (P, d), inlier (h,) bool); a pair without inliers keeps its plain mean."""
+    from scipy import stats
+
+    d = R.shape[-1]
+    c2R = float(stats.chi2.ppf(quantile, d * (d - 1) // 2))
+    c2t = float(stats.chi2.ppf(quantile, d))
+
+    def rot_mean(w):
+        S = _segment_sum(w[:, None, None] * R, pair, num_pairs)
+        empty = _segment_sum(w, pair, num_pairs) <= 0
+        S[empty] = _segment_sum(kappa[:, None, None] * R, pair, num_pairs)[empty]
+        return project_to_so(S)
+
+    Rm, in_rot = _gnc_tls_mean(R, kappa, pair, num_pairs, c2R, rot_mean,
+                               lambda M: kappa * np.sum((R - M[pair]) ** 2, axis=(-1, -2)))
+
+    def trans_mean(w):
+        ws = _segment_sum(w, pair, num_pairs)
+        fallback = ws <= 0
+        ws_all = _segment_sum(tau, pair, num_pairs)
+        S = np.where(fallback[:, None], _segment_sum(tau[:, None] * t, pair, num_pairs),
+                     _segment_sum(w[:, None] * t, pair, num_pairs))
+        return S / np.where(fallback, ws_all, ws)[:, None]
+
+    w0 = tau * in_rot
+    tm, in_t = _gnc_tls_mean(t, w0, pair, num_pairs, c2t, trans_mean,
+                             lambda m: tau * np.sum((t - m[pair]) ** 2, axis=-1))
+    return Rm, tm, in_rot & in_t
+
+
+def chain_variances(graph, t, map_of_pose):
+    """(var_R (n,), var_t (n,)): first-order, isotropic variances of each pose of a local map relative
+    to the map's first pose along its odometry chain (poses in index order, odometry edges (k, k + 1)
+    of the map): var_R(p) = sum over the steps k < p of 1 / (2 kappa_k) (the variance of one rotation
+    angle under SE-Sync's noise model), var_t(p) = sum 1 / tau_k + sum v_k ||t_p - t_k||^2 (each
+    step's rotation error swings the rest of the chain about pose k; t the local solution). All by
+    prefix sums (n log-free cumulative sums, no loop over poses). The intra-robot loop closures are
+    not counted, so this bounds a well-closed map's error from above; a map with odometry gaps gets
+    only the steps it has."""
+    n = graph.num_poses
+    odo = (graph.j == graph.i + 1) & (map_of_pose[graph.i] == map_of_pose[graph.j])
+    k = graph.i[odo]
+    v = np.zeros(n)
+    u = np.zeros(n)
+    np.add.at(v, k + 1, 0.5 / graph.kappa[odo])  # step k -> k+1 counts for the poses after k
+    np.add.at(u, k + 1, 1.0 / graph.tau[odo])
+    pivot = np.zeros(n, np.int64)
+    pivot[k + 1] = k
+    tk = t[pivot]
+    first = np.zeros(map_of_pose.max() + 1 if n else 0, np.int64) + n
+    np.minimum.at(first, map_of_pose, np.arange(n))
+    start = first[map_of_pose]
+
+    def since_start(x):
+        c = np.cumsum(x, axis=0)
+        return c - c[start] + x[start]  # the map's first pose has no step of its own (its x is 0)
+
+    S0, S1, S2 = since_start(v), since_start(v[:, None] * tk), since_start(v * np.sum(tk**2, -1))
+    var_t = since_start(u) + np.sum(t**2, -1) * S0 - 2.0 * np.sum(t * S1, -1) + S2
+    return S0, np.maximum(var_t, 0.0)
+
+
+def _frame_graph(a, b, R, t, kappa, tau, K) -> PoseGraph:
+    return PoseGraph(a, b, R, t, kappa, tau, num_poses=K)
+
+
+def _tree_frames(pairs, counts, Rp, tp, K, d):
+    """Frames (R, t) (K,) composed along a maximum spanning tree (on ``counts``) of the pairs with
+    counts > 0, and the tree's pair rows."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import minimum_spanning_tree
+
+    use = np.flatnonzero(counts > 0)
+    if use.size == 0:
+        return np.broadcast_to(np.eye(d), (K, d, d)).copy(), np.zeros((K, d)), use
+    top = counts.max() + 1
+    W = coo_matrix((top - counts[use], (pairs[use, 0], pairs[use, 1])), shape=(K, K)).tocsr()
+    T = minimum_spanning_tree(W).tocoo()
+    key = pairs[use, 0] * K + pairs[use, 1]
+    tk = np.minimum(T.row, T.col) * K + np.maximum(T.row, T.col)
+    tree = use[np.isin(key, tk)]
+    g = _frame_graph(pairs[tree, 0], pairs[tree, 1], Rp[tree], tp[tree], np.ones(len(tree)), np.ones(len(tree)), K)
+    X = chordal_initialization(g)  # a tree: the chordal solution composes the pair transforms exactly
+    return np.asarray(X.R, np.float64), np.asarray(X.t, np.float64), tree
+
+
+def _hypothesis_costs(Ra, ta, Rb, tb, Rh, th, kappa, tau):
+    """Cost of frame-graph edges (Rh, th) between frames a and b (the edge-cost convention)."""
+    rot = Ra @ Rh - Rb
+    trans = np.einsum("hab,hb->ha", Ra, th) + ta - tb
+    return kappa * np.sum(rot**2, axis=(-1, -2)) + tau * np.sum(trans**2, axis=-1)
+
+
+def _bridges(K, a, b) -> np.ndarray:
+    """(len(a),) bool: the edges (a, b) that are bridges of the multigraph on K nodes."""
+    import networkx as nx
+
+    G = nx.MultiGraph()
+    G.add_nodes_from(range(K))
+    G.add_edges_from(zip(a.tolist(), b.tolist(), strict=True))
+    bridge = {tuple(sorted(e)) for e in nx.bridges(nx.Graph(G)) if G.number_of_edges(*e) == 1}
+    lo, hi = np.minimum(a, b), np.maximum(a, b)
+    key = set(bridge)
+    return np.fromiter(((int(x), int(y)) in key for x, y in zip(lo, hi, strict=True)), bool, count=len(a))
+
+
+def distributed_robust_initialization(
+    graph: PoseGraph,
+    robots,
+    *,
+    scale: float | None = None,
+    quantile: float = 0.9,
+    min_inliers: int = 1,
+    frames: str = "graph",
+    map_sigma="odometry",
+    trust_odometry: bool = True,
+) -> DistributedRobustStart:
+    """The distributed robust start (module docstring). ``robots``: a count (contiguous blocks), an
+    (n,) robot-of-pose array or a Partition. ``scale``: the local GNC's c (default
+    :func:`~mmpgo_jax.chi2_scale`, as the GNC-chordal start); ``quantile``: of the chi-square tests of
+    the frame hypotheses (dpgo's 0.9); ``min_inliers``: accepted closures a pair needs to be used;
+    ``frames``: ``"graph"`` or ``"tree"``; ``map_sigma``: the local maps' own error at a closure's
+    ends, added to the closure's noise in every test of the frame hypotheses: ``"odometry"`` (default:
+    the odometry chain's drift from the map's first pose, :func:`chain_variances`), or (sigma_R in
+    rad, sigma_t in map units) for every pose ((0, 0): the closure's information alone, as dpgo)."""
+    if frames not in FRAME_METHODS:
+        raise ValueError(f"frames must be one of {', '.join(FRAME_METHODS)}, got {frames!r}")
+    if int(min_inliers) < 1:
+        raise ValueError(f"min_inliers must be >= 1, got {min_inliers!r}")
+    if not 0.0 < quantile < 1.0:
+        raise ValueError(f"quantile must be in (0, 1), got {quantile!r}")
+    g = host_graph(graph)
+    n, d, m = g.num_poses, g.dim, g.num_edges
+    rop = _robot_of_pose(g, robots)
+    inter = rop[g.i] != rop[g.j]
+
+    # 1. local maps: every robot's own graph, one GNC-chordal call over their union
+    local_g = g.select_edges(~inter)
+    local = gnc_chordal_initialization(local_g, scale=scale, trust_odometry=trust_odometry)
+    TR, Tt = np.asarray(local.poses.R, np.float64), np.asarray(local.poses.t, np.float64)
+    labels, _, firsts = component_labels(n, local_g.i, local_g.j)
+    order = np.argsort(firsts)  # maps numbered by their first pose: map 0 holds pose 0
+    renumber = np.empty_like(order)
+    renumber[order] = np.arange(len(order))
+    map_of_pose = renumber[labels]
+    K = len(order)
+    robot_of_map = rop[firsts[order]]
+
+    # 2. frame hypotheses, one per inter-robot closure, oriented a < b
+    e = np.flatnonzero(inter)
+    i, j = g.i[e], g.j[e]
+    Ri, ti = _compose(TR[i], Tt[i], g.R[e], g.t[e])
+    Rj_inv, tj_inv = _inverse(TR[j], Tt[j])
+    Rh, th = _compose(Ri, ti, Rj_inv, tj_inv)
+    a, b = map_of_pose[i], map_of_pose[j]
+    flip = a > b
+    Rf, tf = _inverse(Rh[flip], th[flip])
+    Rh[flip], th[flip] = Rf, tf
+    a, b = np.minimum(a, b), np.maximum(a, b)
+    if isinstance(map_sigma, str):
+        if map_sigma != "odometry":
+            raise ValueError(f"map_sigma must be 'odometry' or (sigma_R, sigma_t), got {map_sigma!r}")
+        vR, vt = chain_variances(g, Tt, map_of_pose)
+    else:
+        sR, st = (float(x) for x in map_sigma)
+        if not (sR >= 0 and st >= 0 and np.isfinite(sR) and np.isfinite(st)):
+            raise ValueError(f"map_sigma must be two finite numbers >= 0, got {map_sigma!r}")
+        vR, vt = np.full(n, sR**2), np.full(n, st**2)
+    kap = 1.0 / (1.0 / g.kappa[e] + 2.0 * (vR[i] + vR[j]))
+    tau = 1.0 / (1.0 / g.tau[e] + vt[i] + vt[j])
+
+    pair_keys, pair = np.unique(a * K + b, return_inverse=True)
+    P = len(pair_keys)
+    pairs = np.stack([pair_keys // K, pair_keys % K], 1)
+    Rp, tp, inlier = pair_average(pair, Rh, th, kap, tau, P, quantile=quantile)
+    counts = np.bincount(pair, weights=inlier, minlength=P).astype(np.int64)
+    averages = PairAverages(pairs=pairs, R=Rp, t=tp, closures=np.bincount(pair, minlength=P), inliers=counts,
+                            inlier=inlier, pair=pair)
+
+    # 3. the maps' frames
+    c_frame = chi2_scale(d, quantile)
+    frame_stages = 0
+    if frames == "graph":
+        fg = _frame_graph(a, b, Rh, th, kap, tau, K)
+        res = gnc_chordal_initialization(fg, scale=c_frame, trust_odometry=False)
+        frame_stages = res.stages
+        acc = res.weights > 0.5
+        pair_acc = np.bincount(pair, weights=acc, minlength=P)
+        keep = acc & (pair_acc[pair] >= min_inliers)
+        FR, Ft = np.asarray(res.poses.R, np.float64), np.asarray(res.poses.t, np.float64)
+        if not np.array_equal(keep, acc) or not keep.any():
+            FR, Ft = _solve_frames(fg, keep, K, d)
+    else:
+        usable = np.where(counts >= min_inliers, counts, 0)
+        FR, Ft, _ = _tree_frames(pairs, usable, Rp, tp, K, d)
+        s = _hypothesis_costs(FR[a], Ft[a], FR[b], Ft[b], Rh, th, kap, tau)
+        keep = (usable[pair] > 0) & (s <= c_frame**2)
+
+    # 4. placed maps: joined to map 0 by accepted closures
+    comp, _, _ = component_labels(K, a[keep], b[keep]) if K > 1 else (np.zeros(1, np.int64), None, None)
+    placed = comp == comp[0]
+    R = FR[map_of_pose] @ TR
+    t = np.einsum("nab,nb->na", FR[map_of_pose], Tt) + Ft[map_of_pose]
+
+    weights = np.asarray(local.weights, np.float64).copy() if m else np.zeros(0)
+    w = np.ones(m)
+    w[~inter] = weights
+    w[e] = keep.astype(np.float64)
+    unverified = np.zeros(m, bool)
+    if keep.any():
+        single = np.bincount(pair, weights=keep, minlength=P)[pair] == 1
+        unverified[e[keep]] = single[keep] & _bridges(K, a[keep], b[keep])
+    return DistributedRobustStart(
+        poses=HostPoses(R, t), local=HostPoses(TR, Tt), map_of_pose=map_of_pose, robot_of_map=robot_of_map,
+        frames=HostPoses(FR, Ft), placed=placed, weights=w, inter=inter, unverified=unverified, pairs=averages,
+        unplaced_robots=np.unique(robot_of_map[~placed]), local_stages=local.stages, frame_stages=frame_stages)
+
+
+def _solve_frames(fg: PoseGraph, keep, K, d):
+    """Frames from the kept frame-graph edges (chordal + Newton of the weighted frame graph)."""
+    if not keep.any():
+        return np.broadcast_to(np.eye(d), (K, d, d)).copy(), np.zeros((K, d))
+    sub = fg.select_edges(keep)
+    res = gnc_chordal_initialization(sub, scale=np.inf, trust_odometry=False)
+    return np.asarray(res.poses.R, np.float64).copy(), np.asarray(res.poses.t, np.float64).copy()

@@ -1,0 +1,229 @@
+"""The distributed robust start (mmpgo_jax/_init/robust_distributed.py): each robot's own GNC, the
+frames of the robots from their inter-robot closures, what it accepts and what it reports."""
+
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+import pytest
+
+import mmpgo_jax as mm
+from mmpgo_jax._core.gauge import FixedPoses, express_in_frame
+from mmpgo_jax._core.pose_graph import HostPoses, PoseGraph, host_graph
+from mmpgo_jax._init.robust_distributed import (
+    chain_variances,
+    distributed_robust_initialization,
+    pair_average,
+)
+from mmpgo_jax._init.robust_start import gnc_chordal_initialization
+from mmpgo_jax._init.start import initialize
+
+
+@functools.cache
+def _team(robots=4, poses=40, intra=2, inter=10, noise=0.0, seed=0):
+    return mm.robot_team_dataset(robots, poses, intra_closures=intra, inter_closures=inter, seed=seed,
+                                 sigma_t=noise, sigma_R=noise)
+
+
+def _in_pose0_frame(poses) -> HostPoses:
+    """Poses moved rigidly so that pose 0 is the identity (the starts' gauge)."""
+    p = HostPoses(np.asarray(poses.R, np.float64), np.asarray(poses.t, np.float64))
+    return express_in_frame(p, FixedPoses.identity(0, p.R.shape[-1]))
+
+
+def _ate(poses, reference) -> float:
+    return mm.trajectory_accuracy(mm.Poses(np.asarray(poses.R), np.asarray(poses.t)), reference).ate
+
+
+def _with_edges(graph, i, j, R, t):
+    """``graph`` with edges (i, j, R, t) appended (weights of its first loop closure)."""
+    g = host_graph(graph)
+    k = int(np.flatnonzero(np.abs(g.i - g.j) > 1)[0])
+    m = len(i)
+    return PoseGraph(np.concatenate([g.i, i]), np.concatenate([g.j, j]), np.concatenate([g.R, R]),
+                     np.concatenate([g.t, t]), np.concatenate([g.kappa, np.full(m, g.kappa[k])]),
+                     np.concatenate([g.tau, np.full(m, g.tau[k])]), num_poses=g.num_poses)
+
+
+@pytest.mark.parametrize("frames", ["graph", "tree"])
+def test_noise_free_team_equals_centralized_start_and_truth(frames):
+    ds = _team()
+    rop = ds.robot_of_pose
+    st = distributed_robust_initialization(ds.graph, rop, frames=frames)
+    central = gnc_chordal_initialization(ds.graph)
+    truth = _in_pose0_frame(ds.ground_truth)
+    for ref in (central.poses, truth):
+        np.testing.assert_allclose(st.poses.R, np.asarray(ref.R), atol=1e-9)
+        np.testing.assert_allclose(st.poses.t, np.asarray(ref.t), atol=1e-9)
+    # every map placed, every closure accepted; the frames are the true poses of the maps' first poses
+    assert st.placed.all() and st.unplaced_robots.size == 0
+    assert st.accepted.sum() == ds.inter_robot.sum() and np.all(st.weights == 1.0)
+    firsts = np.searchsorted(rop, np.arange(rop.max() + 1))
+    np.testing.assert_array_equal(st.map_of_pose[firsts], np.arange(len(firsts)))
+    np.testing.assert_allclose(st.frames.R, truth.R[firsts], atol=1e-9)
+    np.testing.assert_allclose(st.frames.t, truth.t[firsts], atol=1e-9)
+    # through initialize, and with a fixed pose: the same poses in the fixed pose's frame
+    X = initialize(ds.graph, "distributed-robust", robots=rop, host=True, frames=frames)
+    np.testing.assert_allclose(X.t, st.poses.t, atol=1e-12)
+    fixed = FixedPoses.from_poses([7], ds.ground_truth)
+    Xf = initialize(ds.graph, "distributed-robust", robots=rop, fixed=fixed, host=True)
+    np.testing.assert_allclose(Xf.t, np.asarray(ds.ground_truth.t), atol=1e-9)
+
+
+def test_planted_wrong_inter_robot_closures_are_rejected():
+    """Low noise, 4 robots, 10 correct inter-robot closures and 5 wrong ones (random poses of
+    different robots, random rotations, translations the size of the map): the frame graph's GNC
+    rejects every wrong one, keeps every correct one, and the start is as accurate as the
+    outlier-free start."""
+    ds = _team(noise=0.005, seed=1)
+    rop = ds.robot_of_pose
+    c = mm.add_outlier_loop_closures(ds.graph, 5 / (ds.num_edges - ds.graph.num_poses + 4 + 5),
+                                     reference=ds.ground_truth, seed=3, robot_of_pose=rop, inter_robot_only=True)
+    assert c.num_outliers == 5
+    st = distributed_robust_initialization(c.graph, rop)
+    inter = st.inter
+    assert not (st.accepted & c.outlier).any()
+    assert st.accepted[inter & ~c.outlier].all()
+    clean = distributed_robust_initialization(ds.graph, rop)
+    assert _ate(st.poses, ds.ground_truth) < 1.5 * _ate(clean.poses, ds.ground_truth) + 1e-3
+    assert _ate(st.poses, ds.ground_truth) < 0.05
+    # the least-squares chordal start is bent by them
+    assert _ate(initialize(c.graph, "chordal"), ds.ground_truth) > 5 * _ate(st.poses, ds.ground_truth)
+
+
+def test_a_pair_s_only_wrong_closure_is_rejected_by_a_cycle_of_robots():
+    """Robots 0-1 share their only closure, and it is wrong; the other pairs close cycles through both
+    robots: the frame graph rejects it (pair averaging alone cannot: one closure is its own mean)."""
+    ds = _team(robots=3, poses=40, intra=2, inter=8, seed=0)
+    rop = ds.robot_of_pose
+    g = host_graph(ds.graph)
+    inter = rop[g.i] != rop[g.j]
+    pair01 = inter & (np.minimum(rop[g.i], rop[g.j]) == 0) & (np.maximum(rop[g.i], rop[g.j]) == 1)
+    graph = g.select_edges(~pair01)
+    quarter_turn = np.array([[[0.0, -1.0], [1.0, 0.0]]])
+    graph = _with_edges(graph, np.array([5]), np.array([45]), quarter_turn, np.array([[3.0, -4.0]]))
+    # noise-free data carries weights 1 (information of 0.7 rad per step): the closures' own
+    # information is the right test here, the odometry's drift would accept anything
+    st = distributed_robust_initialization(graph, rop, map_sigma=(0.0, 0.0))
+    assert not st.weights[-1]  # the wrong closure
+    assert st.accepted.sum() == (inter & ~pair01).sum()
+    assert st.placed.all()
+    np.testing.assert_allclose(st.poses.t, _in_pose0_frame(ds.ground_truth).t, atol=1e-9)
+    # its pair average accepted it: one hypothesis, nothing to compare with
+    p = st.pairs
+    row = np.flatnonzero((p.pairs[:, 0] == 0) & (p.pairs[:, 1] == 1))[0]
+    assert p.closures[row] == 1 and p.inliers[row] == 1
+
+
+def test_robot_without_usable_closures_is_reported():
+    ds = _team(robots=4, poses=40, intra=2, inter=10, seed=0)
+    rop = ds.robot_of_pose
+    g = host_graph(ds.graph)
+    touches3 = (rop[g.i] == 3) | (rop[g.j] == 3)
+    inter = rop[g.i] != rop[g.j]
+    graph = g.select_edges(~(touches3 & inter))
+    st = distributed_robust_initialization(graph, rop)
+    np.testing.assert_array_equal(st.unplaced_robots, [3])
+    assert st.placed.tolist() == [True, True, True, False]
+    # robot 3 stays in its local frame (its first pose at the identity), its map unchanged
+    first3 = int(np.searchsorted(rop, 3))
+    np.testing.assert_allclose(st.poses.R[first3], np.eye(2), atol=1e-12)
+    np.testing.assert_allclose(st.poses.t[rop == 3], st.local.t[rop == 3], atol=1e-12)
+    # min_inliers: pairs with fewer accepted closures are not used; robots left without one are reported
+    st2 = distributed_robust_initialization(ds.graph, rop, min_inliers=100)
+    assert not st2.placed[1:].any() and st2.unplaced_robots.tolist() == [1, 2, 3]
+    assert st2.accepted.sum() == 0
+
+
+def _local_closures(seed=2):
+    """A 3-robot team with wrong loop closures, intra-robot ones included: (graph, robot of pose,
+    outlier flags, the intra-robot edges)."""
+    ds = _team(robots=3, poses=60, intra=4, inter=6, noise=0.005, seed=seed)
+    rop = ds.robot_of_pose
+    c = mm.add_outlier_loop_closures(ds.graph, 0.3, reference=ds.ground_truth, seed=0)
+    g = host_graph(c.graph)
+    return c.graph, rop, c.outlier, rop[g.i] == rop[g.j]
+
+
+def test_local_stage_rejects_wrong_intra_robot_closures():
+    graph, rop, outlier, own = _local_closures()
+    g = host_graph(graph)
+    closure = own & (np.abs(g.i - g.j) > 1)
+    assert (closure & outlier).sum() >= 3
+    st = distributed_robust_initialization(graph, rop)
+    rejected = st.weights < 0.5
+    assert np.array_equal(rejected & own, closure & outlier)
+
+
+@pytest.mark.slow
+def test_shared_gnc_schedule_against_one_call_per_robot():
+    """The local stage solves all robots in one GNC-chordal call (one mu schedule for all): it
+    classifies the intra-robot closures at least as well as one call per robot. (Here it does better:
+    robot 0 alone starts GNC at its own, larger mu_0 and rejects its 4 correct closures; under the
+    shared, smaller mu_0 it keeps them. One call per robot also compiles per robot's shapes, 40 s
+    against 2 s for the shared call on this 180-pose team.)"""
+    graph, rop, outlier, own = _local_closures()
+    g = host_graph(graph)
+    local = g.select_edges(own)
+    closure = np.abs(local.i - local.j) > 1
+    wrong = outlier[own]
+    st = distributed_robust_initialization(graph, rop)
+    shared = st.weights[own] < 0.5
+    alone = np.zeros(local.num_edges, bool)
+    for r in range(3):  # a loop over robots in the test only: the reference, one call per robot
+        poses = np.flatnonzero(rop == r)
+        sel = rop[local.i] == r
+        sub = PoseGraph(local.i[sel] - poses[0], local.j[sel] - poses[0], local.R[sel], local.t[sel],
+                        local.kappa[sel], local.tau[sel], num_poses=len(poses))
+        alone[sel] = gnc_chordal_initialization(sub).weights < 0.5
+    assert (shared & wrong & closure).sum() >= (alone & wrong & closure).sum()
+    assert (shared & ~wrong).sum() <= (alone & ~wrong).sum()
+
+
+def test_pair_average_rejects_the_odd_hypothesis_per_pair():
+    rng = np.random.default_rng(0)
+
+    def rot(a):
+        return np.stack([np.stack([np.cos(a), -np.sin(a)], -1), np.stack([np.sin(a), np.cos(a)], -1)], -2)
+
+    # pair 0: 4 hypotheses near 0.3 rad / (1, 2) and one at 2.0 rad; pair 1: 3 near -1 rad / (5, 0)
+    ang = np.array([0.3, 0.301, 0.299, 0.3, 2.0, -1.0, -1.001, -0.999])
+    t = np.array([[1, 2], [1, 2.01], [1.01, 2], [1, 2], [7, 7], [5, 0], [5, 0.01], [5.01, 0]], float)
+    pair = np.array([0, 0, 0, 0, 0, 1, 1, 1])
+    kappa = np.full(8, 1e4)
+    tau = np.full(8, 1e4)
+    order = rng.permutation(8)  # the segment operations do not need hypotheses grouped by pair
+    R, tm, inlier = pair_average(pair[order], rot(ang)[order], t[order], kappa, tau, 2)
+    np.testing.assert_array_equal(inlier, (np.arange(8) != 4)[order])
+    np.testing.assert_allclose(np.arctan2(R[:, 1, 0], R[:, 0, 0]), [0.3, -1.0], atol=1e-3)
+    np.testing.assert_allclose(tm, [[1.0025, 2.0025], [5.0033, 0.0033]], atol=1e-3)
+
+
+def test_chain_variances_grow_along_the_odometry():
+    ds = _team(robots=2, poses=30, intra=1, inter=2, noise=0.01, seed=0)
+    g = host_graph(ds.graph)
+    rop = ds.robot_of_pose
+    st = distributed_robust_initialization(ds.graph, rop)
+    vR, vt = chain_variances(g, st.local.t, st.map_of_pose)
+    starts = np.searchsorted(rop, [0, 1])
+    assert np.all(vR[starts] == 0) and np.all(vt[starts] == 0)
+    # var_R: one 1 / (2 kappa) per step; var_t: the steps' 1 / tau plus the lever arms (explicit sum)
+    np.testing.assert_allclose(vR[:30], np.arange(30) * 0.5 / g.kappa[0])
+    p = 20
+    lever = sum(0.5 / g.kappa[0] * np.sum((st.local.t[p] - st.local.t[k]) ** 2) for k in range(p))
+    np.testing.assert_allclose(vt[p], p / g.tau[0] + lever, rtol=1e-10)
+
+
+def test_options_are_checked():
+    ds = _team()
+    with pytest.raises(ValueError, match="frames"):
+        distributed_robust_initialization(ds.graph, ds.robot_of_pose, frames="star")
+    with pytest.raises(ValueError, match="min_inliers"):
+        distributed_robust_initialization(ds.graph, ds.robot_of_pose, min_inliers=0)
+    with pytest.raises(ValueError, match="map_sigma"):
+        distributed_robust_initialization(ds.graph, ds.robot_of_pose, map_sigma=(-1.0, 0.0))
+    with pytest.raises(ValueError, match="robots"):
+        distributed_robust_initialization(ds.graph, np.zeros(3, int))
+    with pytest.raises(ValueError, match="only apply to"):
+        initialize(ds.graph, "chordal", frames="graph")
