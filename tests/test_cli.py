@@ -250,22 +250,25 @@ def test_disconnected_graph_needs_largest_component(tmp_path):
 
 def test_bench_quick(tmp_path):
     out = tmp_path / "bench"
-    proc = mmpgo("bench", "--quick", "--out-dir", out, "--no-progress")
+    proc = mmpgo("bench", "--quick", "--out-dir", out, "--no-progress", "--extra-methods", "rbcd++")
     _ok(proc)
     assert "| dataset |" in proc.stdout
     md = (out / "bench.md").read_text()
-    for needle in ("bench --quick", "JAX", "backend", "f* ours", "ms/iter", "iters → 1e-3", "| MM |", "| AMM |"):
+    for needle in ("bench --quick", "JAX", "backend", "f* ours", "ms/iter", "iters → 1e-3", "| MM |", "| AMM |",
+                   "| RBCD++ |"):
         assert needle in md, f"{needle!r} missing from bench.md"
     with open(out / "bench.csv", newline="") as fh:
         rows = list(csv.DictReader(fh))
-    assert {r["run"] for r in rows} == {"MM", "AMM", "AMM-alg2", "DGS"}  # DGS: the paper's third column
+    # DGS: the paper's third column; RBCD++: --extra-methods, without paper or code values
+    assert {r["run"] for r in rows} == {"MM", "AMM", "AMM-alg2", "DGS", "RBCD++"}
+    assert all(r["paper_f"] == "" and r["code_f"] == "" for r in rows if r["run"] == "RBCD++")
     assert all(int(r["k"]) == 100 for r in rows)
     for r in rows:
         assert float(r["f"]) >= float(r["fstar_used"]) * (1 - 1e-6)
     doc = json.loads((out / "bench.json").read_text())
     assert doc["complete"] is True and doc["iterations"] == 100 and len(doc["datasets"]) == 1
     ds = doc["datasets"][0]
-    assert set(ds["runs"]) == {"MM", "AMM", "AMM-alg2", "DGS"}
+    assert set(ds["runs"]) == {"MM", "AMM", "AMM-alg2", "DGS", "RBCD++"}
     assert len(ds["runs"]["MM"]["f_history"]) == 101
     assert doc["machine"]["cpu"] and doc["machine"]["jax"]
     if ds["name"] == "MITb":  # the paper's numbers are carried along; gaps use the registry's certified f*

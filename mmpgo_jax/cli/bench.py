@@ -9,7 +9,9 @@ centralized chordal initialization (§5 there), it runs
 * AMM-PGO with the default (adaptive) restart rule,
 * AMM-PGO with Algorithm 2's restart test (``restart="paper"``),
 
-and reports f = 2F after 100 / 250 / 1000 iterations beside the paper's MM / AMM columns and the
+(``--extra-methods rbcd rbcd++ ...``: more rows, each a baseline of the methods registry,
+:mod:`mmpgo_jax._solve.methods`, run the same way, without paper or code columns), and reports
+f = 2F after 100 / 250 / 1000 iterations beside the paper's MM / AMM columns and the
 numbers of the authors' C++ code (docs/conventions.md §7); our f* (:func:`~mmpgo_jax.centralized_optimum`)
 beside the paper's printed f* and SE-Sync's certified f* (§6 there); milliseconds per iteration
 and compile time; and the iterations and seconds each run needs to reach a relative
@@ -283,8 +285,22 @@ def _checkpoints(iterations: int) -> list[int]:
     return ks
 
 
-def _table_value(info, column: str, k: int) -> float | None:
-    if info is None:
+def extra_runs(args) -> list[tuple]:
+    """The rows of ``--extra-methods`` in the shape of :data:`RUNS` (no restart, paper or code column)."""
+    from .._solve.methods import method_label
+
+    return [(method_label(m), method_label(m), m, None, None, None)
+            for m in dict.fromkeys(getattr(args, "extra_methods", None) or ())]
+
+
+def _run_notes(args) -> dict:
+    """What each row of the tables is: the paper's runs, then the ``--extra-methods``."""
+    return {**_RUN_NOTE, **{key: f"{label} (method {m!r}), from the same start, no paper or code column"
+                            for key, label, m, *_ in extra_runs(args)}}
+
+
+def _table_value(info, column: str | None, k: int) -> float | None:
+    if info is None or column is None:
         return None
     tab = getattr(info, column, None)
     if not tab:
@@ -382,7 +398,7 @@ def _bench_one(job: _Job, args, iterations: int, no_progress: bool) -> _Result:
     # as `mmpgo solve` runs it: the robots split over the CPU cores from AUTO_THREAD_POSES poses on
     devices = thread_devices(args, n, int(np.max(robots)) + 1 if np.ndim(robots) else int(robots))
     res.threads = 1 if devices is None else len(devices)
-    for key, label, method, restart, pcol, ccol in RUNS:
+    for key, label, method, restart, pcol, ccol in (*RUNS, *extra_runs(args)):
         with progress_bar(f"[{job.name}] {label}", iterations, disable=no_progress, leave=False) as bar:
             # the paper's fixed iteration counts: f is read at 100/250/1000 whatever happens before
             # (a restart rule only for AMM: MM has none, and the solvers refuse one)
@@ -402,7 +418,8 @@ def _bench_one(job: _Job, args, iterations: int, no_progress: bool) -> _Result:
             k = h.first_below(used + tol * abs(used))
             to_tol[_tk(tol)] = {"iterations": k,
                                     "seconds": None if k is None else k * r.ms_per_iteration / 1e3}
-        code_ms = getattr(info, "code_ms_per_iter_mm" if method == "mm" else "code_ms_per_iter_amm", None)
+        code_ms = None if ccol is None else getattr(
+            info, "code_ms_per_iter_mm" if method == "mm" else "code_ms_per_iter_amm", None)
         res.runs[key] = {
             "label": label,
             "method": method,
@@ -519,7 +536,8 @@ def _markdown(results: list[_Result], meta: dict, done: bool) -> str:
     split = {"blocks": "contiguous blocks", "metis": "METIS parts", "random": "random balanced parts"}[
         meta.get("split", "blocks")]
     w(f"- settings: {meta['robots']} robots ({split}), {meta['iterations']} iterations, centralized "
-      f"chordal initialization, xi = 1e-3; runs: " + "; ".join(f"**{k}** = {v}" for k, v in _RUN_NOTE.items()) + "\n")
+      f"chordal initialization, xi = 1e-3; runs: " + "; ".join(f"**{k}** = {v}" for k, v in meta["runs"].items())
+      + "\n")
     if meta.get("split", "blocks") != "blocks":
         w("- NOTE: the paper's numbers are for contiguous blocks; no verdicts are given.\n")
     elif meta["robots"] != PAPER_ROBOTS:
@@ -659,7 +677,7 @@ def run_bench(args) -> int:
         "iterations": iterations,
         "quick": quick,
         "num_datasets": len(jobs),
-        "runs": _RUN_NOTE,
+        "runs": _run_notes(args),
     }
     m = meta["machine"]
     print(f"# mmpgo bench: {len(jobs)} dataset(s), {meta['robots']} robots, {iterations} iterations")

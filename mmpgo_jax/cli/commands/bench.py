@@ -16,6 +16,12 @@ def register(sub) -> None:
                    help="outer iterations, >= 1 (default 1000)")
     p.add_argument("--robots", "-A", type=ROBOTS, default=10, help="robots, >= 1 (default 10)")
     add_robots_from(p, ("blocks", "metis", "random"))
+    from ..._solve.methods import METHOD_NAMES  # names only: no solver is imported here
+
+    extra = [m for m in METHOD_NAMES if m not in ("mm", "amm", "dgs")]  # those three are the paper's rows already
+    p.add_argument("--extra-methods", nargs="+", choices=extra, metavar="METHOD", default=None,
+                   help=f"more rows beside the paper's MM / AMM / DGS runs, from the same start: {', '.join(extra)} "
+                        "(no paper or code columns)")
     add_threads_option(p)
     p.add_argument("--out-dir", default="bench-results", help="folder for the Markdown, CSV and JSON tables")
     p.add_argument("--no-progress", action="store_true")
