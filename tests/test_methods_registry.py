@@ -173,3 +173,16 @@ def test_cli_solve_dgs(capsys):
     else:
         assert rc == 2 and cap.err.strip() == ("mmpgo: error: DGS is not available as a solver yet (mmpgo_jax.dgs "
                                                "runs it on its own)")
+
+
+def test_cli_sweep_methods(capsys):
+    assert main(["sweep", TINY, "-A", "2", "-n", "4", "--methods", "amm", "rbcd", "--fstar", "none",
+                 "--no-progress", "--no-compilation-cache"]) == 0
+    out = capsys.readouterr().out
+    assert "| tiny2d | AMM | 2 |" in out and "| tiny2d | RBCD | 2 |" in out
+    for argv, message in ((["--methods", "rbcd", "--restart", "paper"], "--restart applies to amm"),
+                          (["--methods", "mm", "rbcd", "--losses", "huber"],
+                           "--losses huber: rbcd minimises the least-squares F only")):
+        assert main(["sweep", TINY, "-A", "2", "-n", "2", *argv]) == 2
+        err = capsys.readouterr().err.splitlines()
+        assert len(err) == 1 and err[0].startswith("mmpgo: error: ") and message in err[0], err
