@@ -90,18 +90,24 @@ def run(args) -> list[dict]:
                              **_scores(inter & ~st.accepted, c.outlier, inter),
                              "unplaced": len(st.unplaced_robots), "unverified": int(st.unverified.sum())})
                 print(rows[-1], flush=True)
-        st = starts.get("distributed-robust") or distributed_robust_initialization(g, rop)
-        X0 = _poses(st.poses)
         for name in args.methods:
             if name == "start":
                 continue
             t = time.perf_counter()
+            if name.startswith("dr"):
+                label = "distributed-robust sigma=0.25,3" if name.startswith("drs") else "distributed-robust"
+                st = starts.get(label) or distributed_robust_initialization(
+                    g, rop, **(dict(map_sigma=(0.25, 3.0)) if name.startswith("drs") else {}))
+                starts[label] = st
+                X0 = _poses(st.poses)
             common = dict(iterations=args.iterations, ground_truth=ds.ground_truth)
             if name == "tls":
                 res = mm.solve(g, rop, loss="tls", **common)
-            elif name == "dr-tls":
+            elif name in ("dr-tls", "drs-tls"):
                 res = mm.solve(g, rop, loss="tls", start=X0, **common)
-            elif name == "dr-l2-tls":
+            elif name == "dr-gnc":
+                res = mm.solve(g, rop, loss="tls", start=X0, distributed=True, **common)
+            else:  # dr-l2-tls, drs-l2-tls
                 kept = st.weights > 0.5
                 first = mm.solve(g.select_edges(kept), rop, start=X0, **common)
                 res = mm.solve(g, rop, loss="tls", start=first.poses, **common)
@@ -137,7 +143,7 @@ def main(argv=None) -> int:
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
     p.add_argument("--iterations", type=int, default=1000)
     p.add_argument("--methods", nargs="+", default=["start", "tls", "dr-tls", "dr-l2-tls"],
-                   choices=["start", "tls", "dr-tls", "dr-l2-tls"])
+                   choices=["start", "tls", "dr-tls", "dr-l2-tls", "dr-gnc", "drs-tls", "drs-l2-tls"])
     p.add_argument("--out", default=str(Path(__file__).with_name("robust_distributed_start.json")))
     args = p.parse_args(argv)
     meta = dict(vars(args), started=time.strftime("%Y-%m-%d %H:%M", time.gmtime()),
