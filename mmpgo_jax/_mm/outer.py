@@ -428,14 +428,22 @@ def step(problem: MMProblem, config: MMConfig, st: MMState, comm: Collectives = 
     return new, rec
 
 
-def _run(problem: MMProblem, config: MMConfig, state: MMState, length: int, limit=None):
+def scan_with_budget(advance, skipped, iteration, state, length: int, limit=None):
+    """``length`` applications of ``advance(state) -> (state, record)`` in one ``lax.scan``; with a
+    traced ``limit``, those at ``iteration(state) >= limit`` give ``(state, skipped(state))`` instead,
+    so a budget that is not a multiple of ``length`` reuses the same compiled chunk. The one loop body
+    of every compiled run (``run`` here, every solver's ``run_chunk``)."""
     def body(st, _):
         if limit is None:
-            return step(problem, config, st)
-        skip = st.iteration >= limit
-        return jax.lax.cond(skip, lambda s: (s, skipped_record(s)), lambda s: step(problem, config, s), st)
+            return advance(st)
+        return jax.lax.cond(iteration(st) >= limit, lambda s: (s, skipped(s)), advance, st)
 
     return jax.lax.scan(body, state, None, length=length)
+
+
+def _run(problem: MMProblem, config: MMConfig, state: MMState, length: int, limit=None):
+    return scan_with_budget(lambda s: step(problem, config, s), skipped_record, lambda s: s.iteration, state,
+                            length, limit)
 
 
 _run.__name__ = _run.__qualname__ = "run"  # the name in compile logs

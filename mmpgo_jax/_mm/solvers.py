@@ -29,6 +29,7 @@ from .outer import (
     MMProblem,
     MMState,
     check_consistent,
+    scan_with_budget,
     skipped_record,
     start_state,
     step,
@@ -181,13 +182,8 @@ def as_solver(solver=None, *, method: str | None = None, xi=None, restart=None, 
 
 
 def _chunk(solver: Solver, problem, state, length: int, limit, comm: Collectives = LOCAL):
-    def body(st, _):
-        if limit is None:
-            return solver.step(problem, st, comm)
-        skip = solver.iteration(st) >= limit
-        return jax.lax.cond(skip, lambda s: (s, solver.skipped(s)), lambda s: solver.step(problem, s, comm), st)
-
-    return jax.lax.scan(body, state, None, length=length)
+    return scan_with_budget(lambda s: solver.step(problem, s, comm), solver.skipped, solver.iteration, state,
+                            length, limit)
 
 
 _chunk.__name__ = _chunk.__qualname__ = "run_chunk"  # the name in compile logs
