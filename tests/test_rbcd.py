@@ -263,7 +263,7 @@ _CHILD = textwrap.dedent("""
     graph = mm.cube_dataset(3, num_poses=150, grid=4).graph
     out = {}
     for name, solver in [("greedy++", mm.RBCD("greedy", accelerated=True)), ("parallel", mm.RBCD("parallel")),
-                         ("uniform", mm.RBCD("uniform", seed=2))]:
+                         ("uniform", mm.RBCD("uniform", seed=2)), ("lifted", mm.RBCD("greedy", accelerated=True, rank=5))]:
         for layout in (None, Sharded(devices=2)):
             r = mm.solve(graph, 4, solver=solver, layout=layout,
                          termination=Termination(30, 10, stop_when_stalled=False))
@@ -279,7 +279,7 @@ def test_sharded_run_gives_the_same_history():
     proc = subprocess.run([sys.executable, "-c", _CHILD], capture_output=True, text=True, env=env, timeout=900)
     assert proc.returncode == 0, proc.stderr[-3000:]
     out = json.loads(proc.stdout.strip().splitlines()[-1])
-    for name in ("greedy++", "parallel", "uniform"):
+    for name in ("greedy++", "parallel", "uniform", "lifted"):
         one, sharded = out[name], out[name + "/sharded"]
         assert sharded["devices"] == 2 and len(one["f"]) == 31
         np.testing.assert_allclose(sharded["f"], one["f"], rtol=1e-10, atol=0, err_msg=name)
@@ -434,3 +434,16 @@ def test_lifted_preconditioner_inverts_the_diagonal_hessian_blocks(dataset, rank
 
     V = tangent_soa(Y, jnp.asarray(rng.standard_normal(Y.shape)))
     np.testing.assert_allclose(M_H(V), V, rtol=0, atol=1e-10 * float(jnp.abs(V).max()))
+
+
+def test_lifted_fixed_poses_keep_their_values(cube):
+    """Fixed poses stay at their lifted values; the rounded result is moved back onto them (to rounding)."""
+    start = mm.chordal_initialization(cube)
+    index = np.array([0, 57])
+    fixed = mm.FixedPoses(index, np.asarray(start.R)[index], np.asarray(start.t)[index])
+    r = mm.solve(cube, 4, solver=RBCD("greedy", rank=5), fixed=fixed,
+                 termination=Termination(20, 20, stop_when_stalled=False))
+    assert r.history.f[-1] < 0.8 * r.history.f[0]
+    np.testing.assert_allclose(np.asarray(r.poses.R)[index], fixed.R, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(r.poses.t)[index], fixed.t, rtol=0, atol=1e-12 * np.abs(fixed.t).max())
+    np.testing.assert_allclose(r.stats["rbcd_rounded_f"], r.stats["rbcd_lifted_f"], rtol=1e-9)

@@ -80,7 +80,8 @@ def round_lifted(X, pose_mask, lift, free=None) -> np.ndarray:
     onto its top d left singular directions), reflected (last row negated) when fewer than half the
     rotation blocks have det > 0, every rotation block projected to SO(d); translations follow.
     With fixed poses (``free`` (A, n_max) bool) the result is moved rigidly so that the first fixed
-    pose is back at its value, lift^T Y_i (the gauge they hold). Padding slots get [0 | I]."""
+    pose is back at its value, lift^T Y_i (the gauge they hold; every fixed pose then equals its
+    value to rounding, ~1e-14, not bit for bit as at rank d). Padding slots get [0 | I]."""
     X, mask = np.asarray(X, np.float64), np.asarray(pose_mask, bool)
     d = X.shape[-1] - 1
     real = X[mask]  # (N, r, d+1)
