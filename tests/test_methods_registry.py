@@ -100,16 +100,16 @@ def test_sweep_of_rbcd_plus_plus_matches_solve(graph):
         np.testing.assert_allclose(res.history("g", a, "rbcd++"), ref.history.f, rtol=1e-10, atol=0)
 
 
-@pytest.mark.slow  # three methods, each compiled for the sweep and for two solves: ~1-2 min
+@pytest.mark.slow  # four methods, each compiled for the sweep and for two solves: ~1-2 min
 def test_sweep_of_amm_and_rbcd_matches_solve(graph):
     """Each method its own compiled batch (robot counts 2 and 3 padded into one vmapped batch), every
     configuration's f history equal to its solve's; results keyed by the method names."""
     its, robots = 6, [2, 3]
     before = dict(TRACE_COUNTS)
-    res = sweep({"g": graph}, robots, methods=("amm", "rbcd", "rbcd++"), iterations=its, chunk_size=3,
-                group_by="method")
-    assert res.methods == ["amm", "rbcd", "rbcd++"]
-    assert [g["method"] for g in res.groups] == ["amm", "rbcd", "rbcd++"]
+    methods = ("amm", "rbcd", "rbcd++", *(("dgs",) if _dgs_available() else ()))
+    res = sweep({"g": graph}, robots, methods=methods, iterations=its, chunk_size=3, group_by="method")
+    assert res.methods == list(methods)
+    assert [g["method"] for g in res.groups] == list(methods)
     assert all(g["configs"] == 2 and g["batches"] == 1 and g["A"] == 3 for g in res.groups)
     for m in res.methods:
         assert TRACE_COUNTS[m] - before.get(m, 0) <= 1  # one trace per method (0: a cache hit)

@@ -22,7 +22,6 @@ imports no solver until one is asked for, so the command line can read :data:`ME
 from __future__ import annotations
 
 import importlib
-import importlib.util
 
 __all__ = ["MAJORIZATION", "METHOD_NAMES", "check_loss", "method_label", "method_name", "solver_for"]
 
@@ -74,10 +73,7 @@ def _refuse_shortcuts(method: str, **shortcuts) -> None:
 
 def _dgs():
     """``DGS()`` when the baseline is a solver of the one solve path, else a clear error."""
-    cls = None
-    for module in ("mmpgo_jax._baselines.dgs", "mmpgo_jax._baselines.dgs_solver"):  # where the solver may live
-        if cls is None and importlib.util.find_spec(module) is not None:
-            cls = getattr(importlib.import_module(module), "DGS", None)
+    cls = getattr(importlib.import_module("mmpgo_jax._baselines.dgs"), "DGS", None)
     if cls is None:
         raise ValueError("DGS is not available as a solver yet (mmpgo_jax.dgs runs it on its own)")
     return cls()
