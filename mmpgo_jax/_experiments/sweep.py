@@ -451,9 +451,10 @@ def sweep(
     init, xi, restart, subproblem, fixed, loss, loss_scale, gnc, stop_when_stalled=False)`` (for a
     solver object: ``solve(graph, robots, solver=..., ...)``) (for
     ``"l2"`` swept among robust losses: ``loss=RobustLoss("l2", loss_scale)``): a batch runs every
-    iteration, since one configuration cannot stop alone. ``results`` holds each configuration's
-    :class:`~mmpgo_jax.SolveResult` (the fields a ``solve`` returns; timings are the configuration's
-    share of its batch).
+    iteration, since one configuration cannot stop alone (a solver's own stopping rule, such as DGS's
+    change rule, included: where ``solve`` stops it early, the sweep's history goes on). ``results``
+    holds each configuration's :class:`~mmpgo_jax.SolveResult` (the fields a ``solve`` returns;
+    timings are the configuration's share of its batch).
     """
     if iterations < 0:
         raise ValueError(f"iterations must be >= 0, got {iterations}")
