@@ -186,3 +186,19 @@ def test_cli_sweep_methods(capsys):
         assert main(["sweep", TINY, "-A", "2", "-n", "2", *argv]) == 2
         err = capsys.readouterr().err.splitlines()
         assert len(err) == 1 and err[0].startswith("mmpgo: error: ") and message in err[0], err
+
+
+@pytest.mark.skipif(not _dgs_available(), reason="DGS is not a solver yet")
+def test_sweep_of_dgs_ends_each_history_where_its_rule_held():
+    """DGS's own stopping rule holds at different iterations for 2 and 3 robots of one batch: each
+    configuration's history ends where its rule held, equal to its solve's."""
+    graph = mm.read_g2o(TINY).graph
+    res = sweep({"t": graph}, [2, 3], methods="dgs", iterations=40, chunk_size=10, group_by="method")
+    lengths = set()
+    for a in (2, 3):
+        ref = mm.solve(graph, a, method="dgs", iterations=40, chunk_size=10, stop_when_stalled=False)
+        got = res.results[("t", a, "dgs")]
+        assert got.result == ref.result == mm.RESULTS.converged
+        np.testing.assert_allclose(got.history.f, ref.history.f, rtol=1e-10, atol=0)
+        lengths.add(len(got.history.f))
+    assert len(lengths) == 2  # the two configurations stopped at different iterations

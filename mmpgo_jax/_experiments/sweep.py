@@ -81,7 +81,7 @@ from .._core.pose_graph import PoseGraph, Poses
 from .._core.resources import available_memory_bytes
 from .._init.start import initialize
 from .._io.atomic import atomic_write
-from .._mm.driver import RESULTS, Driven, History, NonFiniteError, Termination, compile_once, drive
+from .._mm.driver import RESULTS, Driven, History, NonFiniteError, Termination, compile_once, converged_at, drive
 from .._mm.layouts import Padded
 from .._mm.majorization import gamma_couplings
 from .._mm.outer import MMProblem
@@ -452,7 +452,8 @@ def sweep(
     solver object: ``solve(graph, robots, solver=..., ...)``) (for
     ``"l2"`` swept among robust losses: ``loss=RobustLoss("l2", loss_scale)``): a batch runs every
     iteration, since one configuration cannot stop alone (a solver's own stopping rule, such as DGS's
-    change rule, included: where ``solve`` stops it early, the sweep's history goes on). ``results``
+    change rule, holds its configuration's state where it held, and that history ends there, as
+    ``solve``'s does). ``results``
     holds each configuration's :class:`~mmpgo_jax.SolveResult` (the fields a ``solve`` returns;
     timings are the configuration's share of its batch).
     """
@@ -741,10 +742,13 @@ def _run_batch(plan: _Plan, method: str, bkeys: list, runs: list, per_batch: int
         group["traces"] = sum(TRACE_COUNTS.values()) - traces  # 1 (0: jax's trace cache hit)
     final = jax.device_get(driven.state)
     for c, (key, run) in enumerate(zip(bkeys, runs, strict=True)):
-        one = Driven(state=jax.tree.map(lambda x, c=c: x[c], final),
-                     history=History(driven.history.f[c], driven.history.grad_norm[c], driven.history.restarts[c]),
-                     result=RESULTS.iterations, compile_seconds=driven.compile_seconds / real,
-                     solve_seconds=driven.solve_seconds / real)
+        state = jax.tree.map(lambda x, c=c: x[c], final)
+        # a solver's own stopping rule (DGS's): the configuration's history ends where it held, as solve's
+        keep = None if (at := converged_at(state)) is None else at + 1
+        one = Driven(state=state, history=History(driven.history.f[c, :keep], driven.history.grad_norm[c, :keep],
+                                                  driven.history.restarts[c, :keep]),
+                     result=RESULTS.iterations if keep is None else RESULTS.converged,
+                     compile_seconds=driven.compile_seconds / real, solve_seconds=driven.solve_seconds / real)
         _record(plan, method, key, run, one, termination, per_config, b, real, out)
     group["run_seconds"] += driven.solve_seconds
     return driven.solve_seconds
