@@ -130,6 +130,8 @@ def test_robot_without_usable_closures_is_reported():
     first3 = int(np.searchsorted(rop, 3))
     np.testing.assert_allclose(st.poses.R[first3], np.eye(2), atol=1e-12)
     np.testing.assert_allclose(st.poses.t[rop == 3], st.local.t[rop == 3], atol=1e-12)
+    with pytest.warns(UserWarning, match=r"robots \[3\] share no accepted"):
+        initialize(graph, "distributed-robust", robots=rop)
     # min_inliers: pairs with fewer accepted closures are not used; robots left without one are reported
     st2 = distributed_robust_initialization(ds.graph, rop, min_inliers=100)
     assert not st2.placed[1:].any() and st2.unplaced_robots.tolist() == [1, 2, 3]

@@ -61,12 +61,22 @@ of maps through it) and the pair's only closure is unverified: nothing else cons
 accepted if it is the only link (``DistributedRobustStart.unverified``). Maps that no accepted closure
 joins to the map of pose 0 are not placed in its frame (``placed`` False; ``unplaced_robots``): each
 group of maps joined among themselves keeps the frame of its first map (a map alone: its local frame).
-Residuals are judged against the closures' own information: drift of the local maps is not in the
-test, so long noisy chains inflate the residuals of correct closures (benchmarks/robust_teams.md).
+The local maps' own error is the weak point: the hypotheses of correct closures scatter with the
+maps' drift (on 10 x 500-pose teams at 0.005 pi rad per step: up to 0.44 rad and 6.5 cells at the true
+frames), far beyond the closures' information (dpgo's test, ``map_sigma=(0, 0)``, rejected every
+correct closure there). The default ``map_sigma="odometry"`` adds the odometry chain's drift, which
+ignores the intra-robot closures and so over-states it (one of two such teams: 2 of 13 outliers
+accepted, 4 correct closures rejected); with the Cube's noise (0.02 pi rad per step) the maps are off
+by up to 8 cells and no threshold separates the hypotheses (benchmarks/robust_teams.md).
 
 **Result.** X^0 = each map's local solution moved to its frame; ``weights`` (m,) in {0, 1}: the local
 GNC's on intra-robot edges (1 on odometry) and the acceptance of each inter-robot closure. The
-robust solver does not take weights: it starts with rho'(s) at X^0 (TLS: 1 where s <= c^2).
+robust solver does not take weights: it starts with rho'(s) at X^0 (TLS: 1 where s <= c^2), and at
+X^0 the maps are rigid, so correct inter-robot closures have s far above c^2 and TLS drops them all.
+Least squares on the accepted edges from X^0, then TLS, reached the outlier-free optimum wherever the
+start had sorted the closures right (benchmarks/robust_teams.md): a solver that starts from these
+weights is the intended use. :func:`~mmpgo_jax._init.start.initialize` returns the poses only and
+warns when a robot is not placed.
 """
 
 from __future__ import annotations

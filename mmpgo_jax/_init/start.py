@@ -9,6 +9,7 @@ distributed robust start: each robot's own GNC, then the robots' frames from the
 from __future__ import annotations
 
 import os
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -88,6 +89,10 @@ def _initial_poses(graph, method, initial, robots, fixed, options, host=False) -
 
             start = distributed_robust_initialization(
                 graph, min(10, graph.num_poses) if robots is None else robots, **options)
+            if start.unplaced_robots.size:
+                warnings.warn(f"distributed-robust start: robots {start.unplaced_robots.tolist()} share no accepted "
+                              "inter-robot loop closure with robot 0's map; they stay in their own frames",
+                              stacklevel=3)
             poses = start.poses if fixed is None else express_in_frame(start.poses, fixed)  # gauge: 1st fixed pose
             return poses_from_arrays(graph, poses.R, poses.t, host=host)
         if method == "chordal":
