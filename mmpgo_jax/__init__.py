@@ -18,7 +18,8 @@ Public API (the private modules are implementation details):
 * outlier experiments: :func:`add_outlier_loop_closures` (seeded wrong loop closures, a
   :class:`CorruptedGraph`), :func:`outlier_scores` (precision / recall of rejected edges, :class:`OutlierScores`)
 * baselines: :class:`DGS` (distributed Gauss–Seidel, the paper's DGS column, a solver of :func:`solve`) and
-  :func:`dgs` (both of its stages, a :class:`DGSResult`)
+  :func:`dgs` (both of its stages, a :class:`DGSResult`); :class:`RBCD` (RBCD / RBCD++, lifted ranks with
+  rounding) and :func:`rbcd_poses_sent` (its poses sent per iteration)
 * consistency pre-filter: :func:`pcm_filter` (PCM: the maximum pairwise-consistent set of inter-robot loop
   closures per robot pair, a :class:`PCMResult`)
 * solvers: :func:`solve` (one path: a :class:`Solver` — :class:`AMM`, :class:`MM` —, a start, a
@@ -40,7 +41,7 @@ from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:  # the same names, eagerly, for type checkers and IDEs
     from ._baselines.dgs import DGS, DGSResult, dgs
-    from ._baselines.rbcd import RBCD
+    from ._baselines.rbcd import RBCD, rbcd_poses_sent
     from ._core.compilation_cache import enable_compilation_cache
     from ._core.gauge import FixedPoses, express_in_frame
     from ._core.geometry import project_to_so, quaternion_to_rotation, rotation_2d
@@ -181,6 +182,7 @@ _LAZY = {  # public name -> the private module that defines it (imported on firs
     "DGSResult": "._baselines.dgs",
     "dgs": "._baselines.dgs",
     "RBCD": "._baselines.rbcd",
+    "rbcd_poses_sent": "._baselines.rbcd",
     "pcm_filter": "._robust.pcm",
     "add_outlier_loop_closures": "._experiments.outliers",
     "outlier_scores": "._experiments.outliers",
@@ -358,6 +360,7 @@ __all__ = [
     "project_to_so",
     "quaternion_to_rotation",
     "random_robots",
+    "rbcd_poses_sent",
     "read_g2o",
     "read_g2o_poses",
     "read_robot_folder",
