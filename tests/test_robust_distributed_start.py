@@ -229,3 +229,13 @@ def test_options_are_checked():
         distributed_robust_initialization(ds.graph, np.zeros(3, int))
     with pytest.raises(ValueError, match="only apply to"):
         initialize(ds.graph, "chordal", frames="graph")
+
+
+def test_solve_takes_the_start_by_name_with_its_partition():
+    """``solve(start="distributed-robust", distributed=True)``: the start gets the run's Partition as
+    ``robots``, and ``distributed=True`` refuses only the centralized starts."""
+    ds = _team(robots=3, poses=40, intra=2, inter=6, noise=0.005, seed=0)
+    rop = ds.robot_of_pose
+    X0 = initialize(ds.graph, "distributed-robust", robots=rop, host=True)
+    res = mm.solve(ds.graph, rop, loss="tls", start="distributed-robust", iterations=2, distributed=True)
+    np.testing.assert_allclose(np.asarray(res.start.t), X0.t, atol=1e-9)
