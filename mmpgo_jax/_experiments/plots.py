@@ -505,11 +505,15 @@ def _benchmark_name(name: str, graph) -> str:
 
 
 def _method_label(result) -> str:
-    cfg = getattr(result, "config", None)
-    if cfg is None:
+    """The solver's label as tables print it ("AMM-PGO (restart=adaptive)", "RBCD++", "DGS")."""
+    from .._solve.methods import method_label, method_name
+
+    solver = getattr(result, "solver", None)
+    if solver is None:
         return "estimate"
-    method = f"{cfg.method.upper()}-PGO"
-    return method if cfg.method != "amm" else f"{method} (restart={cfg.restart})"
+    label = method_label(method_name(solver))
+    restart = getattr(getattr(solver, "config", None), "restart", None)
+    return f"{label} (restart={restart})" if method_name(solver) == "amm" and restart else label
 
 
 def _fit_gap_limits(ax, f: np.ndarray, fstar: float) -> None:
