@@ -225,7 +225,17 @@ def write(args, runs) -> None:
         lines += _section(run_["rows"], run_["meta"])
     lines += [*FINDINGS, ""]
     with atomic_write(args.out) as fh:
-        fh.write("\n".join(lines))
+        fh.write("\n".join(lines) + _kept_sections(Path(args.out)))
+
+
+#: sections other scripts append to the same file (benchmarks/robust_distributed_start.py): kept as they are
+KEPT_HEADING = "## Distributed robust start"
+
+
+def _kept_sections(out: Path) -> str:
+    old = out.read_text() if out.is_file() else ""
+    at = old.find(KEPT_HEADING)
+    return "" if at < 0 else "\n" + old[at:]
 
 
 def _load(raw: Path) -> list[dict]:

@@ -576,7 +576,7 @@ class _Plan:
     def _start_key(self, gi: int, a: int, li: int) -> tuple:
         """(cache key, start method, options, whether it depends on the robot count) of a start."""
         method, options = start_for(self.init, self.loss_of[self.labels[li]])
-        per_robots = isinstance(method, str) and method == "distributed-chordal"
+        per_robots = isinstance(method, str) and method in ("distributed-chordal", "distributed-robust")
         key = (gi, a) if per_robots else (gi, str(method) if isinstance(method, str) else id(method),
                                           tuple(sorted(options.items())))
         return key, method, options, per_robots

@@ -19,7 +19,7 @@ import numpy as np
 from .errors import CLIError
 from .robots import read_input, robot_split
 
-SOLVE_STARTS = ("chordal", "distributed-chordal", "gnc-chordal", "vertices", "odometry")
+SOLVE_STARTS = ("chordal", "distributed-chordal", "distributed-robust", "gnc-chordal", "vertices", "odometry")
 OPTIMUM_STARTS = ("chordal", "vertices", "odometry")
 #: what ``--distributed`` refuses: the option and value, and why it is centralized
 CENTRALIZED_OPTIONS = {

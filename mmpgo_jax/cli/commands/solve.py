@@ -65,7 +65,8 @@ def _add_solver_options(p: argparse.ArgumentParser) -> None:
         "--init",
         default=None,
         help="start: chordal (default for least squares), gnc-chordal (default for a robust --loss: GNC-TLS with "
-             "chordal stages, not bent by outliers), distributed-chordal, vertices, odometry, or a .g2o/.npz file "
+             "chordal stages, not bent by outliers), distributed-chordal, distributed-robust (each robot's own GNC "
+             "map, placed by robust averaging of the inter-robot closures), vertices, odometry, or a .g2o/.npz file "
              "of poses",
     )
     p.add_argument("--restart", choices=("adaptive", "average", "paper"), default=None,
