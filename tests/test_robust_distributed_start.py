@@ -239,3 +239,19 @@ def test_solve_takes_the_start_by_name_with_its_partition():
     X0 = initialize(ds.graph, "distributed-robust", robots=rop, host=True)
     res = mm.solve(ds.graph, rop, loss="tls", start="distributed-robust", iterations=2, distributed=True)
     np.testing.assert_allclose(np.asarray(res.start.t), X0.t, atol=1e-9)
+
+
+@pytest.mark.slow  # a whole CLI solve (compilation); the start by name is checked in the default run above
+def test_cli_init_distributed_robust(tmp_path, capsys):
+    """``mmpgo solve FILE --init distributed-robust --loss tls``: the start is a choice of the command
+    and its result is the library's (the team's robots are contiguous blocks of 40 poses)."""
+    from mmpgo_jax.cli import main
+
+    ds = _team(robots=3, poses=40, intra=2, inter=6, noise=0.005, seed=0)
+    path = tmp_path / "team.g2o"
+    mm.write_g2o(path, ds.graph, ds.ground_truth)
+    out = tmp_path / "out.g2o"
+    assert main(["solve", str(path), "--robots", "3", "--init", "distributed-robust", "--loss", "tls", "-n", "2",
+                 "--no-progress", "--out", str(out)]) == 0
+    assert "AMM-PGO" in capsys.readouterr().out
+    assert out.is_file()
