@@ -157,6 +157,26 @@ def test_f_is_non_increasing(cube, selection, accelerated):
     assert r.solver.name == ("rbcd++" if accelerated else "rbcd")
 
 
+def test_fixed_interval_restart_is_dpgos_rule(cube):
+    """``restart="fixed"``: the momentum restarts after every ``restart_interval``-th iteration and at
+    no other (no redo); before the first restart it is the adaptive rule's first pass whenever that
+    one did not restart."""
+    term = Termination(40, 40, stop_when_stalled=False)
+    fixed = mm.solve(cube, 4, solver=RBCD(accelerated=True, restart="fixed", restart_interval=15), termination=term)
+    adaptive = mm.solve(cube, 4, solver=RBCD(accelerated=True), termination=term)
+    restarts = fixed.history.restarts.any(axis=1)
+    assert np.flatnonzero(restarts).tolist() == [15, 30]  # history index k + 1: iterations 15 and 30
+    f = fixed.history.f
+    assert np.all(np.isfinite(f)) and f[-1] < 0.7 * f[0]
+    first = int(np.argmax(adaptive.history.restarts.any(axis=1))) or len(f)
+    upto = min(first, 15)  # the same iterates until one of the two rules restarts
+    np.testing.assert_allclose(f[:upto], adaptive.history.f[:upto], rtol=1e-12)
+    with pytest.raises(ValueError, match="restart"):
+        RBCD(accelerated=True, restart="sometimes")
+    with pytest.raises(ValueError, match="restart_interval"):
+        RBCD(accelerated=True, restart="fixed", restart_interval=0)
+
+
 def test_greedy_picks_the_largest_block_gradient(cube):
     solver = RBCD("greedy")
     part, problem, X, grad = _setup(cube, 5, solver)

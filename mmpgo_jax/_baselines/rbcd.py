@@ -31,10 +31,12 @@ per device (its index is found with ``argmax``); "parallel" solves every robot u
 gamma_k = (1 + sqrt(1 + 4 N^2 gamma_{k-1}^2)) / (2N), alpha_k = 1 / (gamma_k N) (N robots),
 Y = Proj((1 - alpha) X + alpha V) for every robot, the selected block updated from Y (its
 neighbours at Y: one extra pose exchange, and greedy ranks the block gradients at Y), every other
-block set to Y, then V = Proj(V + gamma (X^{k+1} - Y)). dpgo restarts at a fixed interval; here the
-restart is adaptive, as the paper's: when f(X^{k+1}) > f(X^k) the iteration is redone as a plain
-RBCD step from X^k (its own selection), and gamma = 0, V = X^{k+1}. F is therefore non-increasing
-for RBCD++ too; ``restarted`` records the restarts (every robot's momentum at once: gamma is shared).
+block set to Y, then V = Proj(V + gamma (X^{k+1} - Y)). The restart (``restart``): "adaptive"
+(default, the paper's): when f(X^{k+1}) > f(X^k) the iteration is redone as a plain RBCD step from
+X^k (its own selection), and gamma = 0, V = X^{k+1}, so F is non-increasing for RBCD++ too;
+"fixed" (dpgo's ``restart_interval``, 30 there and here): gamma = 0, V = X^{k+1} after every
+``restart_interval``-th iteration and never a redo, so F may rise in between. ``restarted``
+records the restarts (every robot's momentum at once: gamma is shared).
 
 **Lifted rank** (``rank=r > d``; dpgo uses r = 5): poses in (St(d, r) x R^r)^n, Y_i = [t_i | R_i]
 with r rows and R_i^T R_i = I (:mod:`~mmpgo_jax._baselines.rbcd_lifted`). F is the same quadratic
@@ -90,6 +92,7 @@ __all__ = ["RBCD", "SELECTIONS", "RBCDProblem", "RBCDState", "boundary_poses_sen
            "robot_colouring"]
 
 SELECTIONS = ("greedy", "uniform", "round-robin", "parallel")
+RESTARTS = ("adaptive", "fixed")
 
 
 def default_inner() -> SubproblemConfig:
@@ -214,7 +217,8 @@ def _project(problem: RBCDProblem, M, keep):
 
 class RBCD(Solver):
     """RBCD / RBCD++ (module docstring). ``selection``: "greedy", "uniform", "round-robin" or
-    "parallel"; ``accelerated``: RBCD++ (Nesterov momentum with adaptive restart); ``rank``: None or
+    "parallel"; ``accelerated``: RBCD++ (Nesterov momentum); ``restart``: RBCD++'s momentum restart,
+    "adaptive" (default) or "fixed" every ``restart_interval`` iterations (dpgo's rule); ``rank``: None or
     d (SO(d)), or r > d (the lifted rank with rounding; block-Jacobi inner preconditioner); ``inner``: the block solve's
     :class:`~mmpgo_jax.SubproblemConfig` (default :func:`default_inner`); ``xi``: a proximal term in
     the block problem (default 0: exact block minimisation); ``seed``: the "uniform" draws."""
@@ -222,15 +226,21 @@ class RBCD(Solver):
     selection: str = eqx.field(static=True)
     accelerated: bool = eqx.field(static=True)
     rank: int | None = eqx.field(static=True)
+    restart: str = eqx.field(static=True)
+    restart_interval: int = eqx.field(static=True)
     inner: SubproblemConfig
     xi: float
     seed: int
 
     def __init__(self, selection: str = "greedy", accelerated: bool = False, rank: int | None = None,
-                 inner: SubproblemConfig | None = None, xi: float = 0.0, seed: int = 0):
+                 inner: SubproblemConfig | None = None, xi: float = 0.0, seed: int = 0, restart: str = "adaptive",
+                 restart_interval: int = 30):
         owner = "RBCD"
         check_choice(owner, "selection", selection, SELECTIONS)
         check_flag(owner, "accelerated", accelerated)
+        check_choice(owner, "restart", restart, RESTARTS)
+        check_count(owner, "restart_interval", restart_interval, 1)
+        self.restart, self.restart_interval = restart, int(restart_interval)
         if rank is not None:
             check_count(owner, "rank", rank, 2)
         if inner is not None and not isinstance(inner, SubproblemConfig):
@@ -348,6 +358,25 @@ class RBCD(Solver):
         gn, sn, _ = gradients(problem, Xn, comm)
         return Xn, gn, sn
 
+    def _adaptive(self, problem: RBCDProblem, state: RBCDState, Y, gY, f_old, k, comm):
+        """The paper's adaptive restart: pass 1, the accelerated update from Y; pass 2 (only after an
+        increase of f), RBCD from X^k. Returns (X, grad, share, restarted)."""
+        def body(carry):
+            i, restart, *_ = carry
+            first = i == 0
+            start, g = jnp.where(first, Y, state.X), jnp.where(first, gY, state.grad)
+            Xn, gn, sn = self._rbcd(problem, start, g, k, comm)
+            restart = jnp.where(first, 2.0 * comm.sum(sn) > f_old, restart)
+            return i + 1, restart, Xn, gn, sn
+
+        def cond(carry):
+            i, restart = carry[:2]
+            return (i == 0) | ((i == 1) & restart)
+
+        init = (jnp.asarray(0), jnp.zeros((), bool), state.X, state.grad, state.share)
+        _, restart, X, grad, share = jax.lax.while_loop(cond, body, init)
+        return X, grad, share, restart
+
     def step(self, problem: RBCDProblem, state: RBCDState, comm: Collectives = LOCAL):
         k = state.iteration
         A = state.share.shape[0]
@@ -361,23 +390,11 @@ class RBCD(Solver):
             alpha = 1.0 / (gamma * N)
             Y = _project(problem, (1.0 - alpha) * state.X + alpha * state.V, state.X)
             gY, _, _ = gradients(problem, Y, comm)  # the neighbours' Y: one more exchange
-            f_old = 2.0 * comm.sum(state.share)
-
-            # pass 1: the accelerated update from Y; pass 2 (only after an increase of f): RBCD from X^k
-            def body(carry):
-                i, restart, *_ = carry
-                first = i == 0
-                start, g = jnp.where(first, Y, state.X), jnp.where(first, gY, state.grad)
-                Xn, gn, sn = self._rbcd(problem, start, g, k, comm)
-                restart = jnp.where(first, 2.0 * comm.sum(sn) > f_old, restart)
-                return i + 1, restart, Xn, gn, sn
-
-            def cond(carry):
-                i, restart = carry[:2]
-                return (i == 0) | ((i == 1) & restart)
-
-            init = (jnp.asarray(0), jnp.zeros((), bool), state.X, state.grad, state.share)
-            _, restart, X, grad, share = jax.lax.while_loop(cond, body, init)
+            if self.restart == "fixed":  # dpgo: no redo, the momentum forgotten every restart_interval iterations
+                X, grad, share = self._rbcd(problem, Y, gY, k, comm)
+                restart = (k + 1) % self.restart_interval == 0
+            else:
+                X, grad, share, restart = self._adaptive(problem, state, Y, gY, 2.0 * comm.sum(state.share), k, comm)
             V = jnp.where(restart, X, _project(problem, state.V + gamma * (X - Y), state.V))
             gamma = jnp.where(restart, 0.0, gamma)
         new = RBCDState(X=X, grad=grad, share=share, iteration=k + 1, V=V, gamma=gamma)
