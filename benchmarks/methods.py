@@ -291,24 +291,28 @@ def fmt_sent(x) -> str:
     return f"{x:.0f}" if float(x).is_integer() else f"{x:.1f}"
 
 
-def table(results: dict, split: str, names: list[str]) -> list[str]:
-    head = ("| file | method | f@100 | f@250 | f@1000 | gap@1000 | its to 1e-2 / 1e-3 / 1e-4 | s to 1e-2 / 1e-3 / 1e-4 "
-            "| ms/it | poses sent/it | f increased |")
-    lines = [head, "|:---|:---|---:|---:|---:|---:|---:|---:|---:|---:|:---|"]
+def _summaries(results: dict, split: str, names: list[str]):
+    """(file, method, file info, run summary) of every run made for ``split``, in table order."""
     for name in names:
         info = results["files"][name]
         for method in METHODS:
             run = results["runs"].get(f"{name}|{split}|{method}")
-            if run is None:
-                continue
-            s = summary(run, info["fstar"])
-            fs = " | ".join(fmt_f(s["f"][k]) for k in K)
-            its = " / ".join(fmt_int(s["its"][g]) for g in GAPS)
-            secs = " / ".join(fmt_s(s["secs"][g]) for g in GAPS)
-            rise = (f"**yes** ({s['rises']} its, max +{s['max_rise']:.1e})" if s["rises"]
-                    else "no" + (f" ({s['rounding_rises']} rounding-level)" if s["rounding_rises"] else ""))
-            lines.append(f"| {name} | {method} | {fs} | {s['gap']:.1e} | {its} | {secs} | {s['ms_per_it']:.2f} | "
-                         f"{fmt_sent(info['sent'][split][method])} | {rise} |")
+            if run is not None:
+                yield name, method, info, summary(run, info["fstar"])
+
+
+def table(results: dict, split: str, names: list[str]) -> list[str]:
+    head = ("| file | method | f@100 | f@250 | f@1000 | gap@1000 | its to 1e-2 / 1e-3 / 1e-4 | s to 1e-2 / 1e-3 / 1e-4 "
+            "| ms/it | poses sent/it | f increased |")
+    lines = [head, "|:---|:---|---:|---:|---:|---:|---:|---:|---:|---:|:---|"]
+    for name, method, info, s in _summaries(results, split, names):
+        fs = " | ".join(fmt_f(s["f"][k]) for k in K)
+        its = " / ".join(fmt_int(s["its"][g]) for g in GAPS)
+        secs = " / ".join(fmt_s(s["secs"][g]) for g in GAPS)
+        rise = (f"**yes** ({s['rises']} its, max +{s['max_rise']:.1e})" if s["rises"]
+                else "no" + (f" ({s['rounding_rises']} rounding-level)" if s["rounding_rises"] else ""))
+        lines.append(f"| {name} | {method} | {fs} | {s['gap']:.1e} | {its} | {secs} | {s['ms_per_it']:.2f} | "
+                     f"{fmt_sent(info['sent'][split][method])} | {rise} |")
     return lines
 
 
