@@ -104,6 +104,6 @@ def test_solver_is_traced_numbers_static_structure(cube):
     from mmpgo_jax._mm import driver
 
     mm.solve(cube, 3, solver=mm.AMM(xi=1e-3), iterations=10, chunk_size=5)
-    before = len(driver._COMPILED)
+    before = set(driver._COMPILED)  # keys, not the size: the cache is bounded
     mm.solve(cube, 3, solver=mm.AMM(xi=4e-3), iterations=10, chunk_size=5)
-    assert len(driver._COMPILED) == before
+    assert set(driver._COMPILED) <= before
