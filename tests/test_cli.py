@@ -430,6 +430,7 @@ def test_version(capsys):
     assert capsys.readouterr().out.strip() == f"mmpgo-jax {declared}"
 
 
+@pytest.mark.slow  # 30 s; the default run keeps test_methods_registry's `mmpgo sweep --methods` and the library's sweep = solve checks
 def test_sweep_command_matches_solve(tmp_path):
     """``mmpgo sweep``: every (method, robot count) of a file in one run, its CSV tables written
     together; the final f of each configuration is what ``solve`` gives for the same split."""

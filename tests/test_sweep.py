@@ -88,6 +88,7 @@ def test_one_compilation_matches_separate_solves(amm_sweep, cube):
     assert all(r["ate"] > 0 and r["rpe_translation"] > 0 for r in res.configs)
 
 
+@pytest.mark.slow  # 30-40 s; test_one_solve_path checks a default sweep against solve to 1e-12 in the default run
 def test_default_inner_solver_matches_solve(cube):
     """Default inner solver: same compile-once property; the same f as solve() on the partition
     padded as the sweep pads it, with the batch's coarse aggregate size. (Against the unpadded partition the agreement is only up to the
