@@ -14,6 +14,10 @@ closures are outliers). Rows:
 * ``tls``: ``solve(loss="tls")`` from its default start (gnc-chordal), AMM, the team's robots;
 * ``dr-tls``: ``solve(loss="tls", start=X0)`` with X0 the distributed robust start (the solver's TLS
   weights start at rho'(s) of X0);
+* ``dr-held`` (``drs-held`` from the ``sigma=0.25,3`` start): ``solve(loss="tls", start=X0,
+  start_weights=w)`` with the start's weights w held as the first stage (until the weighted objective
+  stalls), then TLS's own weights: what ``solve(loss="tls", start="distributed-robust")`` does;
+* ``dr-held-gnc``: the same with ``gnc=GNCConfig()`` (GNC-TLS stages after the held stage);
 * ``dr-l2-tls``: least squares on the edges the start kept (its weights 1), from X0, then
   ``solve(loss="tls")`` on the whole graph from that result: a stand-in for a solver that would start
   from the start's weights (``solve`` has no argument for initial weights).
@@ -107,6 +111,10 @@ def run(args) -> list[dict]:
                 res = mm.solve(g, rop, loss="tls", start=X0, **common)
             elif name == "dr-gnc":
                 res = mm.solve(g, rop, loss="tls", start=X0, distributed=True, **common)
+            elif name in ("dr-held", "drs-held"):  # the start's weights held as the first stage, then TLS
+                res = mm.solve(g, rop, loss="tls", start=X0, start_weights=st.weights, **common)
+            elif name == "dr-held-gnc":  # the same, then GNC-TLS stages in the solver
+                res = mm.solve(g, rop, loss="tls", start=X0, start_weights=st.weights, gnc=mm.GNCConfig(), **common)
             else:  # dr-l2-tls, drs-l2-tls
                 kept = st.weights > 0.5
                 first = mm.solve(g.select_edges(kept), rop, start=X0, **common)
@@ -143,7 +151,8 @@ def main(argv=None) -> int:
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
     p.add_argument("--iterations", type=int, default=1000)
     p.add_argument("--methods", nargs="+", default=["start", "tls", "dr-tls", "dr-l2-tls"],
-                   choices=["start", "tls", "dr-tls", "dr-l2-tls", "dr-gnc", "drs-tls", "drs-l2-tls"])
+                   choices=["start", "tls", "dr-tls", "dr-l2-tls", "dr-gnc", "drs-tls", "drs-l2-tls", "dr-held",
+                            "drs-held", "dr-held-gnc"])
     p.add_argument("--out", default=str(Path(__file__).with_name("robust_distributed_start.json")))
     args = p.parse_args(argv)
     meta = dict(vars(args), started=time.strftime("%Y-%m-%d %H:%M", time.gmtime()),

@@ -1,5 +1,6 @@
 """``solve(..., distributed=True)`` and ``mmpgo solve --distributed``: every centralized step refused
-with its name, the distributed chordal start and in-solver GNC used by default."""
+with its name, the distributed chordal start (least squares) and the distributed robust start with
+its edge weights held first (robust losses) used by default."""
 
 import numpy as np
 import pytest
@@ -22,7 +23,7 @@ def test_centralized_starts_are_refused_by_name(start, keyword):
     assert "\n" not in str(info.value)
 
 
-def test_default_start_is_the_distributed_chordal_one_and_tls_runs_gnc_in_the_solver():
+def test_default_start_is_the_distributed_chordal_one_and_the_distributed_robust_one_for_a_robust_loss():
     graph, rop = _team()
     r = mm.solve(graph, rop, distributed=True, iterations=0)
     ref = mm.solve(graph, rop, start="distributed-chordal", iterations=0)
@@ -30,10 +31,13 @@ def test_default_start_is_the_distributed_chordal_one_and_tls_runs_gnc_in_the_so
     np.testing.assert_array_equal(np.asarray(r.start.t), np.asarray(ref.start.t))
     assert not np.allclose(np.asarray(r.start.t), np.asarray(chordal.start.t), atol=1e-9)
     robust = mm.solve(graph, rop, distributed=True, loss="tls", iterations=20)
-    assert bool(robust.loss.use_gnc) and "gnc_stages" in robust.stats
-    huber = mm.solve(graph, rop, distributed=True, loss="huber", iterations=0)  # no GNC schedule: kept as is
-    assert not bool(huber.loss.use_gnc)
-    np.testing.assert_array_equal(np.asarray(huber.start.t), np.asarray(ref.start.t))
+    dr = mm.initialize(graph, "distributed-robust", robots=rop)
+    np.testing.assert_allclose(np.asarray(robust.start.t), np.asarray(dr.t), atol=1e-12)
+    assert not bool(robust.loss.use_gnc) and robust.stats["start_weights_given"]
+    gnc = mm.solve(graph, rop, distributed=True, loss="tls", gnc=mm.GNCConfig(), iterations=20)  # GNC when asked
+    assert bool(gnc.loss.use_gnc) and gnc.stats["start_weights_given"]
+    huber = mm.solve(graph, rop, distributed=True, loss="huber", iterations=0)
+    np.testing.assert_allclose(np.asarray(huber.start.t), np.asarray(dr.t), atol=1e-12)
     given = mm.solve(graph, rop, distributed=True, start="vertices", initial=ref.start, iterations=0)
     np.testing.assert_allclose(np.asarray(given.start.t), np.asarray(ref.start.t), atol=1e-12)
 
@@ -66,4 +70,4 @@ def test_cli_distributed_runs_without_a_centralized_step(tmp_path, capsys):
     rc = main(["solve", str(path), "-A", "3", "--distributed", "--loss", "tls", "-n", "30", "--no-progress"])
     out = capsys.readouterr().out
     assert rc == 0, out
-    assert "no centralized step: start distributed-chordal, GNC in the solver" in out
+    assert "no centralized step: start distributed-robust, its edge weights held first" in out

@@ -79,7 +79,7 @@ from .._core.gauge import FixedPoses
 from .._core.partition import SPLITS, partition, split_robots
 from .._core.pose_graph import PoseGraph, Poses
 from .._core.resources import available_memory_bytes
-from .._init.start import initialize
+from .._init.start import initialize_with_weights
 from .._io.atomic import atomic_write
 from .._mm.driver import RESULTS, Driven, History, NonFiniteError, Termination, compile_once, converged_at, drive
 from .._mm.layouts import Padded
@@ -577,18 +577,20 @@ class _Plan:
         """(cache key, start method, options, whether it depends on the robot count) of a start."""
         method, options = start_for(self.init, self.loss_of[self.labels[li]])
         per_robots = isinstance(method, str) and method in ("distributed-chordal", "distributed-robust")
-        key = (gi, a) if per_robots else (gi, str(method) if isinstance(method, str) else id(method),
-                                          tuple(sorted(options.items())))
+        key = (gi, a if per_robots else None, str(method) if isinstance(method, str) else id(method),
+               tuple(sorted(options.items())))
         return key, method, options, per_robots
 
-    def start_of(self, gi: int, a: int, li: int) -> Poses:
-        """The start of (graph, robots, loss), computed once (per robot count only when it depends on it)."""
+    def start_of(self, gi: int, a: int, li: int) -> tuple:
+        """(poses, edge weights or None) of the start of (graph, robots, loss), computed once (per robot
+        count only when it depends on it); the weights of a start that classifies the edges, which a
+        robust configuration holds first as ``solve`` does."""
         fix = self.fixed_of[self.names[gi]]
         key, method, options, per_robots = self._start_key(gi, a, li)
         if key not in self.starts:
             t0 = time.perf_counter()
             robots_kw = {"robots": self.rops[(gi, a)]} if per_robots else {}
-            self.starts[key] = initialize(self.glist[gi], method, fixed=fix, **robots_kw, **options)
+            self.starts[key] = initialize_with_weights(self.glist[gi], method, fixed=fix, **robots_kw, **options)
             self.seconds[("start", key)] = time.perf_counter() - t0
         return self.starts[key]
 
@@ -679,9 +681,11 @@ def _run_group(plan: _Plan, method: str, gkeys: list, out: _Outputs, max_batch_b
     def prepared(key):
         """The configuration built by the one builder of every solve (its start computed once per graph)."""
         gi, a, x, li = key
-        start = plan.start_of(gi, a, li)
+        start, weights = plan.start_of(gi, a, li)
+        loss = plan.loss_of[plan.labels[li]]
         run = prepare(plan.glist[gi], plan.solver(method, x), plan.unpadded[(gi, a)], layout, termination,
-                      fixed=plan.fixed_of[plan.names[gi]], loss=plan.loss_of[plan.labels[li]], given_start=start)
+                      fixed=plan.fixed_of[plan.names[gi]], loss=loss, given_start=start,
+                      start_weights=None if loss is None else weights)
         run.clock.seconds["initialize"] += plan.initialize_seconds(gi, a, li)  # the partition and the start
         return run
 

@@ -18,7 +18,7 @@ from .._core.gauge import FixedPoses, express_in_frame
 from .._core.pose_graph import HostPoses, PoseGraph, Poses
 from .chordal import chordal_initialization, load_poses, odometry_initialization, poses_from_arrays
 
-__all__ = ["INITIALIZATION_METHODS", "initialize"]
+__all__ = ["INITIALIZATION_METHODS", "initialize", "initialize_with_weights"]
 
 INITIALIZATION_METHODS = ("chordal", "distributed-chordal", "distributed-robust", "gnc-chordal", "odometry",
                           "vertices")
@@ -65,15 +65,30 @@ def initialize(
     :class:`~mmpgo_jax._core.pose_graph.HostPoses`), for host-side solvers: a given start is then
     checked without a round trip through the device.
     """
+    return initialize_with_weights(graph, method, initial=initial, robots=robots, fixed=fixed, host=host,
+                                   **options)[0]
+
+
+def initialize_with_weights(graph: PoseGraph, method="chordal", *, initial: Poses | None = None, robots=None,
+                            fixed: FixedPoses | None = None, host: bool = False, **options):
+    """(poses, weights) of :func:`initialize`: ``weights`` (m,) in [0, 1] in the graph's edge order is
+    the start's classification of the edges where it makes one (``"distributed-robust"``: the robots'
+    own GNC on their edges, 1 on odometry, its acceptance of each inter-robot closure), None otherwise.
+    A robust solve holds them as its first stage (:func:`~mmpgo_jax._mm.robust.next_weights`)."""
     if fixed is not None:
         fixed.check(graph.num_poses, graph.dim)
-    poses = _initial_poses(graph, method, initial, robots, fixed, options, host)
+    poses, weights = _initial_poses(graph, method, initial, robots, fixed, options, host)
     if host and not isinstance(poses, HostPoses):
         poses = HostPoses(np.asarray(poses.R), np.asarray(poses.t))
-    return poses if fixed is None else fixed.apply(poses)
+    return (poses if fixed is None else fixed.apply(poses)), weights
 
 
-def _initial_poses(graph, method, initial, robots, fixed, options, host=False) -> Poses:
+def _initial_poses(graph, method, initial, robots, fixed, options, host=False):
+    poses = _start_poses(graph, method, initial, robots, fixed, options, host)
+    return poses if isinstance(poses, tuple) else (poses, None)
+
+
+def _start_poses(graph, method, initial, robots, fixed, options, host=False):
     if isinstance(method, Poses):
         return poses_from_arrays(graph, method.R, method.t, host=host)
     if isinstance(method, str) and method in INITIALIZATION_METHODS:
@@ -92,9 +107,9 @@ def _initial_poses(graph, method, initial, robots, fixed, options, host=False) -
             if start.unplaced_robots.size:
                 warnings.warn(f"distributed-robust start: robots {start.unplaced_robots.tolist()} share no accepted "
                               "inter-robot loop closure with robot 0's map; they stay in their own frames",
-                              stacklevel=3)
+                              stacklevel=5)
             poses = start.poses if fixed is None else express_in_frame(start.poses, fixed)  # gauge: 1st fixed pose
-            return poses_from_arrays(graph, poses.R, poses.t, host=host)
+            return poses_from_arrays(graph, poses.R, poses.t, host=host), start.weights
         if method == "chordal":
             return chordal_initialization(graph, fixed)
         if method == "odometry":

@@ -186,7 +186,8 @@ class MMProblem(eqx.Module):
     @staticmethod
     def build(partition: Partition, xi: float | None = None, *, config: MMConfig | None = None,
               preconditioner: str | None = None, min_couplings: int = 0, fixed=None,
-              poses=None, aggregate: int | None = None, loss: RobustLoss | None = None) -> MMProblem:
+              poses=None, aggregate: int | None = None, loss: RobustLoss | None = None,
+              start_weights=None) -> MMProblem:
         """Gamma^alpha of every robot, its preconditioner data and the fixed-pose mask (host, once).
 
         ``xi``: the proximal term; default ``config.xi`` (1e-3 without a config). Given both and
@@ -198,7 +199,9 @@ class MMProblem(eqx.Module):
         for problems batched together).
         ``min_couplings`` pads Gamma's loop-closure list (to batch problems of one shape);
         ``fixed``: a :class:`~mmpgo_jax.FixedPoses` (or (n,) bool mask) of poses that never move.
-        ``loss``: a :class:`~mmpgo_jax.RobustLoss` (None: least squares)."""
+        ``loss``: a :class:`~mmpgo_jax.RobustLoss` (None: least squares). ``start_weights``: (A, e_max)
+        weights of the incident-edge slots given with the start (e.g. the distributed robust start's
+        classification), held as a first stage of the robust run (robust losses only)."""
         if config is not None and config.xi is not None:
             if xi is None:
                 xi = config.xi
@@ -230,6 +233,8 @@ class MMProblem(eqx.Module):
         else:
             newton = build_newton_preconditioner(gamma.diag, dtype=dtype)
         weighting = LeastSquares()
+        if start_weights is not None and loss is None:
+            raise ValueError("MMProblem.build: start_weights apply to a robust loss; least squares has no weights")
         if loss is not None:
             n_max = partition.max_poses
             coarse = build_coarse_parts(partition.edges, newton, n_max) if newton.has_coarse else None
@@ -238,9 +243,13 @@ class MMProblem(eqx.Module):
             gi = index[np.asarray(e.robot_i), np.asarray(e.slot_i)]
             gj = index[np.asarray(e.robot_j), np.asarray(e.slot_j)]
             mask = robust_edges(loss, gi.reshape(-1), gj.reshape(-1)).reshape(gi.shape)
+            given = np.ones(gi.shape, dtype) if start_weights is None else np.asarray(start_weights, dtype)
+            if given.shape != gi.shape or not np.all((given >= 0) & (given <= 1)):
+                raise ValueError(f"MMProblem.build: start_weights must be {gi.shape} values in [0, 1]")
             weighting = Reweighted(loss=loss.with_defaults(e.t.shape[-1]),
                                    layout=gamma_layout(e, n_max, min_couplings=min_couplings), coarse=coarse,
-                                   robust_edge=to_device(mask))
+                                   robust_edge=to_device(mask), given=to_device(given),
+                                   use_given=to_device(np.asarray(start_weights is not None)))
         del gamma  # the stacked-layout copy is not kept: the solver reads gamma_soa
         free = None  # no fixed pose: the solver runs without a mask (same compiled code as ever)
         if fixed is not None:

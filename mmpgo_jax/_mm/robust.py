@@ -288,7 +288,8 @@ class WeightSchedule(eqx.Module):
     ``mu``: GNC's current mu (nan before the first stage ends); ``stage``: GNC stages finished;
     ``stage_iterations``: iterations into the current stage (GNC) or since the last update;
     ``updates``: weight updates after the start; ``done``: the weights no longer change;
-    ``weighted_f``: 2 x the weighted objective 1/2 sum w s at the current iterate (GNC's stage test).
+    ``weighted_f``: 2 x the weighted objective 1/2 sum w s at the current iterate (GNC's stage test);
+    ``held``: the start's given weights are still held (a first stage, see :func:`next_weights`).
     """
 
     mu: jax.Array
@@ -297,13 +298,16 @@ class WeightSchedule(eqx.Module):
     updates: jax.Array
     done: jax.Array
     weighted_f: jax.Array
+    held: jax.Array
 
 
-def initial_schedule(loss: RobustLoss, weighted_f) -> WeightSchedule:
+def initial_schedule(loss: RobustLoss, weighted_f, held=False) -> WeightSchedule:
     dt = jnp.asarray(weighted_f).dtype
     zero = jnp.zeros((), jnp.int32)
+    held = jnp.asarray(held, bool)
     return WeightSchedule(mu=jnp.full((), jnp.nan, dt), stage=zero, stage_iterations=zero, updates=zero,
-                          done=jnp.asarray(loss.kernel == L2), weighted_f=jnp.asarray(weighted_f, dt))
+                          done=jnp.asarray(loss.kernel == L2) & ~held, weighted_f=jnp.asarray(weighted_f, dt),
+                          held=held)
 
 
 def next_weights(loss: RobustLoss, sched: WeightSchedule, s, weights, weighted_f, s_max, total, robust_edge):
@@ -312,16 +316,24 @@ def next_weights(loss: RobustLoss, sched: WeightSchedule, s, weights, weighted_f
     weight 1; ``s_max`` the maximum of s over those edges of all robots, ``weighted_f`` the weighted
     objective with the current weights, ``total`` the sum over all robots). Every robot decides
     alike (the inputs are global), and an edge held by two robots has the same residual on both
-    sides, so it gets the same weight on both."""
+    sides, so it gets the same weight on both.
+
+    Weights given with the start (``sched.held``) are held as a first stage: until the weighted
+    objective stalls by GNC's stage rule (``GNCConfig.stage_tolerance`` / ``stage_iterations``), the
+    run solves the weighted least squares of the start's classification; then the loss's own rule
+    takes over (an M-estimator: rho'(s) at that point, every ``update_every`` iterations; GNC: its
+    first stage's weights at mu_0 of the residuals there). A start that keeps the maps rigid (the
+    distributed robust start) leaves correct inter-robot closures with residuals far above c^2;
+    weighting them by rho'(s) at X^0 would reject them all."""
     c2 = jnp.asarray(loss.scale, s.dtype) ** 2
     k = sched.stage_iterations + 1
     gnc = loss.gnc
     # M-estimators: every K iterations, at most max_updates times
-    m_update = (k >= loss.update_every) & (sched.updates < loss.max_updates)
-    # GNC: a stage ends on a stalled weighted objective or its budget
+    # GNC (and a held start): a stage ends on a stalled weighted objective or its budget
     change = jnp.abs(sched.weighted_f - weighted_f)
     stalled = change <= gnc.stage_tolerance * jnp.abs(sched.weighted_f)
     stage_end = stalled | (k >= gnc.stage_iterations)
+    m_update = jnp.where(sched.held, stage_end, (k >= loss.update_every) & (sched.updates < loss.max_updates))
     use_gnc = jnp.asarray(loss.use_gnc)
     update = ~sched.done & jnp.where(use_gnc, stage_end, m_update)
     mu = jnp.where(jnp.isnan(sched.mu), gnc_initial_mu(loss.kernel, s_max, c2), sched.mu)
@@ -332,7 +344,8 @@ def next_weights(loss: RobustLoss, sched: WeightSchedule, s, weights, weighted_f
     mu_next = jnp.where(loss.kernel == TLS, mu * gnc.factor, jnp.maximum(mu / gnc.factor, 1.0))
     tls_over = (binary & (mu >= gnc.final_mu)) | jnp.isinf(mu)
     gnc_over = jnp.where(loss.kernel == TLS, tls_over, mu <= 1.0) | (sched.stage + 1 >= gnc.max_stages)
-    done = sched.done | (update & jnp.where(use_gnc, gnc_over, sched.updates + 1 >= loss.max_updates))
+    m_over = (sched.updates + 1 >= loss.max_updates) | (loss.kernel == L2)
+    done = sched.done | (update & jnp.where(use_gnc, gnc_over, m_over))
     new = WeightSchedule(
         mu=jnp.where(update & use_gnc, mu_next, sched.mu),
         stage=sched.stage + (update & use_gnc).astype(jnp.int32),
@@ -340,15 +353,19 @@ def next_weights(loss: RobustLoss, sched: WeightSchedule, s, weights, weighted_f
         updates=sched.updates + update.astype(jnp.int32),
         done=done,
         weighted_f=weighted_f,
+        held=sched.held & ~update,
     )
     return update, jnp.where(update & robust_edge, w_new, weights), new
 
 
-def start_weights(loss: RobustLoss, s, robust_edge):
-    """Weights at X^0: rho'(s) for an M-estimator, 1 for GNC (its first stage is least squares);
-    1 on the edges outside ``robust_edge``."""
+def start_weights(loss: RobustLoss, s, robust_edge, given=None, use_given=False):
+    """Weights at X^0: ``given`` where ``use_given`` (weights that came with the start, held as a first
+    stage, see :func:`next_weights`), else rho'(s) for an M-estimator and 1 for GNC (its first stage
+    is least squares); 1 on the edges outside ``robust_edge``."""
     c2 = jnp.asarray(loss.scale, s.dtype) ** 2
     w = jnp.where(jnp.asarray(loss.use_gnc), jnp.ones_like(s), weight(loss.kernel, s, c2))
+    if given is not None:
+        w = jnp.where(use_given, jnp.asarray(given, s.dtype), w)
     return jnp.where(robust_edge, w, 1.0)
 
 

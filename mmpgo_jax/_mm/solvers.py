@@ -50,8 +50,9 @@ class Solver(eqx.Module):
         raise NotImplementedError
 
     def build(self, partition, *, poses, fixed=None, loss: RobustLoss | None = None, min_couplings: int = 0,
-              aggregate: int | None = None):
-        """The constant data of a run (host, once): ``poses`` is the start X^0 scattered per robot."""
+              aggregate: int | None = None, start_weights=None):
+        """The constant data of a run (host, once): ``poses`` is the start X^0 scattered per robot;
+        ``start_weights`` (A, e_max) the robust weights that came with the start (robust losses only)."""
         raise NotImplementedError
 
     def init(self, problem, X0):
@@ -106,8 +107,10 @@ class _Majorization(Solver):
     def xi(self):
         return self.config.xi
 
-    def build(self, partition, *, poses, fixed=None, loss=None, min_couplings=0, aggregate=None) -> MMProblem:
+    def build(self, partition, *, poses, fixed=None, loss=None, min_couplings=0, aggregate=None,
+              start_weights=None) -> MMProblem:
         return MMProblem.build(partition, config=self.config, fixed=fixed, poses=poses, loss=loss,
+                               start_weights=start_weights,
                                min_couplings=min_couplings, aggregate=aggregate)
 
     def init(self, problem: MMProblem, X0):

@@ -132,13 +132,17 @@ class LeastSquares(Weighting):
 class Reweighted(Weighting):
     """A robust kernel's reweighted majorizer: the loss (its numbers filled in,
     :meth:`RobustLoss.with_defaults`), where each edge goes in Γ^α, each edge's contribution to the
-    coarse matrix of the two-level preconditioner (None with block-Jacobi alone) and the incident
-    edges the loss applies to (the others keep weight 1)."""
+    coarse matrix of the two-level preconditioner (None with block-Jacobi alone), the incident
+    edges the loss applies to (the others keep weight 1) and the weights that came with the start
+    (``given``, used where ``use_given``: held as a first stage, :func:`~mmpgo_jax._mm.robust.next_weights`;
+    always an array, so that runs with and without them share one compiled program)."""
 
     loss: RobustLoss
     layout: GammaLayout
     coarse: CoarseParts | None
     robust_edge: jax.Array  # (A, e_max) bool
+    given: jax.Array  # (A, e_max) start weights (1 where none were given)
+    use_given: jax.Array  # () bool
     stateless = False
 
     def _residuals(self, problem, X, comm: Collectives = LOCAL):
@@ -170,11 +174,11 @@ class Reweighted(Weighting):
 
     def start(self, problem, config, X0):
         E, s = self._residuals(problem, X0)
-        weights = start_weights(self.loss, s, self.robust_edge)
+        weights = start_weights(self.loss, s, self.robust_edge, self.given, self.use_given)
         gamma, newton = self._operators_of(problem, config, weights)
         grad, share, weighted = self._gradients(problem, E, s, weights)
         local = 0.5 * jnp.sum(robust_cost(self.loss, s, self.robust_edge), axis=-1)
-        schedule = initial_schedule(self.loss, 2.0 * jnp.sum(weighted))
+        schedule = initial_schedule(self.loss, 2.0 * jnp.sum(weighted), self.use_given)
         return grad, share, local, WeightState(weights, gamma, newton, schedule)
 
     def operators(self, problem, config, state: WeightState):
@@ -194,7 +198,7 @@ class Reweighted(Weighting):
                                      lambda: (state.gamma, state.newton))
         grad, share, weighted = self._gradients(problem, E, s, weights)
         schedule = eqx.tree_at(lambda sc: sc.weighted_f, schedule, 2.0 * comm.sum(weighted))
-        settled = schedule.done | ~jnp.asarray(self.loss.use_gnc)
+        settled = (schedule.done | ~jnp.asarray(self.loss.use_gnc)) & ~schedule.held
         return grad, share, update, WeightState(weights, gamma, newton, schedule), settled
 
     def outcome(self, graph, part, state: WeightState, poses, to_host=np.asarray) -> tuple[dict, dict]:
@@ -202,5 +206,6 @@ class Reweighted(Weighting):
         weights, inliers = robust_outcome(loss, graph, part, to_host(state.weights), poses)
         sched = jax.device_get(jax.tree.map(to_host, state.schedule))
         stats = dict(weight_updates=int(sched.updates), gnc_stages=int(sched.stage), gnc_mu=float(sched.mu),
-                     weights_final=bool(sched.done))
+                     weights_final=bool(sched.done), start_weights_given=bool(to_host(self.use_given)),
+                     start_weights_held=bool(sched.held))
         return dict(loss=loss, weights=weights, inliers=inliers), stats

@@ -19,16 +19,17 @@ import numpy as np
 
 from .._core.metrics import trajectory_accuracy
 from .._core.pose_graph import PoseGraph, Poses
-from .._init.start import initialize
+from .._init.start import initialize_with_weights
 from .._mm.checkpoint import Checkpointer, identity, restore_state
 from .._mm.checkpoint import load as load_checkpoint
 from .._mm.driver import Monitor, Termination, compile_once
 from .._mm.majorization import unstack
-from .._mm.robust import L2, RobustLoss
+from .._mm.robust import L2, RobustLoss, incident_edge_index
 from .._mm.solvers import Solver, start_run
 from .result import SolveResult, output_frame
 
-__all__ = ["ROBUST_START", "Clock", "Prepared", "as_termination", "finish", "prepare", "start_for"]
+__all__ = ["ROBUST_START", "Clock", "Prepared", "as_termination", "check_start_weights", "finish", "prepare",
+           "slot_weights", "start_for"]
 
 ROBUST_START = "gnc-chordal"  # the default start of robust runs (benchmarks/robust.md)
 
@@ -36,13 +37,17 @@ ROBUST_START = "gnc-chordal"  # the default start of robust runs (benchmarks/rob
 def start_for(init, loss: RobustLoss | None) -> tuple:
     """(start, options) of a run: ``init`` as given, or by default the chordal start for least
     squares and for GNC run by the distributed solver, and :data:`ROBUST_START` (with the loss's
-    scale) for a robust loss otherwise (measured in benchmarks/robust.md)."""
-    if init is not None:
-        return init, {}
-    if loss is None or bool(np.asarray(loss.use_gnc)) or int(np.asarray(loss.kernel)) == L2:
-        return "chordal", {}
-    scale = None if loss.scale is None else float(np.asarray(loss.scale))
-    return ROBUST_START, dict(scale=scale, trust_odometry=loss.trust_odometry)
+    scale) for a robust loss otherwise (measured in benchmarks/robust.md). The robust starts by name
+    ("gnc-chordal", "distributed-robust") take the loss's scale and ``trust_odometry``."""
+    robust = loss is not None and int(np.asarray(loss.kernel)) != L2
+    if init is None:
+        if not robust or bool(np.asarray(loss.use_gnc)):
+            return "chordal", {}
+        init = ROBUST_START
+    if robust and isinstance(init, str) and init in ("gnc-chordal", "distributed-robust"):
+        scale = None if loss.scale is None else float(np.asarray(loss.scale))
+        return init, dict(scale=scale, trust_odometry=loss.trust_odometry)
+    return init, {}
 
 
 def as_termination(termination: Termination | None = None, **shortcuts) -> Termination:
@@ -97,19 +102,25 @@ class Prepared:
 def prepare(graph: PoseGraph, solver: Solver, robots, layout, termination: Termination, *, start=None, initial=None,
             fixed=None, loss: RobustLoss | None = None, monitor: Monitor | None = None,
             checkpoint: str | os.PathLike | None = None, checkpoint_every: int = 1,
-            resume: str | os.PathLike | None = None, given_start: Poses | None = None) -> Prepared:
+            resume: str | os.PathLike | None = None, given_start: Poses | None = None,
+            start_weights=None) -> Prepared:
     """Everything before the iterations (see the module docstring). ``given_start``: a start already
-    computed for this graph (a sweep computes each graph's start once for all its configurations)."""
+    computed for this graph (a sweep computes each graph's start once for all its configurations).
+    ``start_weights``: (m,) robust weights in the graph's edge order held as the robust run's first
+    stage; by default a robust run takes the weights of a start that classifies the edges (the
+    distributed robust start), and a least-squares run has none (given ones: ValueError)."""
     monitor = monitor or Monitor()
     clock = Clock()
     monitor.phase("initializing")
     placement = layout.setup(graph, robots)
     start_method, start_options = start_for(start, loss)
+    weights = check_start_weights(graph, start_weights, loss)
     with placement.building():
         key = snapshot = saver = None
         if checkpoint is not None or resume is not None:
             key = identity(graph=graph, robot_of_pose=placement.user_part.robot_of_pose,
-                           num_robots=placement.user_part.num_robots, start=(start_method, start_options, initial),
+                           num_robots=placement.user_part.num_robots,
+                           start=(start_method, start_options, initial, weights),
                            config=solver, loss=loss, fixed=fixed, chunk_size=termination.chunk_size,
                            precision=graph.R.dtype, layout=placement.identity())
         if given_start is not None:
@@ -119,8 +130,11 @@ def prepare(graph: PoseGraph, solver: Solver, robots, layout, termination: Termi
             snapshot.check(key, termination.iterations)
             X0 = Poses(*(jnp.asarray(x) for x in snapshot.X0))  # the start the checkpointed run was built from
         else:
-            X0 = placement.share_start(initialize(graph, start_method, initial=initial, robots=placement.user_part,
-                                                  fixed=fixed, **start_options))
+            X0, from_start = initialize_with_weights(graph, start_method, initial=initial, robots=placement.user_part,
+                                                     fixed=fixed, **start_options)
+            X0 = placement.share_start(X0)
+            if weights is None and loss is not None:
+                weights = from_start
         if checkpoint is not None:
             saver = Checkpointer(checkpoint, checkpoint_every, key, jax.device_get(X0),
                                  chunk_size=termination.chunk_size, **placement.checkpoint_options())
@@ -128,7 +142,8 @@ def prepare(graph: PoseGraph, solver: Solver, robots, layout, termination: Termi
         X0 = jax.block_until_ready(placement.part.scatter(X0))
         clock.lap("initialize")
         monitor.phase("building")
-        problem = jax.block_until_ready(solver.build(placement.part, poses=X0, loss=loss,
+        extra = {} if weights is None else dict(start_weights=slot_weights(graph, placement.part, weights))
+        problem = jax.block_until_ready(solver.build(placement.part, poses=X0, loss=loss, **extra,
                                                      **placement.build_options(graph, fixed)))
         clock.lap("build")
         monitor.phase("compiling")
@@ -144,6 +159,26 @@ def prepare(graph: PoseGraph, solver: Solver, robots, layout, termination: Termi
     problem, state = placement.place(problem, state)
     clock.lap("build")
     return Prepared(placement, start_poses, problem, state, record, snapshot, saver, clock)
+
+
+def check_start_weights(graph: PoseGraph, weights, loss: RobustLoss | None):
+    """``start_weights`` as (m,) float64 in [0, 1], or None; refused beside least squares."""
+    if weights is None:
+        return None
+    if loss is None:
+        raise ValueError("start_weights apply to a robust loss (loss='tls', ...); least squares has no weights")
+    w = np.asarray(weights, np.float64)
+    if w.shape != (graph.num_edges,):
+        raise ValueError(f"start_weights must have one value per edge, shape ({graph.num_edges},), got {w.shape}")
+    if not np.all((w >= 0.0) & (w <= 1.0)):
+        raise ValueError("start_weights must lie in [0, 1]")
+    return w
+
+
+def slot_weights(graph: PoseGraph, part, weights) -> np.ndarray:
+    """(A, e_max) per incident-edge slot of ``part`` from (m,) per-edge ``weights`` (1 on padding)."""
+    index = incident_edge_index(graph.i, graph.j, part.robot_of_pose, part.num_robots, part.max_edges)
+    return np.where(index >= 0, np.asarray(weights, np.float64)[np.maximum(index, 0)], 1.0)
 
 
 def finish(graph: PoseGraph, solver: Solver, run: Prepared, driven, termination: Termination, *, fixed=None,

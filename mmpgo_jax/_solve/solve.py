@@ -25,7 +25,7 @@ from .._init.start import initialize
 from .._mm.centralized import NewtonConfig, newton_optimum
 from .._mm.checkpoint import DEFAULT_EVERY
 from .._mm.driver import RESULTS, History, Monitor, NonFiniteError, Termination, drive
-from .._mm.robust import GNC_LOSSES, GNCConfig, RobustLoss, as_loss
+from .._mm.robust import GNCConfig, RobustLoss, as_loss
 from .._mm.solvers import MM, Solver, as_solver
 from .._mm.subproblem import SubproblemConfig
 from .build import ROBUST_START, Clock, as_termination, finish, prepare
@@ -71,6 +71,7 @@ def solve(
     resume: str | os.PathLike | None = None,
     prefilter: str | PCM | None = None,
     distributed: bool = False,
+    start_weights=None,
 ) -> SolveResult:
     """Run ``solver`` on ``graph`` split among ``robots``, laid out by ``layout``.
 
@@ -141,9 +142,17 @@ def solve(
 
     ``distributed=True``: refuse every step that gathers the whole graph in one place (the starts
     "chordal", "gnc-chordal" and "odometry": ValueError naming it); the start is by default
-    "distributed-chordal" (Algorithm 3) and a tls / geman-mcclure loss runs GNC inside the
-    distributed solver (``gnc=GNCConfig()`` unless given). PCM is a per-robot-pair test and stays
-    allowed.
+    "distributed-chordal" (Algorithm 3) for least squares and "distributed-robust" for a robust loss
+    (each robot's own GNC, then the robots' frames from their inter-robot closures). PCM is a
+    per-robot-pair test and stays allowed.
+
+    ``start_weights``: (m,) robust weights in [0, 1], in the graph's edge order, that the robust run
+    holds as its first stage (the weighted least squares of that classification, until the weighted
+    objective stalls by :class:`~mmpgo_jax.GNCConfig`'s stage rule), before the kernel's own
+    weights take over (:func:`~mmpgo_jax._mm.robust.next_weights`). A robust run from
+    ``start="distributed-robust"`` takes that start's classification by default: its maps are
+    rigid, so correct inter-robot closures start with residuals far above c^2 and TLS weights
+    rho'(s) at the start would drop them all. Refused beside least squares.
 
     Raises :class:`NonFiniteError` when f or its gradient stops being finite (data whose weights or
     residuals float arithmetic cannot represent). Numbers are checked (ValueError naming the
@@ -170,9 +179,12 @@ def solve(
     monitor = monitor or Monitor()
     if layout is None:
         layout = auto_layout(graph.num_poses, _robot_count(robots))
+    if pre is not None and start_weights is not None and np.shape(start_weights) == pre.rejected.shape:
+        start_weights = np.asarray(start_weights)[~pre.rejected]  # the given weights of the kept edges
     run = prepare(graph, solver, robots, layout, termination, start=start,
                   initial=initial, fixed=fixed, loss=loss, monitor=monitor,
-                  checkpoint=checkpoint, checkpoint_every=checkpoint_every, resume=resume)
+                  checkpoint=checkpoint, checkpoint_every=checkpoint_every, resume=resume,
+                  start_weights=start_weights)
     placement = run.placement
     out = drive(placement.compile_chunk(solver, run.problem), run.state, placement.start_record(run.start),
                 termination, fetch=placement.fetch, callback=callback, agree=placement.agree, monitor=monitor,
@@ -191,14 +203,14 @@ CENTRALIZED_STARTS = {
 
 def _distributed_defaults(start, loss, gnc):
     """(start, gnc) of a ``distributed=True`` run: a centralized start refused with its name; by
-    default the distributed chordal start, and GNC inside the solver for the kernels that have it."""
+    default the distributed chordal start for least squares and the distributed robust start for a
+    robust loss (its weights held as the first stage, then the kernel's own)."""
     if isinstance(start, str) and start in CENTRALIZED_STARTS:
         raise ValueError(f"distributed=True: the start {start!r} {CENTRALIZED_STARTS[start]}; "
-                         "use start='distributed-chordal'")
+                         "use start='distributed-chordal' or 'distributed-robust'")
+    robust = isinstance(loss, RobustLoss) or (loss is not None and loss != "l2") or gnc is not None
     if start is None:
-        start = "distributed-chordal"
-    if gnc is None and isinstance(loss, str) and loss in GNC_LOSSES:
-        gnc = GNCConfig()
+        start = "distributed-robust" if robust else "distributed-chordal"
     return start, gnc
 
 

@@ -25,7 +25,7 @@ OPTIMUM_STARTS = ("chordal", "vertices", "odometry")
 CENTRALIZED_OPTIONS = {
     ("init", "chordal"): "the start 'chordal' gathers the whole graph in one place; use --init distributed-chordal",
     ("init", "gnc-chordal"): "the start 'gnc-chordal' gathers the whole graph in one place; use --init "
-                             "distributed-chordal (a tls or geman-mcclure --loss then runs GNC in the solver)",
+                             "distributed-robust (each robot's own GNC, then the frames between robots)",
     ("init", "odometry"): "the start 'odometry' composes a spanning tree of the whole graph in one place; use --init "
                           "distributed-chordal",
     ("certify", True): "--certify checks the dual certificate of the whole graph in one place",

@@ -80,8 +80,8 @@ def _add_solver_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--largest-component", action="store_true", help="solve only the largest connected component")
     p.add_argument("--distributed", action="store_true",
                    help="refuse every centralized step (the chordal, gnc-chordal and odometry starts, --certify, "
-                        "--robots-from metis): start from distributed-chordal, and a tls / geman-mcclure --loss "
-                        "runs GNC inside the distributed solver")
+                        "--robots-from metis): start from distributed-chordal, or with a robust --loss from "
+                        "distributed-robust, whose classification of the edges the solver holds as its first stage")
     p.add_argument("--no-progress", action="store_true", help="do not show a progress bar")
 
 
@@ -180,7 +180,9 @@ def _solve(args) -> int:
         print(f"threads     {len(devices)} (the robots split over {len(devices)} CPU devices)")
     if args.distributed:
         gnc = ", GNC in the solver" if result.loss is not None and bool(result.loss.use_gnc) else ""
-        print(f"distributed no centralized step: start {args.init or 'distributed-chordal'}{gnc}")
+        held = ", its edge weights held first" if result.stats.get("start_weights_given") else ""
+        start = args.init or ("distributed-chordal" if result.loss is None else "distributed-robust")
+        print(f"distributed no centralized step: start {start}{held}{gnc}")
     t = time.perf_counter()
     finish_solve(args, data, result, fstar)
     print_timing(result, read=read, write=time.perf_counter() - t)
