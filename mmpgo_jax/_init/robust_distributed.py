@@ -86,7 +86,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .._core.geometry import project_to_so
-from .._core.pose_graph import HostPoses, PoseGraph, component_labels, host_graph
+from .._core.pose_graph import HostPoses, PoseGraph, component_labels, edge_costs, host_graph
 from .._mm.robust import TLS, chi2_scale, gnc_initial_mu, gnc_weight
 from .chordal import chordal_initialization
 from .robust_start import gnc_chordal_initialization
@@ -94,6 +94,9 @@ from .robust_start import gnc_chordal_initialization
 __all__ = ["FRAME_METHODS", "DistributedRobustStart", "PairAverages", "chain_variances",
            "distributed_robust_initialization", "pair_average"]
 
+TREE_SAMPLES = 256  # random spanning trees of the frame graph's consensus search
+VARIANCE_FACTOR_FLOOR = 1e-6  # rounding of noise-free maps, not a noise level
+MAP_ERRORS = ("closures", "odometry")  # models of the local maps' own error (map_sigma=)
 FRAME_METHODS = ("graph", "tree")
 
 
@@ -269,6 +272,90 @@ def chain_variances(graph, t, map_of_pose):
     return S0, np.maximum(var_t, 0.0)
 
 
+def _grounded_resistances(n, i, j, conductance, anchors, probes: int, rng) -> np.ndarray:
+    """(n,) effective resistance between each node and its component's anchor in the graph of edges
+    (i, j) with ``conductance`` (anchors: 0), by the Johnson-Lindenstrauss estimate of Spielman &
+    Srivastava: R(p) = ||W^1/2 B L_g^-1 e_p||^2 ~ ||Q W^1/2 B L_g^-1 e_p||^2 with Q a random
+    (probes x edges) sign matrix / sqrt(probes), i.e. ``probes`` solves with one sparse factorization
+    of the grounded Laplacian L_g (relative error about sqrt(2 / probes) per node)."""
+    import scipy.sparse as sp
+
+    from .._core.sparse import pose_order, solve_spd
+
+    free = np.ones(n, bool)
+    free[anchors] = False
+    m = len(i)
+    B = sp.csr_matrix((np.concatenate([np.ones(m), -np.ones(m)]),
+                       (np.concatenate([np.arange(m)] * 2), np.concatenate([i, j]))), shape=(m, n))[:, free]
+    sw = np.sqrt(conductance)
+    L = (B.T @ sp.diags(conductance) @ B).tocsc()
+    Q = rng.choice([-1.0, 1.0], size=(m, probes)) / np.sqrt(probes)
+    rhs = B.T @ (sw[:, None] * Q)
+    index = np.cumsum(free) - 1
+    both = free[i] & free[j]
+
+    def order():  # nested dissection of the free poses (the Laplacian's pattern is the graph's)
+        return pose_order(int(free.sum()), index[i[both]], index[j[both]])
+
+    Y = solve_spd(L, np.asarray(rhs), perm=order)
+    out = np.zeros(n)
+    out[free] = np.sum(Y**2, axis=1)
+    return out
+
+
+def closure_variances(graph, t, map_of_pose, keep=None, *, probes: int = 64, seed: int = 0):
+    """(var_R (n,), var_t (n,)): first-order, isotropic variances of each pose of a local map relative
+    to the map's first pose, counting every edge of the map (``keep``: the edges its own GNC kept;
+    default all edges inside a map): var_R(p) is the effective resistance between the first pose and
+    p with conductance 2 kappa per edge (a chain gives :func:`chain_variances`' sum of 1 / (2 kappa)),
+    var_t(p) the resistance with conductance tau plus the chain's lever-arm term (each rotation error
+    swinging the rest of the chain) scaled by how much the loop closures shrink the rotation variance,
+    var_R(p) / var_R_chain(p). Resistances by :func:`_grounded_resistances` (``probes`` sparse solves,
+    a fixed ``seed``: the same result on every call). Each robot needs only its own edges."""
+    n = graph.num_poses
+    inside = map_of_pose[graph.i] == map_of_pose[graph.j]
+    if keep is not None:
+        inside &= keep
+    first = np.full(map_of_pose.max() + 1 if n else 0, n, np.int64)
+    np.minimum.at(first, map_of_pose, np.arange(n))
+    rng = np.random.default_rng(seed)
+    gi, gj = graph.i[inside], graph.j[inside]
+    var_R = _grounded_resistances(n, gi, gj, 2.0 * graph.kappa[inside], first, probes, rng)
+    res_t = _grounded_resistances(n, gi, gj, graph.tau[inside], first, probes, rng)
+    chain_R, chain_t = chain_variances(graph, t, map_of_pose)
+    odo = (graph.j == graph.i + 1) & (map_of_pose[graph.i] == map_of_pose[graph.j])
+    steps = np.zeros(n)
+    np.add.at(steps, graph.i[odo] + 1, 1.0 / graph.tau[odo])
+    start = first[map_of_pose]
+    c = np.cumsum(steps)
+    lever = np.maximum(chain_t - (c - c[start] + steps[start]), 0.0)
+    shrink = np.clip(var_R / np.maximum(chain_R, 1e-300), 0.0, 1.0)
+    var_R = np.minimum(var_R, np.where(chain_R > 0, chain_R, var_R))
+    return var_R, res_t + lever * shrink
+
+
+def variance_factor(local_graph: PoseGraph, poses: HostPoses, num_maps: int) -> float:
+    """The a-posteriori variance factor of the local maps, kept at 1 unless the data says otherwise:
+    the estimate is sum s over their kept edges / the redundancy r = p (m - n + K) (p = d(d+1)/2
+    numbers per edge and per pose, K maps each fixing one pose's gauge); s of an edge is about
+    chi^2_p when the information matrices are right, so sum s ~ chi^2_r and the estimate is about 1
+    then. The factor is the value of its 99 % confidence interval [sum s / chi^2_r(0.995),
+    sum s / chi^2_r(0.005)] nearest to 1: 1 when the interval holds 1 (few closures say little),
+    otherwise its nearer end (files whose information matrices overstate the noise, e.g. M3500: about
+    0.03). Every variance of the frame tests is multiplied by it. 1 without redundancy (chains). A sum
+    over the robots (one number each), like GNC's shared schedule."""
+    from scipy import stats
+
+    d = local_graph.dim
+    p = d * (d + 1) // 2
+    redundancy = p * (local_graph.num_edges - local_graph.num_poses + num_maps)
+    if redundancy <= 0:
+        return 1.0
+    total = float(np.sum(edge_costs(local_graph, poses)))
+    low, high = total / stats.chi2.ppf(0.995, redundancy), total / stats.chi2.ppf(0.005, redundancy)
+    return float(np.clip(1.0, max(low, VARIANCE_FACTOR_FLOOR), max(high, VARIANCE_FACTOR_FLOOR)))
+
+
 def _frame_graph(a, b, R, t, kappa, tau, K) -> PoseGraph:
     return PoseGraph(a, b, R, t, kappa, tau, num_poses=K)
 
@@ -293,10 +380,42 @@ def _tree_frames(pairs, counts, Rp, tp, K, d):
     return np.asarray(X.R, np.float64), np.asarray(X.t, np.float64), tree
 
 
+def _sampled_tree_costs(a, b, Rh, th, kap, tau, trusted, K, d, samples: int, rng) -> np.ndarray:
+    """(S, H) costs of every hypothesis at the frames of S random spanning trees of the frame graph
+    (a consensus search, RANSAC-like: each tree takes one random hypothesis per map pair, the trusted
+    ones first, and composes the frames along it exactly). All S trees are one disconnected graph:
+    one minimum-spanning-tree call and one chordal solve, no loop over samples or maps."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import minimum_spanning_tree
+
+    H = len(a)
+    key = np.where(trusted, 0.5, 1.0 + rng.random((samples, H)))  # trusted: always the pair's pick
+    pair_id = a * K + b
+    order = np.lexsort((np.zeros(H), pair_id))
+    starts = np.flatnonzero(np.r_[True, pair_id[order][1:] != pair_id[order][:-1]])
+    best = np.minimum.reduceat(key[:, order], starts, axis=1)  # (S, P) the pick's key per pair
+    pick_of = np.repeat(np.arange(len(starts)), np.diff(np.r_[starts, H]))
+    chosen = key[:, order] == best[:, pick_of]  # (S, H) in ``order``: the picked hypothesis of each pair
+    s_idx, col = np.nonzero(chosen)
+    h = order[col]
+    base = s_idx * K
+    W = coo_matrix((key[s_idx, h], (base + a[h], base + b[h])), shape=(samples * K, samples * K)).tocsr()
+    T = minimum_spanning_tree(W).tocoo()
+    lo, hi = np.minimum(T.row, T.col), np.maximum(T.row, T.col)
+    edge_key = (base + a[h]) * (samples * K) + base + b[h]
+    tree = np.isin(edge_key, lo * (samples * K) + hi)
+    hs, ss = h[tree], s_idx[tree]
+    g = _frame_graph(ss * K + a[hs], ss * K + b[hs], Rh[hs], th[hs], np.ones(len(hs)), np.ones(len(hs)), samples * K)
+    X = chordal_initialization(g)  # a forest: the chordal solution composes each tree's transforms exactly
+    FR = np.asarray(X.R, np.float64).reshape(samples, K, d, d)
+    Ft = np.asarray(X.t, np.float64).reshape(samples, K, d)
+    return _hypothesis_costs(FR[:, a], Ft[:, a], FR[:, b], Ft[:, b], Rh, th, kap, tau)
+
+
 def _hypothesis_costs(Ra, ta, Rb, tb, Rh, th, kappa, tau):
     """Cost of frame-graph edges (Rh, th) between frames a and b (the edge-cost convention)."""
     rot = Ra @ Rh - Rb
-    trans = np.einsum("hab,hb->ha", Ra, th) + ta - tb
+    trans = np.einsum("...ab,...b->...a", Ra, th) + ta - tb
     return kappa * np.sum(rot**2, axis=(-1, -2)) + tau * np.sum(trans**2, axis=-1)
 
 
@@ -321,17 +440,21 @@ def distributed_robust_initialization(
     quantile: float = 0.9,
     min_inliers: int = 1,
     frames: str = "graph",
-    map_sigma="odometry",
+    map_sigma="closures",
     trust_odometry: bool = True,
+    seed: int = 0,
 ) -> DistributedRobustStart:
     """The distributed robust start (module docstring). ``robots``: a count (contiguous blocks), an
     (n,) robot-of-pose array or a Partition. ``scale``: the local GNC's c (default
     :func:`~mmpgo_jax.chi2_scale`, as the GNC-chordal start); ``quantile``: of the chi-square tests of
     the frame hypotheses (dpgo's 0.9); ``min_inliers``: accepted closures a pair needs to be used;
     ``frames``: ``"graph"`` or ``"tree"``; ``map_sigma``: the local maps' own error at a closure's
-    ends, added to the closure's noise in every test of the frame hypotheses: ``"odometry"`` (default:
-    the odometry chain's drift from the map's first pose, :func:`chain_variances`), or (sigma_R in
-    rad, sigma_t in map units) for every pose ((0, 0): the closure's information alone, as dpgo)."""
+    ends, added to the closure's noise in every test of the frame hypotheses: ``"closures"`` (default:
+    the first-order variance of each pose relative to its map's first pose with every kept edge of the
+    map, :func:`closure_variances`), ``"odometry"`` (the odometry chain's drift alone,
+    :func:`chain_variances`, an upper bound), both times :func:`variance_factor`; or (sigma_R in rad,
+    sigma_t in map units) for every pose ((0, 0): the closure's information alone, as dpgo), as given.
+    ``seed``: of the random probes and spanning trees (the result is a function of it)."""
     if frames not in FRAME_METHODS:
         raise ValueError(f"frames must be one of {', '.join(FRAME_METHODS)}, got {frames!r}")
     if int(min_inliers) < 1:
@@ -367,17 +490,28 @@ def distributed_robust_initialization(
     Rh[flip], th[flip] = Rf, tf
     a, b = np.minimum(a, b), np.maximum(a, b)
     if isinstance(map_sigma, str):
-        if map_sigma != "odometry":
-            raise ValueError(f"map_sigma must be 'odometry' or (sigma_R, sigma_t), got {map_sigma!r}")
-        vR, vt = chain_variances(g, Tt, map_of_pose)
+        if map_sigma not in MAP_ERRORS:
+            raise ValueError(f"map_sigma must be one of {', '.join(map(repr, MAP_ERRORS))} or (sigma_R, sigma_t), "
+                             f"got {map_sigma!r}")
+        kept = np.ones(m, bool)
+        kept[~inter] = np.asarray(local.weights) > 0.5
+        if map_sigma == "odometry":
+            vR, vt = chain_variances(g, Tt, map_of_pose)
+        else:
+            vR, vt = closure_variances(g, Tt, map_of_pose, kept, seed=seed)
+        factor = variance_factor(g.select_edges(kept & ~inter), HostPoses(TR, Tt), K)
     else:
         sR, st = (float(x) for x in map_sigma)
         if not (sR >= 0 and st >= 0 and np.isfinite(sR) and np.isfinite(st)):
             raise ValueError(f"map_sigma must be two finite numbers >= 0, got {map_sigma!r}")
         vR, vt = np.full(n, sR**2), np.full(n, st**2)
-    kap = 1.0 / (1.0 / g.kappa[e] + 2.0 * (vR[i] + vR[j]))
-    tau = 1.0 / (1.0 / g.tau[e] + vt[i] + vt[j])
+        factor = 1.0
+    kap = 1.0 / (factor * (1.0 / g.kappa[e] + 2.0 * (vR[i] + vR[j])))
+    tau = 1.0 / (factor * (1.0 / g.tau[e] + vt[i] + vt[j]))
 
+    # an inter-robot odometry edge (consecutive poses of two robots, e.g. a contiguous split) is trusted
+    # as the robots' own odometry is: always accepted, never truncated by the frame graph's GNC
+    trusted = (np.abs(i - j) == 1) if trust_odometry else np.zeros(len(e), bool)
     pair_keys, pair = np.unique(a * K + b, return_inverse=True)
     P = len(pair_keys)
     pairs = np.stack([pair_keys // K, pair_keys % K], 1)
@@ -394,15 +528,25 @@ def distributed_robust_initialization(
     FR, Ft, _ = _tree_frames(pairs, usable, Rp, tp, K, d)
     s = _hypothesis_costs(FR[a], Ft[a], FR[b], Ft[b], Rh, th, kap, tau)
     keep = (usable[pair] > 0) & (s <= c2)
+    keep |= trusted
     if frames == "graph":
         fg = _frame_graph(a, b, Rh, th, kap, tau, K)
-        res = gnc_chordal_initialization(fg, scale=c_frame, trust_odometry=False)
+        res = gnc_chordal_initialization(fg, scale=c_frame, trust_odometry=False, trusted=trusted)
         frame_stages = res.stages
         GR, Gt = np.asarray(res.poses.R, np.float64), np.asarray(res.poses.t, np.float64)
         s_gnc = _hypothesis_costs(GR[a], Gt[a], GR[b], Gt[b], Rh, th, kap, tau)
-        if np.minimum(s_gnc, c2).sum() <= np.minimum(s, c2).sum():  # the lower TLS cost of the two
-            keep = s_gnc <= c2
+
+        def tls_cost(x):  # trusted hypotheses cost s (never truncated)
+            return np.where(trusted, x, np.minimum(x, c2)).sum(axis=-1)
+
+        samples = int(np.clip(2_000_000 // max(len(a), 1), 16, TREE_SAMPLES))
+        s_trees = _sampled_tree_costs(a, b, Rh, th, kap, tau, trusted, K, d, samples, np.random.default_rng(seed))
+        candidates = [s, s_gnc, s_trees[np.argmin(tls_cost(s_trees))]]  # the lowest TLS cost of the three
+        best = candidates[int(np.argmin([tls_cost(x) for x in candidates]))]
+        if best is not s:
+            keep = best <= c2
         keep &= np.bincount(pair, weights=keep, minlength=P)[pair] >= min_inliers
+        keep |= trusted
         FR, Ft = _solve_frames(fg, keep, K, d)
 
     # 4. placed maps: joined to map 0 by accepted closures
@@ -418,7 +562,7 @@ def distributed_robust_initialization(
     unverified = np.zeros(m, bool)
     if keep.any():
         single = np.bincount(pair, weights=keep, minlength=P)[pair] == 1
-        unverified[e[keep]] = single[keep] & _bridges(K, a[keep], b[keep])
+        unverified[e[keep]] = single[keep] & _bridges(K, a[keep], b[keep]) & ~trusted[keep]
     return DistributedRobustStart(
         poses=HostPoses(R, t), local=HostPoses(TR, Tt), map_of_pose=map_of_pose, robot_of_map=robot_of_map,
         frames=HostPoses(FR, Ft), placed=placed, weights=w, inter=inter, unverified=unverified, pairs=averages,

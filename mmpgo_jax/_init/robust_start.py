@@ -79,15 +79,19 @@ def gnc_chordal_initialization(
     max_stages: int = 100,
     weight_tolerance: float = 1e-4,
     grad_tol: float = 1e-6,
+    trusted: np.ndarray | None = None,
 ) -> RobustStart:
     """GNC-TLS with chordal + Newton stages (module docstring) at scale c = ``scale`` (default
     :func:`~mmpgo_jax.chi2_scale` of the graph's dimension). ``grad_tol`` ends each stage's Newton
-    refinement (relative to nothing: the gradient norm of the weighted f = 2F)."""
+    refinement (relative to nothing: the gradient norm of the weighted f = 2F). ``trusted``: (m,) bool,
+    edges known to be inliers (weight 1) besides the odometry of ``trust_odometry``."""
     if not factor > 1.0:
         raise ValueError(f"factor must be > 1, got {factor!r}")
     g = host_graph(graph)
     c2 = float(chi2_scale(g.dim) if scale is None else scale) ** 2
     robust = np.abs(g.i - g.j) != 1 if trust_odometry else np.ones(g.num_edges, bool)
+    if trusted is not None:
+        robust &= ~np.asarray(trusted, bool)
     termination = Termination(200, 1, grad_tol, stop_when_stalled=False)  # each stage to grad_tol, as before
     w = np.ones(g.num_edges)
     X = _stage_solution(g, w, fixed, termination)
