@@ -12,11 +12,9 @@ import mmpgo_jax as mm
 from mmpgo_jax._core.gauge import FixedPoses, express_in_frame
 from mmpgo_jax._core.pose_graph import HostPoses, PoseGraph, host_graph
 from mmpgo_jax._init.robust_distributed import (
-    VARIANCE_FACTOR_FLOOR,
     _grounded_resistances,
     chain_variances,
     closure_variances,
-    confidence_factor,
     distributed_robust_initialization,
     pair_average,
     variance_factor,
@@ -275,18 +273,6 @@ def test_variance_factor_reads_the_noise_of_the_data():
         st = distributed_robust_initialization(g, ds.robot_of_pose)
         local = g.select_edges(~st.inter)
         assert variance_factor(local, st.local, 2) == pytest.approx(expected, rel=0.2)
-
-
-def test_confidence_factor_is_one_unless_the_interval_excludes_one():
-    from scipy import stats
-
-    assert confidence_factor(30.0, 30) == 1.0  # the estimate itself is 1
-    assert confidence_factor(15.0, 30) == 1.0  # 0.5, but 30 numbers cannot tell it from 1 (99 %)
-    assert confidence_factor(5.0, 0) == 1.0  # nothing to estimate from
-    r = 3000
-    assert confidence_factor(0.1 * r, r) == pytest.approx(0.1 * r / stats.chi2.ppf(0.005, r))  # the upper end
-    assert confidence_factor(3.0 * r, r) == pytest.approx(3.0 * r / stats.chi2.ppf(0.995, r))  # the lower end
-    assert confidence_factor(0.0, r) == VARIANCE_FACTOR_FLOOR
 
 
 def test_options_are_checked():

@@ -38,19 +38,13 @@ both residuals are equal (the mean lies between them) and both are rejected, or 
 **Frames** (``frames=``):
 
 * ``"graph"`` (default): GNC-TLS (chordal + Newton stages, the same solver) on the frame graph with
-  one edge per closure, scale sqrt(chi^2_{d(d+1)/2}(``quantile``)); only an inter-robot *odometry*
-  edge (consecutive poses of two robots, as a contiguous split has) is trusted with
-  ``trust_odometry``, as the robots' own odometry is. A closure is then
+  one edge per closure, scale sqrt(chi^2_{d(d+1)/2}(``quantile``)), no edge trusted. A closure is then
   checked against every other closure of its pair *and* every cycle of maps through it (robot
   triples and longer): a pair's single closure is judged by the other pairs. GNC is a heuristic and
   on frame graphs of a few maps it was seen to end in a wrong solution that the tree below avoids
   (4 robots, 11 hypotheses: it accepted an outlier whose residual at the true frames is 3400 c^2);
-  so the frames of the tree are a second candidate, and a consensus search a third: 256 random
-  spanning trees of the frame graph (one random closure per map pair, trusted edges first), each
-  composing the frames exactly, the best by TLS cost (seen to find the right set where both others
-  took an outlier: a map with two correct closures and three wrong ones, 4 robots). The candidate
-  with the lowest TLS cost sum min(s_e, c^2) over all hypotheses decides which hypotheses are
-  accepted (s_e <= c^2). The
+  so the frames of the tree are a second candidate, and the candidate with the lower TLS cost
+  sum min(s_e, c^2) over all hypotheses decides which hypotheses are accepted (s_e <= c^2). The
   accepted closures of a pair with fewer than ``min_inliers`` of them are dropped, and the frames are
   the least-squares solution of the accepted hypotheses (chordal + Newton).
 * ``"tree"``: dpgo's order: the pair averages, then the maps placed along a maximum spanning tree of
@@ -70,23 +64,19 @@ group of maps joined among themselves keeps the frame of its first map (a map al
 The local maps' own error is the weak point: the hypotheses of correct closures scatter with the
 maps' drift (on 10 x 500-pose teams at 0.005 pi rad per step: up to 0.44 rad and 6.5 cells at the true
 frames), far beyond the closures' information (dpgo's test, ``map_sigma=(0, 0)``, rejected every
-correct closure there). So every test adds the maps' error at the closure's two ends. The default,
-``map_sigma="closures"``, is each pose's first-order variance relative to its map's first pose with
-all the map's kept edges (:func:`closure_variances`: effective resistances, by random projections),
-times the data's own variance factor (:func:`variance_factor`): the information matrices of some
-files overstate the noise many times (M3500: the local maps' residuals are 0.036 of what they
-imply), and a model that believes them accepts outliers (M3500 at 30 %: 212 of 346 with the
-odometry-chain model, none with this one). ``map_sigma="odometry"`` (the odometry chain alone, an
-upper bound) was the earlier default; with the Cube's noise (0.02 pi rad per step) the maps are off
+correct closure there). The default ``map_sigma="odometry"`` adds the odometry chain's drift, which
+ignores the intra-robot closures and so over-states it (one of two such teams: 2 of 13 outliers
+accepted, 4 correct closures rejected); with the Cube's noise (0.02 pi rad per step) the maps are off
 by up to 8 cells and no threshold separates the hypotheses (benchmarks/robust_teams.md).
 
 **Result.** X^0 = each map's local solution moved to its frame; ``weights`` (m,) in {0, 1}: the local
-GNC's on intra-robot edges (1 on odometry) and the acceptance of each inter-robot closure. At X^0
-the maps are rigid, so correct inter-robot closures have s far above c^2 and TLS weights rho'(s)
-there would drop them all: a robust ``solve`` from this start holds these weights as its first
-stage (the weighted least squares of this classification), then TLS
-(:func:`~mmpgo_jax._init.start.initialize_with_weights`, ``solve(start_weights=)``).
-:func:`~mmpgo_jax._init.start.initialize` returns the poses only and warns when a robot is not placed.
+GNC's on intra-robot edges (1 on odometry) and the acceptance of each inter-robot closure. The
+robust solver does not take weights: it starts with rho'(s) at X^0 (TLS: 1 where s <= c^2), and at
+X^0 the maps are rigid, so correct inter-robot closures have s far above c^2 and TLS drops them all.
+Least squares on the accepted edges from X^0, then TLS, reached the outlier-free optimum wherever the
+start had sorted the closures right (benchmarks/robust_teams.md): a solver that starts from these
+weights is the intended use. :func:`~mmpgo_jax._init.start.initialize` returns the poses only and
+warns when a robot is not placed.
 """
 
 from __future__ import annotations
@@ -354,22 +344,14 @@ def variance_factor(local_graph: PoseGraph, poses: HostPoses, num_maps: int) -> 
     otherwise its nearer end (files whose information matrices overstate the noise, e.g. M3500: about
     0.03). Every variance of the frame tests is multiplied by it. 1 without redundancy (chains). A sum
     over the robots (one number each), like GNC's shared schedule."""
+    from scipy import stats
+
     d = local_graph.dim
     p = d * (d + 1) // 2
     redundancy = p * (local_graph.num_edges - local_graph.num_poses + num_maps)
     if redundancy <= 0:
         return 1.0
-    return confidence_factor(float(np.sum(edge_costs(local_graph, poses))), redundancy)
-
-
-def confidence_factor(total: float, redundancy: int) -> float:
-    """The variance factor of residuals summing to ``total`` (~ factor chi^2_redundancy): the value of
-    its 99 % confidence interval [total / chi^2(0.995), total / chi^2(0.005)] nearest to 1 (1 without
-    redundancy), at least :data:`VARIANCE_FACTOR_FLOOR`."""
-    from scipy import stats
-
-    if redundancy <= 0:
-        return 1.0
+    total = float(np.sum(edge_costs(local_graph, poses)))
     low, high = total / stats.chi2.ppf(0.995, redundancy), total / stats.chi2.ppf(0.005, redundancy)
     return float(np.clip(1.0, max(low, VARIANCE_FACTOR_FLOOR), max(high, VARIANCE_FACTOR_FLOOR)))
 
@@ -538,21 +520,19 @@ def distributed_robust_initialization(
     averages = PairAverages(pairs=pairs, R=Rp, t=tp, closures=np.bincount(pair, minlength=P), inliers=counts,
                             inlier=inlier, pair=pair)
 
-    # 3. the maps' frames, then once more with the variances rescaled by the accepted hypotheses' own
-    # scatter (only tighter, only when its 99 % interval lies below 1)
+    # 3. the maps' frames
     c_frame = chi2_scale(d, quantile)
+    frame_stages = 0
     c2 = c_frame**2
     usable = np.where(counts >= min_inliers, counts, 0)
-    rng = np.random.default_rng(seed)
-
-    def classify(kap, tau):
-        FR, Ft, _ = _tree_frames(pairs, usable, Rp, tp, K, d)
-        s = _hypothesis_costs(FR[a], Ft[a], FR[b], Ft[b], Rh, th, kap, tau)
-        keep = (usable[pair] > 0) & (s <= c2) | trusted
-        if frames != "graph":
-            return keep, FR, Ft, 0
+    FR, Ft, _ = _tree_frames(pairs, usable, Rp, tp, K, d)
+    s = _hypothesis_costs(FR[a], Ft[a], FR[b], Ft[b], Rh, th, kap, tau)
+    keep = (usable[pair] > 0) & (s <= c2)
+    keep |= trusted
+    if frames == "graph":
         fg = _frame_graph(a, b, Rh, th, kap, tau, K)
         res = gnc_chordal_initialization(fg, scale=c_frame, trust_odometry=False, trusted=trusted)
+        frame_stages = res.stages
         GR, Gt = np.asarray(res.poses.R, np.float64), np.asarray(res.poses.t, np.float64)
         s_gnc = _hypothesis_costs(GR[a], Gt[a], GR[b], Gt[b], Rh, th, kap, tau)
 
@@ -560,7 +540,7 @@ def distributed_robust_initialization(
             return np.where(trusted, x, np.minimum(x, c2)).sum(axis=-1)
 
         samples = int(np.clip(2_000_000 // max(len(a), 1), 16, TREE_SAMPLES))
-        s_trees = _sampled_tree_costs(a, b, Rh, th, kap, tau, trusted, K, d, samples, rng)
+        s_trees = _sampled_tree_costs(a, b, Rh, th, kap, tau, trusted, K, d, samples, np.random.default_rng(seed))
         candidates = [s, s_gnc, s_trees[np.argmin(tls_cost(s_trees))]]  # the lowest TLS cost of the three
         best = candidates[int(np.argmin([tls_cost(x) for x in candidates]))]
         if best is not s:
@@ -568,17 +548,6 @@ def distributed_robust_initialization(
         keep &= np.bincount(pair, weights=keep, minlength=P)[pair] >= min_inliers
         keep |= trusted
         FR, Ft = _solve_frames(fg, keep, K, d)
-        return keep, FR, Ft, res.stages
-
-    keep, FR, Ft, frame_stages = classify(kap, tau)
-    p = d * (d + 1) // 2
-    components = component_labels(K, a[keep], b[keep])[1].size if K > 1 else 1
-    s_kept = _hypothesis_costs(FR[a], Ft[a], FR[b], Ft[b], Rh, th, kap, tau)[keep]
-    scatter = min(confidence_factor(float(s_kept.sum()), p * (int(keep.sum()) - (K - components))), 1.0)
-    if scatter < 1.0:
-        kap, tau = kap / scatter, tau / scatter
-        keep, FR, Ft, more = classify(kap, tau)
-        frame_stages += more
 
     # 4. placed maps: joined to map 0 by accepted closures
     comp, _, _ = component_labels(K, a[keep], b[keep]) if K > 1 else (np.zeros(1, np.int64), None, None)
