@@ -61,26 +61,31 @@ ROUNDING = 1e-12  # a rise of f by at most this (relative) is rounding
 # the reading of the committed runs (by hand, from the tables that --report writes below it; re-read it when
 # the runs change)
 SUMMARY: list[str] = [
-    "Runs of 2026-12-03 22:35 to 2026-12-04 00:22 UTC, two processes at once on the shared machine (load "
-    "average 4–17); stopped for the deadline, so the runs listed under 'Not run' are missing (most METIS runs of "
-    "the larger graphs, and city except MM and AMM with blocks). AMM is the reference.",
+    "Runs of 2026-12-03 22:35 to 2026-12-04 00:22 UTC and 2026-12-04 03:18 to 05:17 UTC (cube0, cube1, kitti_00 "
+    "and torus completed), beside other jobs on the shared machine (load average 2–17); stopped for the "
+    "deadline, so the runs listed under 'Not run' are missing (city except MM and AMM with blocks). AMM is the "
+    "reference.",
     "",
     "- **Per iteration, as each method counts them: no baseline beats AMM anywhere.** On no graph and split is "
     "any baseline lower than AMM at iteration 1000 (ties, within 1e-7 f*, where both have converged: CSAIL, "
     "sphere, torus), and none reaches gap 1e-3 or 1e-4 in fewer of its iterations.",
-    "- **At equal communication, still none:** RBCD greedy's 1000 iterations send about as many poses as 100 AMM "
-    "iterations (RBCD parallel's as 1000/C), and its f@1000 is above AMM's f after as many poses on every graph "
-    "and split (column 'after as many poses sent').",
-    "- **Poses sent to a gap: RBCD greedy and RBCD parallel beat AMM on two graphs.** torus (blocks): to 1e-3, "
-    "RBCD greedy 16 765 and RBCD parallel 16 926 poses against AMM's 22 568 (0.74×, 0.75×; to 1e-4 AMM needs "
-    "fewer); CSAIL (blocks and METIS): to 1e-4, 946 / 854 against 1 576 (blocks) and 403 / 464 against 672 "
+    "- **At equal communication, one case:** RBCD greedy's 1000 iterations send about as many poses as 100 AMM "
+    "iterations (RBCD parallel's as 1000/C); its f@1000 is above AMM's f after as many poses on every graph and "
+    "split but torus (METIS), where it is lower by 0.1 (24227.0 against 24227.1 of f* 24227; column 'after as "
+    "many poses sent').",
+    "- **Poses sent to a gap: RBCD greedy and RBCD parallel beat AMM on two graphs.** torus: to 1e-3, "
+    "RBCD greedy 16 765 and RBCD parallel 16 926 poses against AMM's 22 568 with blocks (0.74×, 0.75×), 4 560 "
+    "and 4 408 against 7 600 with METIS (0.60×, 0.58×; to 1e-4 AMM needs fewer with blocks, about as many with "
+    "METIS); CSAIL (blocks and METIS): to 1e-4, 946 / 854 against 1 576 (blocks) and 403 / 464 against 672 "
     "(METIS). On both the chordal start is already close to f* (CSAIL: within 1e-3 at iteration 0; torus: "
     "within 1e-2 after one AMM iteration), where a few block updates finish the job. "
     "Elsewhere AMM needs fewer poses (sphere 1.3×, intel METIS "
     "1.2×, MITb METIS RBCD parallel 3.4×) or RBCD does not reach the gap in its 1000 iterations at all (MITb, "
     "intel, garage, M3500, kitti_00 and both Cubes, blocks).",
     "- **Seconds (a shared machine: noisy): no robust win.** RBCD greedy reached 1e-3 on torus (blocks) in "
-    "0.70 s against AMM's 0.73 s, and MM reached 1e-4 on CSAIL (METIS) in 0.043 s against AMM's 0.075 s, in a "
+    "0.70 s against AMM's 0.73 s, RBCD++ greedy 1e-3 and 1e-4 on cube0 (METIS) in 0.50 and 0.87 s against "
+    "0.96 and 1.7 s, runs of different loads: AMM's ran at 37 ms/it under a load of 8–9 (session of "
+    "2026-12-04 00:19), RBCD++'s under 1.4, when AMM on cube1 (METIS, the same size) ran at 10.8 ms/it; and MM reached 1e-4 on CSAIL (METIS) in 0.043 s against AMM's 0.075 s, in a "
     "run where AMM's ms/it (5.4) was 4× MM's (1.2): both are within the load's noise. Our RBCD parallel solves "
     "every robot under `vmap` and masks the unselected ones, so its ms/it is several times MM's. DGS's sweeps "
     "are sequential with dense local factors: 2.1 ms/it (MITb METIS) to 2082 ms/it (torus blocks: 500-pose "
