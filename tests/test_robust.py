@@ -356,3 +356,18 @@ def test_padding_and_sharding_give_the_weights_of_a_single_solve(tmp_path):
     proc = subprocess.run([sys.executable, "-c", child], env=env, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
     np.testing.assert_allclose(np.load(tmp_path / "w.npy"), ref.weights, rtol=1e-4, atol=1e-6)
+
+
+def test_tls_without_weight_changes_runs_amm_as_least_squares_does():
+    """TLS weights that never change (no residual beyond c) leave the majorizer as it is: Γ^α is not
+    rebuilt and AMM's momentum is not restarted, so the run is least squares' AMM run (f history equal
+    to rounding); a TLS run's per-iteration cost is then that of least squares (benchmarks/robust.md)."""
+    ds = mg.robot_team_dataset(3, 40, intra_closures=3, inter_closures=6, dim=2, seed=0, sigma_t=0.005,
+                               sigma_R=0.005)
+    X0 = mg.initialize(ds.graph, "chordal")
+    ls = mg.solve(ds.graph, ds.robot_of_pose, start=X0, iterations=60, stop_when_stalled=False)
+    tls = mg.solve(ds.graph, ds.robot_of_pose, start=X0, iterations=60, stop_when_stalled=False, loss="tls")
+    assert np.all(tls.weights == 1.0)
+    np.testing.assert_allclose(tls.history.f, ls.history.f, rtol=1e-9)
+    # the chordal start is not the optimum: the runs moved, AMM took momentum steps
+    assert ls.history.f[-1] < ls.history.f[0] * (1 - 1e-6)

@@ -194,6 +194,10 @@ class Reweighted(Weighting):
         s_max = comm.max(jnp.where(self.robust_edge, s, 0.0))
         update, weights, schedule = next_weights(self.loss, state.schedule, s, state.weights, weighted_f, s_max,
                                                  comm.sum, self.robust_edge)
+        # an update that changes no weight (TLS's binary weights, mostly) leaves the majorizer as it is:
+        # Γ^α and the preconditioner are rebuilt only when some weight of some robot changed
+        changed = comm.sum(jnp.sum(weights != state.weights, axis=tuple(range(1, weights.ndim)))) > 0
+        update = update & changed
         gamma, newton = jax.lax.cond(update, lambda: self._operators_of(problem, config, weights),
                                      lambda: (state.gamma, state.newton))
         grad, share, weighted = self._gradients(problem, E, s, weights)
