@@ -368,6 +368,7 @@ def test_tls_without_weight_changes_runs_amm_as_least_squares_does():
     ls = mg.solve(ds.graph, ds.robot_of_pose, start=X0, iterations=60, stop_when_stalled=False)
     tls = mg.solve(ds.graph, ds.robot_of_pose, start=X0, iterations=60, stop_when_stalled=False, loss="tls")
     assert np.all(tls.weights == 1.0)
+    assert tls.stats["operator_rebuilds"] == 0 and tls.stats["weight_updates"] == 60  # 60 updates, none a change
     np.testing.assert_allclose(tls.history.f, ls.history.f, rtol=1e-9)
     # the chordal start is not the optimum: the runs moved, AMM took momentum steps
     assert ls.history.f[-1] < ls.history.f[0] * (1 - 1e-6)

@@ -89,6 +89,7 @@ class WeightState(eqx.Module):
     gamma: GammaSoA
     newton: NewtonPreconditioner
     schedule: WeightSchedule
+    rebuilds: jax.Array  # () int32: times Γ^α and the preconditioner were rebuilt after the start
 
 
 class Weighting(eqx.Module):
@@ -179,7 +180,7 @@ class Reweighted(Weighting):
         grad, share, weighted = self._gradients(problem, E, s, weights)
         local = 0.5 * jnp.sum(robust_cost(self.loss, s, self.robust_edge), axis=-1)
         schedule = initial_schedule(self.loss, 2.0 * jnp.sum(weighted), self.use_given)
-        return grad, share, local, WeightState(weights, gamma, newton, schedule)
+        return grad, share, local, WeightState(weights, gamma, newton, schedule, jnp.zeros((), jnp.int32))
 
     def operators(self, problem, config, state: WeightState):
         problem.preconditioner(config)  # checks that the config's preconditioner was built
@@ -203,13 +204,15 @@ class Reweighted(Weighting):
         grad, share, weighted = self._gradients(problem, E, s, weights)
         schedule = eqx.tree_at(lambda sc: sc.weighted_f, schedule, 2.0 * comm.sum(weighted))
         settled = (schedule.done | ~jnp.asarray(self.loss.use_gnc)) & ~schedule.held
-        return grad, share, update, WeightState(weights, gamma, newton, schedule), settled
+        rebuilds = state.rebuilds + update.astype(jnp.int32)
+        return grad, share, update, WeightState(weights, gamma, newton, schedule, rebuilds), settled
 
     def outcome(self, graph, part, state: WeightState, poses, to_host=np.asarray) -> tuple[dict, dict]:
         loss = jax.device_get(self.loss)
         weights, inliers = robust_outcome(loss, graph, part, to_host(state.weights), poses)
         sched = jax.device_get(jax.tree.map(to_host, state.schedule))
-        stats = dict(weight_updates=int(sched.updates), gnc_stages=int(sched.stage), gnc_mu=float(sched.mu),
+        stats = dict(weight_updates=int(sched.updates), operator_rebuilds=int(to_host(state.rebuilds)),
+                     gnc_stages=int(sched.stage), gnc_mu=float(sched.mu),
                      weights_final=bool(sched.done), start_weights_given=bool(to_host(self.use_given)),
                      start_weights_held=bool(sched.held))
         return dict(loss=loss, weights=weights, inliers=inliers), stats
