@@ -85,8 +85,10 @@ def test_initialize_with_weights_returns_the_classification_of_a_classifying_sta
     ds, c, st = _team_with_outliers()
     X, w = initialize_with_weights(c.graph, "distributed-robust", robots=ds.robot_of_pose)
     np.testing.assert_array_equal(w, st.weights)
-    _, none = initialize_with_weights(c.graph, "chordal")
-    assert none is None
+    for host in (False, True):  # HostPoses is a tuple: it must come back whole, not unpacked
+        poses, none = initialize_with_weights(c.graph, "chordal", host=host)
+        assert none is None and np.shape(poses.R) == (c.graph.num_poses, 2, 2)
+        np.testing.assert_allclose(np.asarray(mm.initialize(c.graph, "chordal", host=host).t), np.asarray(poses.t))
 
 
 def test_bad_start_weights_are_refused():

@@ -84,8 +84,19 @@ def initialize_with_weights(graph: PoseGraph, method="chordal", *, initial: Pose
 
 
 def _initial_poses(graph, method, initial, robots, fixed, options, host=False):
-    poses = _start_poses(graph, method, initial, robots, fixed, options, host)
-    return poses if isinstance(poses, tuple) else (poses, None)
+    """(poses, weights or None): only the distributed robust start classifies the edges."""
+    if isinstance(method, str) and method == "distributed-robust":
+        from .robust_distributed import distributed_robust_initialization
+
+        start = distributed_robust_initialization(
+            graph, min(10, graph.num_poses) if robots is None else robots, **options)
+        if start.unplaced_robots.size:
+            warnings.warn(f"distributed-robust start: robots {start.unplaced_robots.tolist()} share no accepted "
+                          "inter-robot loop closure with robot 0's map; they stay in their own frames",
+                          stacklevel=5)
+        poses = start.poses if fixed is None else express_in_frame(start.poses, fixed)  # gauge: 1st fixed pose
+        return poses_from_arrays(graph, poses.R, poses.t, host=host), start.weights
+    return _start_poses(graph, method, initial, robots, fixed, options, host), None
 
 
 def _start_poses(graph, method, initial, robots, fixed, options, host=False):
@@ -99,17 +110,6 @@ def _start_poses(graph, method, initial, robots, fixed, options, host=False):
 
             start = gnc_chordal_initialization(graph, fixed=fixed, **options)
             return poses_from_arrays(graph, start.poses.R, start.poses.t)
-        if method == "distributed-robust":
-            from .robust_distributed import distributed_robust_initialization
-
-            start = distributed_robust_initialization(
-                graph, min(10, graph.num_poses) if robots is None else robots, **options)
-            if start.unplaced_robots.size:
-                warnings.warn(f"distributed-robust start: robots {start.unplaced_robots.tolist()} share no accepted "
-                              "inter-robot loop closure with robot 0's map; they stay in their own frames",
-                              stacklevel=5)
-            poses = start.poses if fixed is None else express_in_frame(start.poses, fixed)  # gauge: 1st fixed pose
-            return poses_from_arrays(graph, poses.R, poses.t, host=host), start.weights
         if method == "chordal":
             return chordal_initialization(graph, fixed)
         if method == "odometry":
