@@ -10,9 +10,9 @@ start computed once and given to every run (the robust runs hold its edge weight
 ``--iterations`` iterations without early stop, interleaved, ``--repeats`` times. Reported: ms per
 iteration (``solve_seconds`` / iterations: the compiled iterations alone) and its ratio to least
 squares' in the same repeat, and how often Γ^α was rebuilt (``stats["operator_rebuilds"]``). A
-robust run rebuilds Γ^α and its preconditioner only when some edge weight changed (exactly: no
-tolerance, so the majorizer is always the one of the current weights, as MM's guarantee needs);
-TLS's weights are 0 or 1 and change at few iterations, Huber's at every one after the held stage.
+robust run builds Γ^α with its weights × 1.05 (at most 1), which still majorizes, and rebuilds it only
+when a weight leaves that band (``GAMMA_SLACK``); TLS's weights are 0 or 1 and change at few
+iterations, Huber's move a little at every one after the held stage.
 """
 
 from __future__ import annotations
