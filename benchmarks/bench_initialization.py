@@ -1,4 +1,5 @@
-"""Benchmark of the initializations: centralized chordal vs distributed AMM-Chordal (10 robots).
+"""Benchmark of the initializations: centralized chordal vs distributed chordal (10 robots), by
+preconditioned conjugate gradients (the default) and by AMM-Chordal (the paper's Algorithm 3).
 
 Prints the markdown tables of ``benchmarks/initialization.md``:
 
@@ -8,14 +9,15 @@ Per dataset (float64 throughout):
 
 * centralized chordal initialization (``chordal_initialization``): f = 2F at the start, the reference
   value of docs/conventions.md §5, and the wall time (best of 3, after one warm-up call);
-* distributed AMM-Chordal for the relaxed rotations, run for ``--budget`` iterations without a
-  stopping rule, with the per-robot momentum restart (default) and without it (Algorithm 3
-  verbatim): the first iteration after which the relaxed rotation objective stays within a
-  relative 1e-6 of the centralized optimum; ms per iteration of the jitted loop (all robots,
-  compiled, measured as the time difference of two budgets on the same compiled loop); the
-  one-off set-up (sparse LU inverses of Gamma_R^alpha) and the resulting time to 1e-6;
+* the distributed relaxed rotations, run for ``--budget`` iterations without a stopping rule, by
+  CG (``scheme="cg"``, the default: float32 Gamma_R^alpha inverses as preconditioner) and by
+  AMM-Chordal with the per-robot momentum restart and without it (Algorithm 3 verbatim): the first
+  iteration after which the relaxed rotation objective stays within a relative 1e-6 of the
+  centralized optimum; ms per iteration of the jitted loop (all robots, compiled, measured as the
+  time difference of two budgets on the same compiled loop); the one-off set-up (dense Cholesky
+  inverses of Gamma_R^alpha) and the resulting time to 1e-6;
 * the distributed initialization with all defaults (``distributed_chordal_initialization(graph,
-  robots)``: default budgets (20000 + 20000), tol 1e-10, restart): iterations used by each stage, the
+  robots)``: CG, default budgets (20000 + 20000), tol 1e-10): iterations used by each stage, the
   translation stage's first iteration within 1e-6 of the centralized translation optimum for the
   same rotations, f = 2F of the result and its relative difference from the centralized start,
   and the wall time of the whole call (set-up and compilation included).
@@ -105,16 +107,24 @@ def bench(name: str, path: Path, ref: float, robots: int, budget: int) -> dict:
     # --- distributed rotations: iterations to 1e-6, ms / iteration ---------------------------
     st = dc._setup(g, robots)
     R0 = dc._initial_rotations(st, None, g.num_poses)
-    GinvR, row["setup_R"] = timed(st.gamma_inverse, dc.DEFAULT_XI, True)
-    for restart, key in ((True, "restart"), (False, "plain")):
-        _, hist, _, _ = dc._run_rotations(st, GinvR, R0, budget, None, restart)
+    schemes = {"cg": dc.CGChordal(), "restart": dc.AMMChordal(restart=True), "plain": dc.AMMChordal(restart=False)}
+    inverses = {}
+    for key, solver in schemes.items():
+        single = isinstance(solver, dc.CGChordal)
+        if single not in inverses:
+            inverses[single], row[f"setup_{key}"] = timed(st.gamma_inverse, dc.DEFAULT_XI, True, single)
+        GinvR = inverses[single]
+        _, hist, _, _ = dc._run_rotations(st, GinvR, R0, budget, None, solver)
         row[f"k_{key}"] = first_within(hist, fR)
         row[f"gap_{key}"] = abs(hist[-1] - fR) / fR
-    # one compiled chunk for both budgets (that of the runs above; budgets are traced)
-    _, t_short = timed(lambda: dc._run_rotations(st, GinvR, R0, 10, None, True)[0])
-    _, t_long = timed(lambda: dc._run_rotations(st, GinvR, R0, 210, None, True)[0])
-    row["ms_R"] = (t_long - t_short) / 200 * 1e3
-    row["t_R6"] = None if row["k_restart"] is None else row["setup_R"] + row["k_restart"] * row["ms_R"] / 1e3
+        if key == "plain":
+            continue
+        # one compiled chunk for both budgets (that of the run above; budgets are traced)
+        _, t_short = timed(lambda G=GinvR, s=solver: dc._run_rotations(st, G, R0, 10, None, s)[0])
+        _, t_long = timed(lambda G=GinvR, s=solver: dc._run_rotations(st, G, R0, 210, None, s)[0])
+        row[f"ms_{key}"] = (t_long - t_short) / 200 * 1e3
+        k = row[f"k_{key}"]
+        row[f"t6_{key}"] = None if k is None else row[f"setup_{key}"] + k * row[f"ms_{key}"] / 1e3
 
     # --- distributed, all defaults ----------------------------------------------------------
     (pd, info), row["t_d"] = timed(dc.distributed_chordal_initialization, g, robots)
@@ -145,25 +155,31 @@ def tables(rows: list[dict], budget: int, robots: int) -> str:
             f"{'yes' if sig4_match(r['f_c'], r['ref']) else 'NO'} | {r['t_c']:.3f} |"
         )
     out.append("")
-    out.append(f"### Distributed AMM-Chordal, relaxed rotations ({robots} robots, budget {budget}, no stopping rule)\n")
+    out.append(f"### Distributed relaxed rotations ({robots} robots, budget {budget}, no stopping rule)\n")
     out.append(
         "Iterations until the relaxed rotation objective stays within a relative 1e-6 of the centralized "
-        "optimum (in parentheses: the relative gap at the end of the budget when not reached).\n"
+        "optimum (in parentheses: the relative gap at the end of the budget when not reached); ms / iter, "
+        "set-up and time to 1e-6 for CG (float32 preconditioner) / AMM-Chordal with restart (float64 majorizer).\n"
     )
-    out.append("| dataset | iters, restart (default) | iters, Alg. 3 verbatim | ms / iter | set-up [s] "
-               "| time to 1e-6 [s] |")
-    out.append("|---|---:|---:|---:|---:|---:|")
+    out.append("| dataset | iters, CG (default) | iters, AMM restart | iters, Alg. 3 verbatim | ms / iter, CG / AMM "
+               "| set-up [s], CG / AMM | time to 1e-6 [s], CG / AMM |")
+    out.append("|---|---:|---:|---:|---:|---:|---:|")
+
+    def t6(r, key):
+        return f"{r[f't6_{key}']:.2f}" if r[f"t6_{key}"] is not None else "—"
+
     for r in rows:
-        t6 = f"{r['t_R6']:.2f}" if r["t_R6"] is not None else "—"
         out.append(
-            f"| {r['name']} | {fmt_k(r['k_restart'], budget, r['gap_restart'])} | "
-            f"{fmt_k(r['k_plain'], budget, r['gap_plain'])} | {r['ms_R']:.2f} | {r['setup_R']:.2f} | {t6} |"
+            f"| {r['name']} | {fmt_k(r['k_cg'], budget, r['gap_cg'])} | "
+            f"{fmt_k(r['k_restart'], budget, r['gap_restart'])} | {fmt_k(r['k_plain'], budget, r['gap_plain'])} | "
+            f"{r['ms_cg']:.2f} / {r['ms_restart']:.2f} | {r['setup_cg']:.2f} / {r['setup_restart']:.2f} | "
+            f"{t6(r, 'cg')} / {t6(r, 'restart')} |"
         )
     out.append("")
     out.append(f"### Distributed chordal initialization with the defaults ({robots} robots)\n")
     out.append(
         f"`distributed_chordal_initialization(graph, 10)`: budgets {dc.DEFAULT_ROTATION_ITERATIONS} + "
-        f"{dc.DEFAULT_TRANSLATION_ITERATIONS}, tol 1e-10, restart, xi 1e-3. "
+        f"{dc.DEFAULT_TRANSLATION_ITERATIONS}, tol 1e-10, scheme {dc.DEFAULT_SCHEME!r}, xi 1e-3. "
         "Rotation gap: relative gap of the relaxed rotation objective at the stop; translation iterations to "
         "1e-6: against the centralized translation optimum for the same (distributed) rotations; f: "
         "2F of the result vs the centralized chordal start; time: the whole call (set-up and compilation included).\n"

@@ -97,6 +97,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import scipy.linalg as sla
+import scipy.sparse as sp
 
 from .._core.gauge import FixedPoses, anchor_set
 from .._core.geometry import project_to_so
@@ -112,10 +113,12 @@ from .._mm.solvers import Solver, start_run
 
 __all__ = [
     "DEFAULT_ROTATION_ITERATIONS",
+    "DEFAULT_SCHEME",
     "DEFAULT_TOL",
     "DEFAULT_TRANSLATION_ITERATIONS",
     "DEFAULT_XI",
     "AMMChordal",
+    "CGChordal",
     "DistributedChordalInfo",
     "distributed_chordal_initialization",
     "distributed_relaxed_rotations",
@@ -127,6 +130,7 @@ DEFAULT_TRANSLATION_ITERATIONS = 20000
 DEFAULT_TOL = 1e-10
 DEFAULT_XI = 1e-3
 DEFAULT_RESTART = True
+DEFAULT_SCHEME = "cg"
 _CHUNK = 10  # iterations per compiled chunk between the driver's convergence checks
 
 
@@ -143,12 +147,13 @@ def _padded_anchor_mask(part: Partition, anchors: np.ndarray) -> np.ndarray:
     return mask
 
 
-def _gamma_matrices(part: Partition, anchor_mask: np.ndarray, xi: float, d: int, rotation: bool) -> np.ndarray:
+def _gamma_matrices(part: Partition, anchor_mask: np.ndarray, xi: float, d: int, rotation: bool,
+                    dtype=np.float64) -> np.ndarray:
     """(A, N, N) dense Gamma_R^alpha (N = n_max d) or Gamma_t^alpha (N = n_max) of every robot,
     assembled by one scatter over all robots' edge blocks: an own edge adds its four blocks, an
     inter-robot edge twice its local end's diagonal block (Eq. (24)), padding edges nothing; then
     xi on the diagonal (1 on padding slots), and the anchors' rows and columns replaced by the
-    identity's (the anchor is eliminated).
+    identity's (the anchor is eliminated). In ``dtype`` (the edge blocks are summed in it).
 
     Rotation layout: row/column ``slot*d + a`` acts on the transposed block R_slot^T.
     """
@@ -178,35 +183,55 @@ def _gamma_matrices(part: Partition, anchor_mask: np.ndarray, xi: float, d: int,
     cols = np.concatenate([ri, rj, rj, ri])
     blocks = np.concatenate([c_ii[:, None, None] * Hii, c_jj[:, None, None] * Hjj,
                              c_ij[:, None, None] * Hij, c_ij[:, None, None] * np.swapaxes(Hij, 1, 2)])
-    flat = (np.tile(robot, 4)[:, None, None] * N + rows[:, :, None]) * N + cols[:, None, :]
-    G = np.bincount(flat.reshape(-1), blocks.reshape(-1), minlength=A * N * N).reshape(A, N, N)
+    # one sparse (A N) x N matrix whose duplicates sum, written out dense (C speed, no N^2 index array)
+    row = (np.tile(robot, 4)[:, None, None] * N + rows[:, :, None]) + 0 * cols[:, None, :]
+    col = np.broadcast_to(cols[:, None, :], row.shape)
+    G = sp.coo_matrix((blocks.reshape(-1).astype(dtype), (row.reshape(-1), col.reshape(-1))),
+                      shape=(A * N, N)).toarray()
+    G = G.reshape(A, N, N)
     diagonal = np.arange(N)
-    G[:, diagonal, diagonal] += np.where(np.repeat(np.asarray(part.pose_mask), b, axis=1), xi, 1.0)
-    fixed = np.repeat(anchor_mask, b, axis=1)  # (A, N)
-    keep = ~fixed
-    G *= keep[:, :, None] & keep[:, None, :]
-    G[:, diagonal, diagonal] += fixed
+    G[:, diagonal, diagonal] += np.where(np.repeat(np.asarray(part.pose_mask), b, axis=1), xi, 1.0).astype(dtype)
+    robot_of, fixed = np.nonzero(np.repeat(anchor_mask, b, axis=1))  # the anchors' rows and columns
+    G[robot_of, fixed, :] = 0.0
+    G[robot_of, :, fixed] = 0.0
+    G[robot_of, fixed, fixed] = 1.0
     return G
 
 
-def _gamma_inverses(part: Partition, anchor_mask: np.ndarray, xi: float, d: int, rotation: bool) -> np.ndarray:
-    """(A, N, N) dense inverses of :func:`_gamma_matrices`, each from its Cholesky factor."""
+def _gamma_inverses(part: Partition, anchor_mask: np.ndarray, xi: float, d: int, rotation: bool,
+                    single: bool = False) -> np.ndarray:
+    """(A, N, N) dense inverses of :func:`_gamma_matrices`, each from its Cholesky factor; with
+    ``single`` in float32 when every robot's float32 factorization succeeds (else float64)."""
+    if single:  # assembled in float32 too (a few terms per entry)
+        G = _gamma_matrices(part, anchor_mask, xi, d, rotation, np.float32)
+        if _invert_in_place(G, (sla.lapack.spotrf, sla.lapack.spotri)) is None:
+            return G
     G = _gamma_matrices(part, anchor_mask, xi, d, rotation)
-    # LAPACK potrf + potri per robot, in place: the one loop over robots left in the set-up, each
-    # pass an O(N^3) LAPACK call. NumPy and SciPy have no batched potri; the batched alternatives
-    # (np.linalg.inv, a batched Cholesky and triangular solves) do 3x the flops (measured 3.5x
-    # slower for N = 1500).
-    for a in range(G.shape[0]):
-        c, info = sla.lapack.dpotrf(G[a], lower=1, clean=0, overwrite_a=1)
-        if info == 0:
-            c, info = sla.lapack.dpotri(c, lower=1, overwrite_c=1)
-        if info != 0:
-            raise ValueError(
-                f"Gamma of robot {a} is not positive definite (LAPACK info {info}); use xi > 0 or check the weights"
-            )
-        lower = np.tril(c)
-        G[a] = lower + np.tril(lower, -1).T
+    bad = _invert_in_place(G, (sla.lapack.dpotrf, sla.lapack.dpotri))
+    if bad is not None:
+        robot, info = bad
+        raise ValueError(
+            f"Gamma of robot {robot} is not positive definite (LAPACK info {info}); use xi > 0 or check the weights"
+        )
     return G
+
+
+def _invert_in_place(G: np.ndarray, lapack) -> tuple[int, int] | None:
+    """Every G[a] replaced by its inverse (LAPACK potrf + potri); (robot, info) of the first failure."""
+    potrf, potri = lapack
+    upper = np.triu(np.ones(G.shape[1:], bool), 1)
+    # the one loop over robots left in the set-up, each pass an O(N^3) LAPACK call. NumPy and SciPy
+    # have no batched potri; the batched alternatives (np.linalg.inv, a batched Cholesky and
+    # triangular solves) do 3x the flops (measured 3.5x slower for N = 1500).
+    for a in range(G.shape[0]):
+        c, info = potrf(G[a], lower=1, clean=0, overwrite_a=1)
+        if info == 0:
+            c, info = potri(c, lower=1, overwrite_c=1)
+        if info != 0:
+            return a, int(info)
+        np.copyto(c, c.T, where=upper)  # potri writes the lower triangle only
+        G[a] = c
+    return None
 
 
 # --------------------------------------------------------------------------------------------
@@ -259,15 +284,16 @@ def _translation_gradient(edges, anchor, v, t):
 
 
 def _apply_inverse_rot(Ginv, G):
-    """Rows of the step for every robot: (G Gamma^{-1}) in block form, G (A, n_max, d, d)."""
+    """Rows of the step for every robot: (G Gamma^{-1}) in block form, G (A, n_max, d, d); in
+    Ginv's precision (float32 for the CG preconditioner), returned in G's."""
     A, n_max, d, _ = G.shape
     rhs = jnp.swapaxes(G, -1, -2).reshape(A, n_max * d, d)  # stacked G_i^T
-    sol = jnp.einsum("aij,ajk->aik", Ginv, rhs)
+    sol = jnp.einsum("aij,ajk->aik", Ginv, rhs.astype(Ginv.dtype)).astype(G.dtype)
     return jnp.swapaxes(sol.reshape(A, n_max, d, d), -1, -2)
 
 
 def _apply_inverse_trans(Ginv, g):
-    return jnp.einsum("aij,ajk->aik", Ginv, g)
+    return jnp.einsum("aij,ajk->aik", Ginv, g.astype(Ginv.dtype)).astype(g.dtype)
 
 
 # --------------------------------------------------------------------------------------------
@@ -290,6 +316,16 @@ class _Stage(eqx.Module):
     def apply_inverse(self, G):
         raise NotImplementedError
 
+    def matvec(self, P):
+        """The objective's Hessian (the anchored Laplacian) applied to a direction P that is zero on
+        the anchor slots: one exchange of P's values at the ends of inter-robot edges."""
+        raise NotImplementedError
+
+    def column_dot(self, X, Y):
+        """Per right-hand-side sums over every robot of X * Y, broadcastable against X: the linear
+        system has d independent columns (R^T stacked for rotations, t for translations)."""
+        raise NotImplementedError
+
 
 class RotationStage(_Stage):
     """The relaxed rotation problem (22) as majorized by Eq. (24)."""
@@ -299,6 +335,12 @@ class RotationStage(_Stage):
 
     def apply_inverse(self, G):
         return _apply_inverse_rot(self.Ginv, G)
+
+    def matvec(self, P):
+        return _rotation_gradient(self.edges, self.anchor, P)[0]  # the gradient is linear in R
+
+    def column_dot(self, X, Y):
+        return jnp.sum(X * Y, axis=(0, 1, 3), keepdims=True)  # column k of R^T = row k of every R_i
 
 
 class TranslationStage(_Stage):
@@ -311,6 +353,12 @@ class TranslationStage(_Stage):
 
     def apply_inverse(self, g):
         return _apply_inverse_trans(self.Ginv, g)
+
+    def matvec(self, P):
+        return _translation_gradient(self.edges, self.anchor, jnp.zeros_like(self.v), P)[0]
+
+    def column_dot(self, X, Y):
+        return jnp.sum(X * Y, axis=(0, 1), keepdims=True)
 
 
 class _State(eqx.Module):
@@ -377,10 +425,97 @@ class AMMChordal(Solver):
         return IterationRecord(f=f, grad_norm=jnp.sqrt(jnp.sum(G**2)), restarted=restarted, settled=jnp.ones((), bool))
 
 
-def _drive_stage(part: Partition, problem: _Stage, X0, budget: int, tol, restart: bool):
+class _CGState(eqx.Module):
+    X: jax.Array  # the iterate, padded (A, n_max, ...)
+    r: jax.Array  # residual = -grad F(X) (zero on anchor and padding slots)
+    z: jax.Array  # preconditioned residual Gamma^{-1} r
+    p: jax.Array  # search direction
+    rz: jax.Array  # per-column <r, Gamma^{-1} r>
+    f: jax.Array  # the relaxed objective 2F(X), updated exactly along each step
+    k: jax.Array  # iterations done
+
+
+class CGChordal(Solver):
+    """Conjugate gradients on each stage's quadratic, preconditioned by every robot's Gamma^alpha
+    (the same factored matrices as :class:`AMMChordal`'s majorizer: block Jacobi over the robots).
+
+    One iteration: the Hessian applied to the search direction (one exchange of each robot's
+    poses at the ends of its inter-robot edges, as an AMM-Chordal iteration), each robot's
+    preconditioner solve, and two sums over all robots of d numbers each (the step length and the
+    conjugacy coefficient of every column: an all-reduce, which AMM-Chordal does not need). The
+    objective is updated along the step exactly (a quadratic), so it is non-increasing."""
+
+    @property
+    def name(self) -> str:
+        return "cg-chordal"
+
+    def init(self, problem: _Stage, X0):
+        G0, f0 = problem.gradient(X0)
+        r = -G0
+        z = problem.apply_inverse(r)
+        state = _CGState(X0, r, z, z, problem.column_dot(r, z), f0, jnp.asarray(0, jnp.int32))
+        return state, self._record(f0, r)
+
+    def step(self, problem: _Stage, st: _CGState, comm=None):
+        Ap = problem.matvec(st.p)
+        pAp = problem.column_dot(st.p, Ap)
+        rp = problem.column_dot(st.r, st.p)
+        alpha = jnp.where(pAp > 0, rp / jnp.where(pAp > 0, pAp, 1.0), 0.0)
+        X = st.X + alpha * st.p
+        # 2F(X + alpha p) = 2F(X) - 2 alpha <r, p> + alpha^2 <p, H p>, per column
+        f = st.f + jnp.sum(alpha * (alpha * pAp - 2.0 * rp))
+        r = st.r - alpha * Ap
+        z = problem.apply_inverse(r)
+        # Polak-Ribiere's beta (flexible CG): equal to Fletcher-Reeves' with an exact symmetric
+        # preconditioner, and robust to the float32 rounding of Gamma^{-1}
+        beta = problem.column_dot(r, z - st.z)
+        beta = jnp.where(st.rz > 0, beta / jnp.where(st.rz > 0, st.rz, 1.0), 0.0)
+        rz = problem.column_dot(r, z)
+        return _CGState(X, r, z, z + beta * st.p, rz, f, st.k + 1), self._record(f, r)
+
+    def skipped(self, st: _CGState):
+        nan = jnp.full((), jnp.nan, st.X.dtype)
+        return IterationRecord(f=nan, grad_norm=nan, restarted=jnp.zeros(st.X.shape[:1], bool),
+                               settled=jnp.ones((), bool))
+
+    def iteration(self, st: _CGState):
+        return st.k
+
+    def record_structure(self, problem):
+        return IterationRecord(f=0.0, grad_norm=0.0, restarted=0.0, settled=0.0)
+
+    def start_structure(self, problem):
+        leaf = 0.0
+        return _CGState(leaf, leaf, leaf, leaf, leaf, leaf, leaf), self.record_structure(problem)
+
+    @staticmethod
+    def _record(f, r):
+        return IterationRecord(f=f, grad_norm=jnp.sqrt(jnp.sum(r**2)), restarted=jnp.zeros(r.shape[:1], bool),
+                               settled=jnp.ones((), bool))
+
+
+SCHEMES = ("cg", "amm")
+
+
+def _stage_solver(scheme: str, restart: bool | None) -> Solver:
+    if scheme not in SCHEMES:
+        raise ValueError(f"scheme must be one of {', '.join(map(repr, SCHEMES))}, got {scheme!r}")
+    if scheme == "cg":
+        if restart is not None:
+            raise ValueError("restart applies to scheme='amm' (Algorithm 3's momentum) only, not to 'cg'")
+        return CGChordal()
+    return AMMChordal(restart=DEFAULT_RESTART if restart is None else bool(restart))
+
+
+def _single(solver: Solver) -> bool:
+    """Whether Gamma^{-1} may be float32: as CG's preconditioner yes; as AMM-Chordal's majorizer no
+    (its exact minimiser is what keeps the objective non-increasing)."""
+    return isinstance(solver, CGChordal)
+
+
+def _drive_stage(part: Partition, problem: _Stage, X0, budget: int, tol, solver: Solver):
     """One stage of the distributed chordal start on the driver: (final iterate, f history,
     iterations, whether the tolerance stopped it)."""
-    solver = AMMChordal(restart=bool(restart))
     placement = Placement(part)
     # the start's program from the persistent cache when it is on (a warm process does not trace it)
     start_fn = compile_once(start_run, solver, problem, X0,
@@ -414,7 +549,8 @@ class DistributedChordalInfo:
     num_robots: int
     xi: float
     tol: float | None
-    restart: bool
+    scheme: str
+    restart: bool  # AMM-Chordal's per-robot momentum restart (False for "cg")
 
 
 def _as_partition(graph: PoseGraph, robots) -> Partition:
@@ -445,10 +581,12 @@ class _Setup(eqx.Module):
     dim: int = eqx.field(static=True)
     dtype: object = eqx.field(static=True)
 
-    def gamma_inverse(self, xi: float, rotation: bool) -> jax.Array:
+    def gamma_inverse(self, xi: float, rotation: bool, single: bool = False) -> jax.Array:
+        """Every robot's Gamma^{-1} in the graph's precision, or with ``single`` in float32 where its
+        factorization succeeds (a preconditioner needs no more: half the bytes each iteration reads)."""
         _check_memory(self.part, self.dim if rotation else 1, np.dtype(self.dtype).itemsize)
-        G = _gamma_inverses(self.part, np.asarray(self.anchor), float(xi), self.dim, rotation)
-        return jnp.asarray(G, self.dtype)
+        G = _gamma_inverses(self.part, np.asarray(self.anchor), float(xi), self.dim, rotation, single)
+        return jnp.asarray(G, np.float32 if G.dtype == np.float32 else self.dtype)
 
 
 def _check_memory(part: Partition, b: int, itemsize: int) -> None:
@@ -500,18 +638,18 @@ def _initial_translations(st: _Setup, initial, n: int):
     return jnp.where(st.anchor[..., None], st.anchor_t, t0)
 
 
-def _run_rotations(st: _Setup, Ginv, R0, budget: int, tol, restart: bool):
+def _run_rotations(st: _Setup, Ginv, R0, budget: int, tol, solver: Solver):
     """The rotation stage on the driver; ``budget`` and ``tol`` are traced (the compiled chunk of 10
     iterations serves every budget and tolerance)."""
-    return _drive_stage(st.part, RotationStage(st.part.edges, st.anchor, Ginv), R0, budget, _check_tol(tol), restart)
+    return _drive_stage(st.part, RotationStage(st.part.edges, st.anchor, Ginv), R0, budget, _check_tol(tol), solver)
 
 
-def _run_translations(st: _Setup, Ginv, Rpad, t0, budget: int, tol, restart: bool):
+def _run_translations(st: _Setup, Ginv, Rpad, t0, budget: int, tol, solver: Solver):
     """As :func:`_run_rotations`, for the translation stage with the rotations ``Rpad`` fixed."""
     edges = st.part.edges
     # v_e = R_i tt_e with the fixed rotations, per robot edge slot (constant over iterations)
     v = jnp.einsum("aexy,aey->aex", Rpad[edges.robot_i, edges.slot_i], edges.t)
-    return _drive_stage(st.part, TranslationStage(edges, st.anchor, Ginv, v), t0, budget, _check_tol(tol), restart)
+    return _drive_stage(st.part, TranslationStage(edges, st.anchor, Ginv, v), t0, budget, _check_tol(tol), solver)
 
 
 def _unpad(st: _Setup, X):
@@ -525,10 +663,13 @@ def distributed_relaxed_rotations(
     iterations: int = DEFAULT_ROTATION_ITERATIONS,
     xi: float = DEFAULT_XI,
     tol: float | None = DEFAULT_TOL,
-    restart: bool = DEFAULT_RESTART,
+    scheme: str = DEFAULT_SCHEME,
+    restart: bool | None = None,
     initial=None,
 ):
-    """AMM-Chordal (Algorithm 3) for the relaxed rotation problem (22).
+    """The relaxed rotation problem (22), distributed: ``scheme`` ``"cg"`` (default, preconditioned
+    conjugate gradients, :class:`CGChordal`) or ``"amm"`` (AMM-Chordal, Algorithm 3, with the
+    per-robot ``restart``, default True).
 
     ``robots``: a robot count (contiguous blocks), an (n,) robot-of-pose array or a Partition.
     ``initial``: R^(0) (n, d, d); default every block I (anchor poses are always I).
@@ -538,10 +679,11 @@ def distributed_relaxed_rotations(
     """
     iterations = _check_iters("iterations", iterations)
     tol = _check_tol(tol)
+    solver = _stage_solver(scheme, restart)
     st = _setup(graph, robots)
-    X, history, k, converged = _run_rotations(st, st.gamma_inverse(xi, True),
+    X, history, k, converged = _run_rotations(st, st.gamma_inverse(xi, True, _single(solver)),
                                               _initial_rotations(st, initial, graph.num_poses), iterations, tol,
-                                              restart)
+                                              solver)
     return _unpad(st, X), history, k, converged
 
 
@@ -553,24 +695,26 @@ def distributed_translations(
     iterations: int = DEFAULT_TRANSLATION_ITERATIONS,
     xi: float = DEFAULT_XI,
     tol: float | None = DEFAULT_TOL,
-    restart: bool = DEFAULT_RESTART,
+    scheme: str = DEFAULT_SCHEME,
+    restart: bool | None = None,
     initial=None,
 ):
-    """The same accelerated MM scheme for the translation problem (25) with rotations ``R``
-    (n, d, d) fixed, anchor translations 0, from t^(0) = ``initial`` (default 0).
+    """The translation problem (25) with rotations ``R`` (n, d, d) fixed, anchor translations 0,
+    from t^(0) = ``initial`` (default 0), by ``scheme`` (as :func:`distributed_relaxed_rotations`).
 
     Returns (t (n, d), history (k+1,) of 2 F_t, iterations used k, converged).
     """
     iterations = _check_iters("iterations", iterations)
     tol = _check_tol(tol)
+    solver = _stage_solver(scheme, restart)
     st = _setup(graph, robots)
     n, d = graph.num_poses, graph.dim
     R = jnp.asarray(R, st.dtype)
     if R.shape != (n, d, d):
         raise ValueError(f"rotations must have shape ({n}, {d}, {d}), got {R.shape}")
     Rpad = st.part.scatter(Poses(R, jnp.zeros((n, d), st.dtype))).R
-    X, history, k, converged = _run_translations(st, st.gamma_inverse(xi, False), Rpad,
-                                                 _initial_translations(st, initial, n), iterations, tol, restart)
+    X, history, k, converged = _run_translations(st, st.gamma_inverse(xi, False, _single(solver)), Rpad,
+                                                 _initial_translations(st, initial, n), iterations, tol, solver)
     return _unpad(st, X), history, k, converged
 
 
@@ -582,20 +726,23 @@ def distributed_chordal_initialization(
     translation_iterations: int = DEFAULT_TRANSLATION_ITERATIONS,
     xi: float = DEFAULT_XI,
     tol: float | None = DEFAULT_TOL,
-    restart: bool = DEFAULT_RESTART,
+    scheme: str = DEFAULT_SCHEME,
+    restart: bool | None = None,
     initial_rotations=None,
     initial_translations=None,
     fixed: FixedPoses | None = None,
 ) -> tuple[Poses, DistributedChordalInfo]:
-    """Distributed chordal initialization: AMM-Chordal (Algorithm 3) for the relaxed rotations,
-    projection of every block to SO(d) (each robot its own poses, SVD with det fixed), then the
-    same accelerated MM scheme for the translations (25) given those rotations.
+    """Distributed chordal initialization: the relaxed rotations (22), projection of every block to
+    SO(d) (each robot its own poses, SVD with det fixed), then the translations (25) given those
+    rotations, each stage by ``scheme``: ``"cg"`` (default; preconditioned conjugate gradients,
+    :class:`CGChordal`) or ``"amm"`` (AMM-Chordal, the paper's Algorithm 3).
 
     ``robots``: number of robots (contiguous blocks of poses in index order, docs/conventions.md §4), an (n,)
     robot-of-pose array, or a :class:`Partition`. ``rotation_iterations`` /
     ``translation_iterations``: iteration budgets of the two stages. ``tol``: relative stopping
-    tolerance of both stages (module docstring), None to spend the whole budgets. ``restart``:
-    per-robot momentum restart (False = Algorithm 3 verbatim). ``xi``: proximal weight of Eq. (24).
+    tolerance of both stages (module docstring), None to spend the whole budgets. ``restart``
+    (``"amm"`` only; default True): per-robot momentum restart (False = Algorithm 3 verbatim).
+    ``xi``: proximal weight of Eq. (24).
     ``initial_rotations`` (n, d, d) / ``initial_translations`` (n, d): starting iterates
     (default: all rotations I, all translations 0). ``fixed``: poses held at their values in both
     stages (the anchors; default the first pose of every component, at identity).
@@ -605,15 +752,17 @@ def distributed_chordal_initialization(
     rotation_iterations = _check_iters("rotation_iterations", rotation_iterations)
     translation_iterations = _check_iters("translation_iterations", translation_iterations)
     tol = _check_tol(tol)  # before any set-up work
+    solver = _stage_solver(scheme, restart)
     n = graph.num_poses
     st = _setup(graph, robots, fixed)
     R0 = _initial_rotations(st, initial_rotations, n)
     t0 = _initial_translations(st, initial_translations, n)
-    RX, hR, kR, convR = _run_rotations(st, st.gamma_inverse(xi, True), R0, rotation_iterations, tol, restart)
+    single = _single(solver)
+    RX, hR, kR, convR = _run_rotations(st, st.gamma_inverse(xi, True, single), R0, rotation_iterations, tol, solver)
     # each robot projects its own blocks; padding slots hold I, anchors keep their values
     Rpad = jnp.where(st.anchor[..., None, None], st.anchor_R, project_to_so(RX))
-    tX, ht, kt, convt = _run_translations(st, st.gamma_inverse(xi, False), Rpad, t0, translation_iterations, tol,
-                                          restart)
+    tX, ht, kt, convt = _run_translations(st, st.gamma_inverse(xi, False, single), Rpad, t0, translation_iterations,
+                                          tol, solver)
     info = DistributedChordalInfo(
         rotation_iterations=kR,
         translation_iterations=kt,
@@ -624,6 +773,7 @@ def distributed_chordal_initialization(
         num_robots=st.part.num_robots,
         xi=float(xi),
         tol=tol,
-        restart=bool(restart),
+        scheme=scheme,
+        restart=isinstance(solver, AMMChordal) and solver.restart,
     )
     return Poses(_unpad(st, Rpad), _unpad(st, tX)), info
