@@ -1,4 +1,10 @@
-"""Distributed chordal initialization by accelerated majorization minimization (paper §VII).
+"""Distributed chordal initialization (paper §VII): two linear least-squares stages, each solved
+with only neighbour exchanges, by one of two schemes on the same per-robot matrices Gamma^alpha:
+
+* ``scheme="cg"`` (default): preconditioned conjugate gradients (:class:`CGChordal`) with the
+  robots' Gamma^alpha as a block-Jacobi preconditioner (section "Conjugate gradients" below);
+* ``scheme="amm"``: the paper's accelerated majorization minimization, Algorithm 3
+  (:class:`AMMChordal`), described first.
 
 Rotations (Algorithm 3, "AMM-Chordal"). The relaxed problem (22) min F_R(R) over R in
 R^{d x dn} with R_0 = I is split among the robots of a :class:`~mmpgo_jax._core.partition.Partition`. Eq. (24)
@@ -58,7 +64,32 @@ unchanged otherwise, and ``restart=False`` is Algorithm 3 verbatim. Measured wit
 MIT 825 -> 301, CSAIL > 3000 -> 494, intel > 3000 -> 1875, sphere2500 781 -> 199,
 torus3D 360 -> 109, city10000 > 3000 -> 964; see benchmarks/initialization.md.
 
-Convergence. The iteration count is governed by lambda_min(Gamma^{-1} L) of the anchored
+Conjugate gradients (the default). Both stages minimise a convex quadratic, 1/2 <X, H X> - <B, X>
+per column (d independent right-hand sides: the columns of the stacked R^T, or of t), so
+conjugate gradients apply, preconditioned by the same Gamma^alpha (block Jacobi over the robots:
+each robot's own-edge block, with its inter-robot diagonal terms doubled; the exact diagonal blocks
+were measured to need the same iterations). An iteration costs what an AMM-Chordal iteration costs
+(H applied to the search direction: one exchange of each robot's poses at its inter-robot edge ends;
+one product with every robot's Gamma^{-1}) plus two sums over all robots of d numbers (the step length
+and the conjugacy coefficient of each column), an all-reduce AMM-Chordal does not need. CG's error
+after k iterations falls like ((sqrt(c) - 1) / (sqrt(c) + 1))^k in the condition number c of
+Gamma^{-1} H, the rate momentum methods only approach. Measured with 10 robots, iterations to a
+relative 1e-6 of the relaxed rotation optimum (benchmarks/initialization.md): MIT 45 against 301
+with restarted AMM-Chordal, intel 238 against 1875. The objective is updated exactly along each
+step (f(X + a p) = f(X) - 2a <r, p> + a^2 <p, H p>), so it is non-increasing, and the driver's
+stopping rule below applies unchanged. Polak-Ribiere's conjugacy coefficient (flexible CG)
+is used: equal to the classical one with an exact symmetric preconditioner, and robust to a
+slightly inexact one.
+
+Preconditioner precision. CG only needs Gamma^{-1} as a preconditioner, so its inverses are
+factored and stored in float32 (half the bytes every iteration reads, the iteration being
+memory-bound; the factorization is about 2.5x faster) while the iterates, residuals and objective
+stay in the graph's precision: the iteration counts and results were the same as with float64
+inverses on the benchmark files. Where a float32 Cholesky factorization fails (a Gamma too
+ill-conditioned for float32) all inverses are float64. AMM-Chordal's inverse is its majorizer's
+exact minimiser, always in the graph's precision.
+
+Convergence of AMM-Chordal. The iteration count is governed by lambda_min(Gamma^{-1} L) of the anchored
 problem; the slowest mode is the "gauge" mode (all free poses left-multiplied by a common matrix,
 held back only by the edges at the single anchor pose): for intel lambda_min = 2e-5 with the
 eigenvector 99.7% inside that mode, for parking-garage 3.6e-6 (98%). A one-matrix global
@@ -71,21 +102,22 @@ Gamma^alpha is already positive definite for xi = 0 on connected data. It is neg
 the measurement weights of the benchmark files: it slows the majorizer by a relative xi /
 (weights at a pose), and xi = 0 and 1e-3 give the same iteration counts there.
 
-Stopping. Each stage is a solver (:class:`AMMChordal`) run by the same driver as MM and AMM
+Stopping. Each stage is a solver (:class:`CGChordal` or :class:`AMMChordal`) run by the same driver as MM and AMM
 (:func:`~mmpgo_jax._mm.driver.drive`): compiled chunks of 10 iterations, the budget, and
 ``tol`` (relative, default 1e-10; None runs the whole budget) as the driver's relative-change
 rule, checked after every chunk: a stage stops after the first chunk (k = 10, 20, ...) with
 |f(X^{k-10}) - f(X^k)| <= tol * f(X^k) (an increase is not convergence), f the relaxed objective
 (which every iteration computes anyway from the residuals of the gradient evaluation: each robot
-sums its own edges and half of its inter-robot edges). With the momentum restart the objective decreases essentially
-monotonically and linearly, and on the benchmark files the gap to the optimum at the stop was
-within 1-100x of tol. ``tol`` and the budget are traced values: the one compiled chunk of a
+sums its own edges and half of its inter-robot edges; CG updates it along each step). With the
+momentum restart the objective decreases essentially monotonically and linearly, and on the
+benchmark files the gap to the optimum at the stop was within 1-100x of tol; CG's relaxed rotation
+gap at the stop was 5e-13 to 2.4e-9 (parking-garage). ``tol`` and the budget are traced values: the one compiled chunk of a
 graph shape serves every tolerance and budget.
 
 Budgets. The defaults (20000 + 20000 iterations) are a cap, not a cost: every benchmark file
-stops by ``tol`` first. The ill-conditioned files need thousands of iterations
-(parking-garage about 6400 + 7700, intel about 2700 + 3000; with budgets of 2000 they stopped
-far from the solution), the others a few hundred to 2000 (benchmarks/initialization.md).
+stops by ``tol`` first. With CG the files need 60-470 iterations per stage; AMM-Chordal needs
+thousands on the ill-conditioned ones (parking-garage about 6400 + 7700, intel about 2700 + 3000;
+with budgets of 2000 they stopped far from the solution), benchmarks/initialization.md.
 """
 
 from __future__ import annotations
