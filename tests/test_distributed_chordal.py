@@ -366,7 +366,10 @@ def test_cg_preconditioner_in_float32_unless_its_factorization_fails(graph, monk
     single = st.gamma_inverse(1e-3, True, single=True)
     assert exact.dtype == np.float64 and single.dtype == np.float32
     np.testing.assert_allclose(np.asarray(single), exact, atol=1e-4 * np.abs(exact).max())
-    monkeypatch.setattr(dc.sla.lapack, "spotrf", lambda a, **kw: (a, 1))  # "not positive definite"
+    invert = dc._invert_in_place
+    # a float32 factorization reports "not positive definite" (LAPACK info > 0)
+    monkeypatch.setattr(dc, "_invert_in_place",
+                        lambda G, out=None: (0, 1) if G.dtype in (np.float32, np.complex64) else invert(G, out))
     fallback = st.gamma_inverse(1e-3, True, single=True)
     assert fallback.dtype == np.float64
     np.testing.assert_allclose(np.asarray(fallback), exact, rtol=1e-12, atol=1e-14)
@@ -381,3 +384,23 @@ def test_scheme_options_are_checked():
     _, info = distributed_chordal_initialization(graph, ROBOTS, scheme="amm", rotation_iterations=20,
                                                  translation_iterations=20)
     assert info.scheme == "amm" and info.restart
+
+
+def test_planar_inverse_is_the_real_inverse_as_complex_numbers():
+    """For d = 2 every 2 x 2 block of Gamma_R^alpha is a scaled rotation, so the inverse is stored as a
+    complex matrix (real and imaginary parts): it equals the dense real inverse's blocks, and applying
+    it gives the real inverse's product; a graph with a non-rotation measurement keeps the real one."""
+    g, _, _ = random_graph(N, 2, EXTRA, seed=102)
+    st = dc._setup(g, ROBOTS)
+    anchor = np.asarray(st.anchor)
+    planar = dc._gamma_inverses(st.part, anchor, 0.3, 2, True)
+    real = np.linalg.inv(dc._gamma_matrices(st.part, anchor, 0.3, 2, True))
+    assert planar.shape == (ROBOTS, 2, real.shape[1] // 2, real.shape[1] // 2)
+    np.testing.assert_allclose(planar[:, 0], real[:, 0::2, 0::2], atol=1e-12)
+    np.testing.assert_allclose(planar[:, 1], real[:, 1::2, 0::2], atol=1e-12)
+    G = np.random.default_rng(0).normal(size=(ROBOTS, real.shape[1] // 2, 2, 2))
+    np.testing.assert_allclose(np.asarray(dc._apply_inverse_rot(jnp.asarray(planar), jnp.asarray(G))),
+                               np.asarray(dc._apply_inverse_rot(jnp.asarray(real), jnp.asarray(G))), atol=1e-12)
+    reflected = PoseGraph(g.i, g.j, g.R.at[0].set(jnp.diag(jnp.array([1.0, -1.0]))), g.t, g.kappa, g.tau,
+                          num_poses=g.num_poses)
+    assert dc._gamma_inverses(dc._setup(reflected, ROBOTS).part, anchor, 0.3, 2, True).ndim == 3
