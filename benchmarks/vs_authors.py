@@ -10,7 +10,8 @@ warm compilation cache (one untimed run first). Interleaved run by run (authors'
 the whole process's wall seconds, its processor seconds (user + sys of the child), and f at 1000
 (both f = 2F of the same objective). ``--start`` adds the distributed initializations: the
 authors' ``dist_pgo --dist_init true --iters 1`` against ``mmpgo solve --init distributed-chordal
---iterations 0`` (whole process; f at the start).
+--iterations 0`` (whole process; f at the start, and our centralized chordal start's f beside it);
+``--start-only`` runs only those.
 
     DPGO_MIRROR=... bash ../shared/anchors/build_dpgo.sh      # once per machine
     python benchmarks/vs_authors.py --repeats 3 --start --out benchmarks/vs_authors.md
@@ -73,12 +74,13 @@ def authors_start(file: str) -> dict:
     return dict(wall=wall, cpu=cpu, f=float(f[-1]) if f else float("nan"))
 
 
-def ours_start(file: str) -> dict:
+def ours_start(file: str, init: str = "distributed-chordal") -> dict:
     env = dict(os.environ, PYTHONPATH=str(HERE))
     out, wall, cpu = _timed([sys.executable, "-m", "mmpgo_jax.cli", "solve", file, "--robots", "10",
-                             "--init", "distributed-chordal", "--iterations", "0"], env)
+                             "--init", init, "--iterations", "0"], env)
     f = float(re.search(r"f = 2F\s+(\S+)", out).group(1))
-    return dict(wall=wall, cpu=cpu, f=f)
+    inside = float(re.search(r"initialize ([0-9.]+) s", out).group(1))  # the start itself, in the process
+    return dict(wall=wall, cpu=cpu, f=f, inside=inside)
 
 
 def _median(rows: list[dict], key: str) -> float:
@@ -90,6 +92,8 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--files", nargs="+", default=list(FILES))
     ap.add_argument("--start", action="store_true", help="also the distributed initializations")
+    ap.add_argument("--start-only", action="store_true",
+                    help="only the distributed initializations (their table, without the solves')")
     ap.add_argument("--out", type=Path)
     args = ap.parse_args()
     data = Path(os.environ.get("MMPGO_DATA", HERE.parent / "shared" / "datasets"))
@@ -98,50 +102,57 @@ def main() -> None:
     solve_rows, start_rows = [], []
     for name in args.files:
         file = str(data / FILES[name])
-        ours(file)  # warm the compilation cache (untimed)
-        a, o = [], []
-        for _ in range(args.repeats):
-            a.append(authors(file))
-            o.append(ours(file))
-        row = (name, *(_median(a, k) for k in ("ms", "wall", "cpu")), *(_median(o, k) for k in ("ms", "wall", "cpu")),
-               a[0]["f"], o[0]["f"])
-        solve_rows.append(row)
-        print(row, flush=True)
-        if args.start:
+        if not args.start_only:
+            ours(file)  # warm the compilation cache (untimed)
+            a, o = [], []
+            for _ in range(args.repeats):
+                a.append(authors(file))
+                o.append(ours(file))
+            row = (name, *(_median(a, k) for k in ("ms", "wall", "cpu")),
+                   *(_median(o, k) for k in ("ms", "wall", "cpu")), a[0]["f"], o[0]["f"])
+            solve_rows.append(row)
+            print(row, flush=True)
+        if args.start or args.start_only:
             ours_start(file)  # warm
             sa, so = [], []
             for _ in range(args.repeats):
                 sa.append(authors_start(file))
                 so.append(ours_start(file))
-            start_rows.append((name, _median(sa, "wall"), _median(so, "wall"), _median(sa, "cpu"), _median(so, "cpu"),
-                               sa[0]["f"], so[0]["f"]))
+            start_rows.append((name, _median(sa, "wall"), _median(so, "wall"), _median(so, "inside"),
+                               _median(sa, "cpu"), _median(so, "cpu"), sa[0]["f"], so[0]["f"],
+                               ours_start(file, "chordal")["f"]))
             print(start_rows[-1], flush=True)
     model = next((ln.split(":", 1)[1].strip() for ln in Path("/proc/cpuinfo").read_text().splitlines()
                   if ln.startswith("model name")), "unknown CPU")
-    lines += [
-        "# Against the authors' C++ code (same run, same machine)",
-        "",
-        f"Command: `python benchmarks/vs_authors.py --repeats {args.repeats}{' --start' if args.start else ''}`; "
-        f"{datetime.date.today().isoformat()}, {model}, {os.cpu_count()} logical CPUs, load average "
-        f"{load0[0]:.2f} at the start, {os.getloadavg()[0]:.2f} at the end. Authors: MurpheyLab/DPGO @ da0157f, "
-        "Release `-O3 -march=native`, one thread (`run_dpgo.sh FILE 10 1000 amm`). Ours: `mmpgo solve FILE "
-        "--robots 10 --iterations 1000 --all-iterations` (defaults, float64, warm compilation cache). "
-        "Interleaved run by run; medians.",
-        "",
-        "| file | authors' ms/it | ours ms/it | ratio (ours / theirs) | whole run s, authors' / ours | "
-        "processor s (user+sys), authors' / ours | f at 1000, authors' / ours |",
-        "|---|---|---|---|---|---|---|",
-    ]
+    flag = " --start-only" if args.start_only else (" --start" if args.start else "")
+    run = (f"Command: `python benchmarks/vs_authors.py --repeats {args.repeats}{flag}`; "
+           f"{datetime.date.today().isoformat()}, {model}, {os.cpu_count()} logical CPUs, load average "
+           f"{load0[0]:.2f} at the start, {os.getloadavg()[0]:.2f} at the end. Authors: MurpheyLab/DPGO @ da0157f, "
+           "Release `-O3 -march=native`, one thread. Interleaved run by run; medians.")
+    lines += ["# Against the authors' C++ code (same run, same machine)", "", run]
+    if solve_rows:
+        lines += [
+            "",
+            "Solves: authors' `run_dpgo.sh FILE 10 1000 amm`; ours: `mmpgo solve FILE --robots 10 --iterations 1000 "
+            "--all-iterations` (defaults, float64, warm compilation cache).",
+            "",
+            "| file | authors' ms/it | ours ms/it | ratio (ours / theirs) | whole run s, authors' / ours | "
+            "processor s (user+sys), authors' / ours | f at 1000, authors' / ours |",
+            "|---|---|---|---|---|---|---|",
+        ]
     for name, ams, awall, acpu, oms, owall, ocpu, af, of in solve_rows:
         lines.append(f"| {name} | {ams:.2f} | {oms:.2f} | {oms / ams:.2f} | {awall:.2f} / {owall:.2f} | "
                      f"{acpu:.2f} / {ocpu:.2f} ({ocpu / acpu:.2f}x) | {af:.6f} / {of:.6f} |")
     if start_rows:
         lines += ["", "Distributed initialization, 10 robots, whole process (authors: `dist_pgo --dist_init true "
                   "--iters 1`; ours: `mmpgo solve FILE --init distributed-chordal --iterations 0`):", "",
-                  "| file | authors' s | ours s | processor s, authors' / ours | f at the start, authors' / ours |",
-                  "|---|---|---|---|---|"]
-        for name, aw, ow, ac, oc, af, of in start_rows:
-            lines.append(f"| {name} | {aw:.2f} | {ow:.2f} | {ac:.2f} / {oc:.2f} | {af:.4f} / {of:.4f} |")
+                  "| file | authors' s | ours s | ratio | ours: the start in the process s "
+                  "| processor s, authors' / ours | f at the start, authors' / ours | centralized chordal f "
+                  "| ours against it |",
+                  "|---|---|---|---|---|---|---|---|---|"]
+        for name, aw, ow, oi, ac, oc, af, of, fc in start_rows:
+            lines.append(f"| {name} | {aw:.2f} | {ow:.2f} | {ow / aw:.2f} | {oi:.2f} | {ac:.2f} / {oc:.2f} "
+                         f"| {af:.4f} / {of:.4f} | {fc:.4f} | {(of - fc) / fc:+.1e} |")
     text = "\n".join(lines) + "\n"
     print(text)
     if args.out:

@@ -1,7 +1,7 @@
 """One entry point for every kind of start: :func:`initialize` (a method name, ``Poses`` or a file).
 
 The methods live in :mod:`~mmpgo_jax._init.chordal` (chordal, odometry, pose files),
-:mod:`~mmpgo_jax._init.distributed_chordal` (Algorithm 3), :mod:`~mmpgo_jax._init.robust_start`
+:mod:`~mmpgo_jax._init.distributed_chordal` (§VII, distributed: CG or Algorithm 3), :mod:`~mmpgo_jax._init.robust_start`
 (the GNC-chordal start of robust losses) and :mod:`~mmpgo_jax._init.robust_distributed` (the
 distributed robust start: each robot's own GNC, then the robots' frames from their closures).
 """

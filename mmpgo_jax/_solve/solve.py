@@ -142,7 +142,7 @@ def solve(
 
     ``distributed=True``: refuse every step that gathers the whole graph in one place (the starts
     "chordal", "gnc-chordal" and "odometry": ValueError naming it); the start is by default
-    "distributed-chordal" (Algorithm 3) for least squares and "distributed-robust" for a robust loss
+    "distributed-chordal" (§VII's stages, distributed) for least squares and "distributed-robust" for a robust loss
     (each robot's own GNC, then the robots' frames from their inter-robot closures). PCM is a
     per-robot-pair test and stays allowed.
 
