@@ -91,6 +91,8 @@ class WeightState(eqx.Module):
     schedule: WeightSchedule
     rebuilds: jax.Array  # () int32: times Γ^α and the preconditioner were rebuilt after the start
     gamma_weights: jax.Array  # (A, e_max) the weights Γ^α was built with (>= weights, see GAMMA_SLACK)
+    coarse_weights: jax.Array  # (A, e_max) the weights the preconditioner's coarse level was built with
+    coarse_rebuilds: jax.Array  # () int32: times that coarse level was rebuilt after the start
 
 
 class Weighting(eqx.Module):
@@ -137,6 +139,12 @@ class LeastSquares(Weighting):
 #: looser majorizer, and kernels whose weights move a little at every iteration (Huber, Cauchy, ...)
 #: rebuild at a fraction of the iterations. TLS's weights are 0 or 1: unaffected.
 GAMMA_SLACK = 0.05
+#: A rebuild of Γ^α keeps the two-level preconditioner's coarse level (the pseudo-inverse of
+#: B^T Γ B, the costly part of a rebuild) until, for some robot, the weights changed since it was built
+#: by more than COARSE_DRIFT of that robot's total weight (sum of |change| over its incident edges).
+#: The preconditioner only sets how fast the inner CG converges: a coarse level of older weights is
+#: still symmetric positive semidefinite, and the fine level and Γ^α (the majorizer) are always current.
+COARSE_DRIFT = 0.05
 
 
 class Reweighted(Weighting):
@@ -167,20 +175,22 @@ class Reweighted(Weighting):
         weighted = jax.vmap(robot_share)(part.edges, weights * s)
         return grad, share, weighted
 
-    def _operators_of(self, problem, config, weights):
+    def _operators_of(self, problem, config, weights, coarse_inverse=None):
         """Γ^α (structure of arrays) and the preconditioner of every robot for edge ``weights``,
-        assembled in the compiled step; the coarse level only when the config uses it."""
+        assembled in the compiled step; the coarse level only when the config uses it, and then
+        ``coarse_inverse`` (A, ...) kept as it is when given (:data:`COARSE_DRIFT`)."""
         block_jacobi = config.subproblem.preconditioner == "block-jacobi"
         base = problem.newton.without_coarse() if block_jacobi else problem.newton
         n_max = problem.partition.max_poses
 
-        def one(edges, layout, w, base_a, parts_a):
+        def one(edges, layout, w, base_a, parts_a, kept_a):
             gamma, empty = assemble_gamma(edges, layout, w, problem.xi, n_max)
             slot_weight = jnp.where(empty, 1.0, problem.xi).astype(w.dtype)
-            return gamma_to_soa(gamma), newton_from_gamma(gamma.diag, base_a, parts_a, w, slot_weight)
+            return gamma_to_soa(gamma), newton_from_gamma(gamma.diag, base_a, parts_a, w, slot_weight, kept_a)
 
         parts = self.coarse if base.has_coarse else None
-        return jax.vmap(one)(problem.partition.edges, self.layout, weights, base, parts)
+        kept = coarse_inverse if base.has_coarse else None
+        return jax.vmap(one)(problem.partition.edges, self.layout, weights, base, parts, kept)
 
     def _inflated(self, weights):
         """The weights Γ^α is built with (:data:`GAMMA_SLACK`)."""
@@ -194,8 +204,9 @@ class Reweighted(Weighting):
         grad, share, weighted = self._gradients(problem, E, s, weights)
         local = 0.5 * jnp.sum(robust_cost(self.loss, s, self.robust_edge), axis=-1)
         schedule = initial_schedule(self.loss, 2.0 * jnp.sum(weighted), self.use_given)
-        return grad, share, local, WeightState(weights, gamma, newton, schedule, jnp.zeros((), jnp.int32),
-                                               gamma_weights)
+        zero = jnp.zeros((), jnp.int32)
+        return grad, share, local, WeightState(weights, gamma, newton, schedule, zero, gamma_weights, gamma_weights,
+                                               zero)
 
     def operators(self, problem, config, state: WeightState):
         problem.preconditioner(config)  # checks that the config's preconditioner was built
@@ -220,19 +231,34 @@ class Reweighted(Weighting):
         stale = (weights > state.gamma_weights) | (weights * (1.0 + GAMMA_SLACK) ** 2 < state.gamma_weights)
         rebuild = update & anywhere(stale)
         gamma_weights = jnp.where(rebuild, self._inflated(weights), state.gamma_weights)
-        gamma, newton = jax.lax.cond(rebuild, lambda: self._operators_of(problem, config, gamma_weights),
-                                     lambda: (state.gamma, state.newton))
+        # the coarse level too when some robot's weights drifted from the ones it was built with
+        drift = jnp.sum(jnp.abs(gamma_weights - state.coarse_weights), axis=-1)
+        has_coarse = state.newton.coarse_inverse is not None  # the config's preconditioner has that level
+        coarse = rebuild & anywhere(drift > COARSE_DRIFT * jnp.sum(state.coarse_weights, axis=-1)) & has_coarse
+        coarse_weights = jnp.where(coarse, gamma_weights, state.coarse_weights)
+
+        def rebuilt():
+            kept = state.newton.coarse_inverse
+            if kept is None:
+                return self._operators_of(problem, config, gamma_weights)
+            return jax.lax.cond(coarse, lambda: self._operators_of(problem, config, gamma_weights),
+                                lambda: self._operators_of(problem, config, gamma_weights, kept))
+
+        gamma, newton = jax.lax.cond(rebuild, rebuilt, lambda: (state.gamma, state.newton))
         grad, share, weighted = self._gradients(problem, E, s, weights)
         schedule = eqx.tree_at(lambda sc: sc.weighted_f, schedule, 2.0 * comm.sum(weighted))
         settled = (schedule.done | ~jnp.asarray(self.loss.use_gnc)) & ~schedule.held
         rebuilds = state.rebuilds + rebuild.astype(jnp.int32)
-        return grad, share, update, WeightState(weights, gamma, newton, schedule, rebuilds, gamma_weights), settled
+        coarse_rebuilds = state.coarse_rebuilds + coarse.astype(jnp.int32)
+        return grad, share, update, WeightState(weights, gamma, newton, schedule, rebuilds, gamma_weights,
+                                                coarse_weights, coarse_rebuilds), settled
 
     def outcome(self, graph, part, state: WeightState, poses, to_host=np.asarray) -> tuple[dict, dict]:
         loss = jax.device_get(self.loss)
         weights, inliers = robust_outcome(loss, graph, part, to_host(state.weights), poses)
         sched = jax.device_get(jax.tree.map(to_host, state.schedule))
         stats = dict(weight_updates=int(sched.updates), operator_rebuilds=int(to_host(state.rebuilds)),
+                     coarse_rebuilds=int(to_host(state.coarse_rebuilds)),
                      gnc_stages=int(sched.stage), gnc_mu=float(sched.mu),
                      weights_final=bool(sched.done), start_weights_given=bool(to_host(self.use_given)),
                      start_weights_held=bool(sched.held))
