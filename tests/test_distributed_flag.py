@@ -75,3 +75,22 @@ def test_cli_distributed_runs_without_a_centralized_step(tmp_path, capsys):
     out = capsys.readouterr().out
     assert rc == 0, out
     assert "no centralized step: start distributed-robust, its edge weights held first" in out
+    assert "exchanged   start " in out and "kB each, boundary poses" in out
+
+
+def test_robust_start_traffic_counts_every_message():
+    """The distributed robust start's bytes, counted independently edge by edge: each inter-robot
+    closure's far end (pose and two variances) to the near end's robot, each hypothesis (R, t, two
+    weights, two map indices) to every other robot, and the variance factor's two sums per robot."""
+    from mmpgo_jax._init.robust_distributed import start_traffic
+
+    graph, rop = _team()
+    d, A = graph.dim, 3
+    closure_numbers = hypothesis_numbers = 0
+    for i, j in zip(np.asarray(graph.i), np.asarray(graph.j), strict=True):
+        if rop[i] != rop[j]:
+            closure_numbers += d * d + d + 2
+            hypothesis_numbers += (d * d + d + 4) * (A - 1)
+    traffic = start_traffic(graph, rop)
+    assert traffic.closures > 0 and traffic.robots == A
+    assert traffic.bytes == 8 * (closure_numbers + hypothesis_numbers + 4 * A)

@@ -165,6 +165,40 @@ def _robot_of_pose(graph, robots) -> np.ndarray:
     return rop
 
 
+@dataclass(frozen=True)
+class StartTraffic:
+    """What a robot team exchanges for the distributed robust start (float64 numbers, 8 bytes each),
+    counted for the step's distributed form (this module computes it in one process, with only the
+    information these messages carry): ``closure_numbers``: for each inter-robot closure, the robot of
+    its far end sends that pose in its map (d^2 + d numbers) and its two map variances to the robot of
+    the near end; ``hypothesis_numbers``: every frame hypothesis (R, t, its two weights, the two map
+    indices: d^2 + d + 4) goes to every other robot, so that each solves the small frame graph itself
+    (an all-gather); ``reduction_numbers``: the variance factor's two sums, each robot sending and
+    receiving them (an all-reduce). The robots' own GNC maps exchange nothing."""
+
+    robots: int
+    closures: int
+    closure_numbers: int
+    hypothesis_numbers: int
+    reduction_numbers: int
+
+    @property
+    def bytes(self) -> int:
+        return 8 * (self.closure_numbers + self.hypothesis_numbers + self.reduction_numbers)
+
+
+def start_traffic(graph: PoseGraph, robots) -> StartTraffic:
+    """:class:`StartTraffic` of :func:`distributed_robust_initialization` on ``graph`` split by
+    ``robots`` (a count, an (n,) robot-of-pose array or a Partition)."""
+    rop = _robot_of_pose(graph, robots)
+    i, j = np.asarray(graph.i), np.asarray(graph.j)
+    closures = int(np.count_nonzero(rop[i] != rop[j]))
+    A = int(np.unique(rop).size)
+    d = graph.dim
+    return StartTraffic(robots=A, closures=closures, closure_numbers=closures * (d * d + d + 2),
+                        hypothesis_numbers=closures * (d * d + d + 4) * (A - 1), reduction_numbers=2 * 2 * A)
+
+
 def _segment_sum(values, index, size):
     out = np.zeros((size, *values.shape[1:]))
     np.add.at(out, index, values)

@@ -183,7 +183,28 @@ def _solve(args) -> int:
         held = ", its edge weights held first" if result.stats.get("start_weights_given") else ""
         start = args.init or ("distributed-chordal" if result.loss is None else "distributed-robust")
         print(f"distributed no centralized step: start {start}{held}{gnc}")
+        print(_exchanged_line(data.graph, result, start))
     t = time.perf_counter()
     finish_solve(args, data, result, fstar)
     print_timing(result, read=read, write=time.perf_counter() - t)
     return 0
+
+
+def _exchanged_line(graph, result, start: str) -> str:
+    """The bytes a robot team exchanges for this run: the distributed robust start's messages
+    (:class:`~mmpgo_jax._init.robust_distributed.StartTraffic`) and the solver's neighbour exchanges
+    (every robot's poses at its inter-robot edge ends, d^2 + d float64 numbers each, per iteration)."""
+    from ..._baselines.rbcd import boundary_poses_sent
+    from ..._init.robust_distributed import start_traffic
+
+    d = graph.dim
+    per_iteration = 8 * (d * d + d) * int(boundary_poses_sent(result.partition).sum())
+    parts = []
+    if start == "distributed-robust":
+        traffic = start_traffic(graph, result.partition)
+        parts.append(f"start {traffic.bytes / 1e3:.1f} kB ({traffic.closures} inter-robot closures' far ends, "
+                     f"their hypotheses to all {traffic.robots} robots)")
+    parts.append(f"iterations {per_iteration * result.iterations / 1e3:.1f} kB "
+                 f"({per_iteration / 1e3:.2f} kB each, boundary poses)")
+    return "exchanged   " + "; ".join(parts)
+
