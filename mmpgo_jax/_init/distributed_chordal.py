@@ -644,12 +644,15 @@ def _check_tol(tol) -> float | None:
 
 
 class _Setup(eqx.Module):
-    """A partition plus the padded anchor mask (host-side set-up shared by both stages)."""
+    """A partition plus the padded anchor mask (host-side set-up shared by both stages). The glue
+    between the stages (starts, projection, unpadding) runs in NumPy on the host: as JAX operations
+    each would be a small program traced and loaded in every process (44 of them, about 0.4 s of a
+    0.5 s MIT start, measured), where the stages' own compiled programs are four."""
 
     part: Partition
-    anchor: jax.Array  # (A, n_max) bool: the slots of the anchor poses
-    anchor_R: jax.Array  # (A, n_max, d, d): their rotations (I elsewhere)
-    anchor_t: jax.Array  # (A, n_max, d): their translations (0 elsewhere)
+    anchor: np.ndarray  # (A, n_max) bool: the slots of the anchor poses
+    anchor_R: np.ndarray  # (A, n_max, d, d): their rotations (I elsewhere)
+    anchor_t: np.ndarray  # (A, n_max, d): their translations (0 elsewhere)
     dim: int = eqx.field(static=True)
     dtype: object = eqx.field(static=True)
 
@@ -682,50 +685,60 @@ def _setup(graph: PoseGraph, robots, fixed: FixedPoses | None = None) -> _Setup:
     R = np.broadcast_to(np.eye(d), (n, d, d)).copy()
     t = np.zeros((n, d))
     R[anchors.index], t[anchors.index] = anchors.R, anchors.t
-    values = part.scatter(Poses(jnp.asarray(R, dt), jnp.asarray(t, dt)))
-    anchor = jnp.asarray(_padded_anchor_mask(part, anchors.index))
-    return _Setup(part, anchor, values.R, values.t, d, dt)
+    values = _scatter(part, R.astype(dt), t.astype(dt))
+    return _Setup(part, _padded_anchor_mask(part, anchors.index), *values, d, dt)
 
 
-def _initial_rotations(st: _Setup, initial, n: int):
+def _scatter(part: Partition, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Global (n, ...) host arrays -> padded (A, n_max, ...) host arrays (padding R = I, t = 0)."""
+    index, mask = np.asarray(part.pose_index), np.asarray(part.pose_mask)
+    return (np.where(mask[..., None, None], R[index], np.eye(R.shape[-1], dtype=R.dtype)),
+            np.where(mask[..., None], t[index], np.zeros((), t.dtype)))
+
+
+def _initial_rotations(st: _Setup, initial, n: int) -> np.ndarray:
     d, dt = st.dim, st.dtype
     if initial is None:
-        R0g = jnp.broadcast_to(jnp.eye(d, dtype=dt), (n, d, d))
+        R0g = np.broadcast_to(np.eye(d, dtype=dt), (n, d, d))
     else:
-        R0g = jnp.asarray(initial, dt)
+        R0g = np.asarray(initial, dt)
         if R0g.shape != (n, d, d):
             raise ValueError(f"initial rotations must have shape ({n}, {d}, {d}), got {R0g.shape}")
-    R0 = st.part.scatter(Poses(R0g, jnp.zeros((n, d), dt))).R
-    return jnp.where(st.anchor[..., None, None], st.anchor_R, R0)
+    R0 = _scatter(st.part, R0g, np.zeros((n, d), dt))[0]
+    return np.where(st.anchor[..., None, None], st.anchor_R, R0)
 
 
-def _initial_translations(st: _Setup, initial, n: int):
+def _initial_translations(st: _Setup, initial, n: int) -> np.ndarray:
     d, dt = st.dim, st.dtype
     if initial is None:
         return st.anchor_t
-    t0 = jnp.asarray(initial, dt)
+    t0 = np.asarray(initial, dt)
     if t0.shape != (n, d):
         raise ValueError(f"initial translations must have shape ({n}, {d}), got {t0.shape}")
-    t0 = st.part.scatter(Poses(jnp.zeros((n, d, d), dt), t0)).t
-    return jnp.where(st.anchor[..., None], st.anchor_t, t0)
+    t0 = _scatter(st.part, np.zeros((n, d, d), dt), t0)[1]
+    return np.where(st.anchor[..., None], st.anchor_t, t0)
 
 
 def _run_rotations(st: _Setup, Ginv, R0, budget: int, tol, solver: Solver):
     """The rotation stage on the driver; ``budget`` and ``tol`` are traced (the compiled chunk of 10
     iterations serves every budget and tolerance)."""
-    return _drive_stage(st.part, RotationStage(st.part.edges, st.anchor, Ginv), R0, budget, _check_tol(tol), solver)
+    stage = RotationStage(st.part.edges, jnp.asarray(st.anchor), Ginv)
+    return _drive_stage(st.part, stage, jnp.asarray(R0), budget, _check_tol(tol), solver)
 
 
 def _run_translations(st: _Setup, Ginv, Rpad, t0, budget: int, tol, solver: Solver):
-    """As :func:`_run_rotations`, for the translation stage with the rotations ``Rpad`` fixed."""
+    """As :func:`_run_rotations`, for the translation stage with the rotations ``Rpad`` (host) fixed."""
     edges = st.part.edges
     # v_e = R_i tt_e with the fixed rotations, per robot edge slot (constant over iterations)
-    v = jnp.einsum("aexy,aey->aex", Rpad[edges.robot_i, edges.slot_i], edges.t)
-    return _drive_stage(st.part, TranslationStage(edges, st.anchor, Ginv, v), t0, budget, _check_tol(tol), solver)
+    Rpad = np.asarray(Rpad)
+    v = np.einsum("aexy,aey->aex", Rpad[np.asarray(edges.robot_i), np.asarray(edges.slot_i)], np.asarray(edges.t))
+    stage = TranslationStage(edges, jnp.asarray(st.anchor), Ginv, jnp.asarray(v))
+    return _drive_stage(st.part, stage, jnp.asarray(t0), budget, _check_tol(tol), solver)
 
 
 def _unpad(st: _Setup, X):
-    return X[st.part.robot_of_pose, st.part.slot_of_pose]
+    """Padded (A, n_max, ...) -> global (n, ...), on the host, returned on the device (a transfer)."""
+    return jnp.asarray(np.asarray(X)[np.asarray(st.part.robot_of_pose), np.asarray(st.part.slot_of_pose)])
 
 
 def distributed_relaxed_rotations(
@@ -781,10 +794,10 @@ def distributed_translations(
     solver = _stage_solver(scheme, restart)
     st = _setup(graph, robots)
     n, d = graph.num_poses, graph.dim
-    R = jnp.asarray(R, st.dtype)
+    R = np.asarray(R, st.dtype)
     if R.shape != (n, d, d):
         raise ValueError(f"rotations must have shape ({n}, {d}, {d}), got {R.shape}")
-    Rpad = st.part.scatter(Poses(R, jnp.zeros((n, d), st.dtype))).R
+    Rpad = _scatter(st.part, R, np.zeros((n, d), st.dtype))[0]
     X, history, k, converged = _run_translations(st, st.gamma_inverse(xi, False, _single(solver)), Rpad,
                                                  _initial_translations(st, initial, n), iterations, tol, solver)
     return _unpad(st, X), history, k, converged
@@ -832,7 +845,7 @@ def distributed_chordal_initialization(
     single = _single(solver)
     RX, hR, kR, convR = _run_rotations(st, st.gamma_inverse(xi, True, single), R0, rotation_iterations, tol, solver)
     # each robot projects its own blocks; padding slots hold I, anchors keep their values
-    Rpad = jnp.where(st.anchor[..., None, None], st.anchor_R, project_to_so(RX))
+    Rpad = np.where(st.anchor[..., None, None], st.anchor_R, project_to_so(np.asarray(RX)))
     tX, ht, kt, convt = _run_translations(st, st.gamma_inverse(xi, False, single), Rpad, t0, translation_iterations,
                                           tol, solver)
     info = DistributedChordalInfo(
