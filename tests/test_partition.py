@@ -55,6 +55,11 @@ def check_scatter_gather(part, poses):
     # Padding slots: R = I, t = 0.
     np.testing.assert_array_equal(np.asarray(padded.R)[~mask], np.broadcast_to(np.eye(d), ((~mask).sum(), d, d)))
     np.testing.assert_array_equal(np.asarray(padded.t)[~mask], 0.0)
+    # outside a trace: the same on the host, kept there with host=True (NumPy arrays, no transfer)
+    host = part.scatter(Poses(np.asarray(poses.R), np.asarray(poses.t)), host=True)
+    assert isinstance(host.R, np.ndarray) and isinstance(host.t, np.ndarray)
+    np.testing.assert_array_equal(host.R, np.asarray(padded.R))
+    np.testing.assert_array_equal(host.t, np.asarray(padded.t))
 
 
 def robots_eval(part, poses):

@@ -75,15 +75,16 @@ class Partition(eqx.Module):
     def max_edges(self) -> int:
         return self.edges.kappa.shape[1]
 
-    def scatter(self, poses: Poses) -> Poses:
+    def scatter(self, poses: Poses, *, host: bool = False) -> Poses:
         """Global poses (n, ...) -> padded per-robot poses (A, n_max, ...); padding gets R = I, t = 0.
 
-        Outside a trace this is numpy on the host and one transfer (no JAX dispatch)."""
+        Outside a trace this is numpy on the host and one transfer (no JAX dispatch); ``host=True``
+        returns the host arrays without the transfer."""
         xp, (index, mask, R, t) = _namespace(self.pose_index, self.pose_mask, poses.R, poses.t)
         eye = xp.eye(R.shape[-1], dtype=R.dtype)
         R = xp.where(mask[..., None, None], R[index], eye)
         t = xp.where(mask[..., None], t[index], xp.zeros((), t.dtype))
-        return _device(xp, Poses(R, t))
+        return Poses(R, t) if host and xp is np else _device(xp, Poses(R, t))
 
     def gather(self, padded: Poses) -> Poses:
         """Padded per-robot poses (A, n_max, ...) -> global poses (n, ...) (numpy on the host

@@ -685,15 +685,8 @@ def _setup(graph: PoseGraph, robots, fixed: FixedPoses | None = None) -> _Setup:
     R = np.broadcast_to(np.eye(d), (n, d, d)).copy()
     t = np.zeros((n, d))
     R[anchors.index], t[anchors.index] = anchors.R, anchors.t
-    values = _scatter(part, R.astype(dt), t.astype(dt))
-    return _Setup(part, _padded_anchor_mask(part, anchors.index), *values, d, dt)
-
-
-def _scatter(part: Partition, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Global (n, ...) host arrays -> padded (A, n_max, ...) host arrays (padding R = I, t = 0)."""
-    index, mask = np.asarray(part.pose_index), np.asarray(part.pose_mask)
-    return (np.where(mask[..., None, None], R[index], np.eye(R.shape[-1], dtype=R.dtype)),
-            np.where(mask[..., None], t[index], np.zeros((), t.dtype)))
+    values = part.scatter(Poses(R.astype(dt), t.astype(dt)), host=True)
+    return _Setup(part, _padded_anchor_mask(part, anchors.index), values.R, values.t, d, dt)
 
 
 def _initial_rotations(st: _Setup, initial, n: int) -> np.ndarray:
@@ -704,7 +697,7 @@ def _initial_rotations(st: _Setup, initial, n: int) -> np.ndarray:
         R0g = np.asarray(initial, dt)
         if R0g.shape != (n, d, d):
             raise ValueError(f"initial rotations must have shape ({n}, {d}, {d}), got {R0g.shape}")
-    R0 = _scatter(st.part, R0g, np.zeros((n, d), dt))[0]
+    R0 = st.part.scatter(Poses(R0g, np.zeros((n, d), dt)), host=True).R
     return np.where(st.anchor[..., None, None], st.anchor_R, R0)
 
 
@@ -715,7 +708,7 @@ def _initial_translations(st: _Setup, initial, n: int) -> np.ndarray:
     t0 = np.asarray(initial, dt)
     if t0.shape != (n, d):
         raise ValueError(f"initial translations must have shape ({n}, {d}), got {t0.shape}")
-    t0 = _scatter(st.part, np.zeros((n, d, d), dt), t0)[1]
+    t0 = st.part.scatter(Poses(np.zeros((n, d, d), dt), t0), host=True).t
     return np.where(st.anchor[..., None], st.anchor_t, t0)
 
 
@@ -797,7 +790,7 @@ def distributed_translations(
     R = np.asarray(R, st.dtype)
     if R.shape != (n, d, d):
         raise ValueError(f"rotations must have shape ({n}, {d}, {d}), got {R.shape}")
-    Rpad = _scatter(st.part, R, np.zeros((n, d), st.dtype))[0]
+    Rpad = st.part.scatter(Poses(R, np.zeros((n, d), st.dtype)), host=True).R
     X, history, k, converged = _run_translations(st, st.gamma_inverse(xi, False, _single(solver)), Rpad,
                                                  _initial_translations(st, initial, n), iterations, tol, solver)
     return _unpad(st, X), history, k, converged
