@@ -128,6 +128,7 @@ with budgets of 2000 they stopped far from the solution), benchmarks/initializat
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import equinox as eqx
@@ -442,7 +443,33 @@ class _State(eqx.Module):
     k: jax.Array  # iterations done
 
 
-class AMMChordal(Solver):
+class _StageSolver(Solver):
+    """What both schemes share on the driver: states with the iterate ``X`` (A, n_max, ...) and the
+    iteration count ``k``, and the per-iteration record (f, gradient norm, per-robot restarts)."""
+
+    state_type = None  # the scheme's state module (a class attribute, not a field)
+
+    def skipped(self, st):
+        nan = jnp.full((), jnp.nan, st.X.dtype)
+        return self._record(nan, None, jnp.zeros(st.X.shape[:1], bool), grad_norm=nan)
+
+    def iteration(self, st):
+        return st.k
+
+    def record_structure(self, problem):
+        return IterationRecord(f=0.0, grad_norm=0.0, restarted=0.0, settled=0.0)
+
+    def start_structure(self, problem):
+        leaves = [0.0] * len(dataclasses.fields(self.state_type))
+        return self.state_type(*leaves), self.record_structure(problem)
+
+    @staticmethod
+    def _record(f, G, restarted, grad_norm=None):
+        grad_norm = jnp.sqrt(jnp.sum(G**2)) if grad_norm is None else grad_norm
+        return IterationRecord(f=f, grad_norm=grad_norm, restarted=restarted, settled=jnp.ones((), bool))
+
+
+class AMMChordal(_StageSolver):
     """Algorithm 3 (AMM-Chordal) as a solver of the one driver: each robot's exact minimiser of the
     quadratic majorizer (Eq. (24)) from the Nesterov point, with the per-robot gradient restart
     (``restart``, module docstring). Its problems are the stages (:class:`RotationStage`,
@@ -450,6 +477,7 @@ class AMMChordal(Solver):
     (``Termination(budget, 10, rel_change_tol=tol)``) run it as they run MM and AMM."""
 
     restart: bool = eqx.field(static=True, default=DEFAULT_RESTART)
+    state_type = _State
 
     @property
     def name(self) -> str:
@@ -478,24 +506,6 @@ class AMMChordal(Solver):
         GZ, fZ = problem.gradient(Z)  # line 17 (one exchange of boundary poses)
         return _State(Z, st.X, GZ, st.G, s1, st.k + 1), self._record(fZ, GZ, uphill)
 
-    def skipped(self, st: _State):
-        nan = jnp.full((), jnp.nan, st.X.dtype)
-        return IterationRecord(f=nan, grad_norm=nan, restarted=jnp.zeros(st.s.shape, bool), settled=jnp.ones((), bool))
-
-    def iteration(self, st: _State):
-        return st.k
-
-    def record_structure(self, problem):
-        return IterationRecord(f=0.0, grad_norm=0.0, restarted=0.0, settled=0.0)
-
-    def start_structure(self, problem):
-        leaf = 0.0
-        return _State(leaf, leaf, leaf, leaf, leaf, leaf), self.record_structure(problem)
-
-    @staticmethod
-    def _record(f, G, restarted):
-        return IterationRecord(f=f, grad_norm=jnp.sqrt(jnp.sum(G**2)), restarted=restarted, settled=jnp.ones((), bool))
-
 
 class _CGState(eqx.Module):
     X: jax.Array  # the iterate, padded (A, n_max, ...)
@@ -507,7 +517,7 @@ class _CGState(eqx.Module):
     k: jax.Array  # iterations done
 
 
-class CGChordal(Solver):
+class CGChordal(_StageSolver):
     """Conjugate gradients on each stage's quadratic, preconditioned by every robot's Gamma^alpha
     (the same factored matrices as :class:`AMMChordal`'s majorizer: block Jacobi over the robots).
 
@@ -516,6 +526,8 @@ class CGChordal(Solver):
     preconditioner solve, and two sums over all robots of d numbers each (the step length and the
     conjugacy coefficient of every column: an all-reduce, which AMM-Chordal does not need). The
     objective is updated along the step exactly (a quadratic), so it is non-increasing."""
+
+    state_type = _CGState
 
     @property
     def name(self) -> str:
@@ -526,7 +538,7 @@ class CGChordal(Solver):
         r = -G0
         z = problem.apply_inverse(r)
         state = _CGState(X0, r, z, z, problem.column_dot(r, z), f0, jnp.asarray(0, jnp.int32))
-        return state, self._record(f0, r)
+        return state, self._record(f0, r, jnp.zeros(r.shape[:1], bool))
 
     def step(self, problem: _Stage, st: _CGState, comm=None):
         Ap = problem.matvec(st.p)
@@ -543,27 +555,7 @@ class CGChordal(Solver):
         beta = problem.column_dot(r, z - st.z)
         beta = jnp.where(st.rz > 0, beta / jnp.where(st.rz > 0, st.rz, 1.0), 0.0)
         rz = problem.column_dot(r, z)
-        return _CGState(X, r, z, z + beta * st.p, rz, f, st.k + 1), self._record(f, r)
-
-    def skipped(self, st: _CGState):
-        nan = jnp.full((), jnp.nan, st.X.dtype)
-        return IterationRecord(f=nan, grad_norm=nan, restarted=jnp.zeros(st.X.shape[:1], bool),
-                               settled=jnp.ones((), bool))
-
-    def iteration(self, st: _CGState):
-        return st.k
-
-    def record_structure(self, problem):
-        return IterationRecord(f=0.0, grad_norm=0.0, restarted=0.0, settled=0.0)
-
-    def start_structure(self, problem):
-        leaf = 0.0
-        return _CGState(leaf, leaf, leaf, leaf, leaf, leaf, leaf), self.record_structure(problem)
-
-    @staticmethod
-    def _record(f, r):
-        return IterationRecord(f=f, grad_norm=jnp.sqrt(jnp.sum(r**2)), restarted=jnp.zeros(r.shape[:1], bool),
-                               settled=jnp.ones((), bool))
+        return _CGState(X, r, z, z + beta * st.p, rz, f, st.k + 1), self._record(f, r, jnp.zeros(r.shape[:1], bool))
 
 
 SCHEMES = ("cg", "amm")
