@@ -227,8 +227,9 @@ def _gamma_matrices(part: Partition, anchor_mask: np.ndarray, xi: float, d: int,
         blocks = (blocks[:, 0, 0] + 1j * blocks[:, 1, 0])[:, None, None]
         dtype = np.result_type(dtype, np.complex64)
     # one sparse (A N) x N matrix whose duplicates sum, written out dense (C speed, no N^2 index array)
-    row = (np.tile(robot, 4)[:, None, None] * N + rows[:, :, None]) + 0 * cols[:, None, :]
-    col = np.broadcast_to(cols[:, None, :], row.shape)
+    shape = (len(rows), rows.shape[1], cols.shape[1])  # (blocks, block rows, block columns)
+    row = np.broadcast_to(np.tile(robot, 4)[:, None, None] * N + rows[:, :, None], shape)
+    col = np.broadcast_to(cols[:, None, :], shape)
     G = sp.coo_matrix((blocks.reshape(-1).astype(dtype), (row.reshape(-1), col.reshape(-1))),
                       shape=(A * N, N)).toarray()
     G = G.reshape(A, N, N)
@@ -846,4 +847,4 @@ def distributed_chordal_initialization(
         scheme=scheme,
         restart=isinstance(solver, AMMChordal) and solver.restart,
     )
-    return Poses(_unpad(st, Rpad), _unpad(st, tX)), info
+    return st.part.gather(Poses(Rpad, np.asarray(tX))), info

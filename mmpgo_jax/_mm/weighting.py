@@ -238,11 +238,11 @@ class Reweighted(Weighting):
         coarse_weights = jnp.where(coarse, gamma_weights, state.coarse_weights)
 
         def rebuilt():
-            kept = state.newton.coarse_inverse
-            if kept is None:
+            if not has_coarse:
                 return self._operators_of(problem, config, gamma_weights)
             return jax.lax.cond(coarse, lambda: self._operators_of(problem, config, gamma_weights),
-                                lambda: self._operators_of(problem, config, gamma_weights, kept))
+                                lambda: self._operators_of(problem, config, gamma_weights,
+                                                           state.newton.coarse_inverse))
 
         gamma, newton = jax.lax.cond(rebuild, rebuilt, lambda: (state.gamma, state.newton))
         grad, share, weighted = self._gradients(problem, E, s, weights)
