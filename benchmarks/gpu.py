@@ -3,8 +3,8 @@
     python benchmarks/gpu.py                      # the full run, about 5 minutes on one GPU -> benchmarks/gpu.md
     python benchmarks/gpu.py --quick --out /tmp/gpu_quick.md    # a tiny version of every part (a minute on a CPU)
 
-Nothing in benchmarks/ was measured on a GPU yet; this script is what a session lent one runs, so that
-the figures come back in a single call and can be committed with the date and the GPU. Three parts:
+This script is what a session lent a GPU runs, so that the figures come back in a single call and can
+be committed with the date and the GPU (benchmarks/gpu.md: an H200, 2026-12-04). Three parts:
 
 (a) files: every benchmark file of the data folder, ``solve(graph, 10, method="amm", iterations=N,
     stop_when_stalled=False)``, in float64 and in float32, against the registry's f*;
