@@ -12,7 +12,9 @@ be committed with the date and the GPU (benchmarks/gpu.md: an H200, 2026-12-04).
     through ``sweep(...)`` (one compiled executable per robot count, all graphs in one vmap batch on
     an accelerator);
 (c) scale: Cube graphs of 10^5 and 10^6 poses (benchmarks/scaling.py's density), 100 robots, from the
-    chordal start, a few iterations.
+    chordal start, a few iterations;
+(d) paths: the other solver paths on a few files -- MM, TLS with 30 % wrong inter-robot loop closures
+    (the default centralized GNC start, and ``distributed=True``), and the distributed chordal start.
 
 Each part runs in a subprocess of its own: the precision is a process-wide JAX setting (float64 is
 switched on explicitly in the float64 parts only), a part that overruns can be killed without
@@ -45,16 +47,20 @@ HERE = Path(__file__).resolve().parent
 if importlib.util.find_spec("mmpgo_jax") is None:  # a bare checkout (a device machine): the package beside us
     sys.path.insert(0, str(HERE.parent))
 TAG = "@gpu "
-PRECISIONS = {"files-float64": "float64", "files-float32": "float32", "sweep": "float64", "scale": "float64"}
-SHARES = {"files-float64": 0.22, "files-float32": 0.18, "sweep": 0.2, "scale": 0.4}  # of the time left
+PRECISIONS = {"files-float64": "float64", "files-float32": "float32", "sweep": "float64", "scale": "float64",
+              "paths": "float64"}
+SHARES = {"files-float64": 0.2, "files-float32": 0.15, "sweep": 0.17, "scale": 0.33, "paths": 0.15}  # of the time left
 SLACK_S = 20.0  # a part may overrun its share by this much before it is killed (the last part: never)
 
 FULL = dict(files=None, file_iterations=250, robots=10,
             sweep_graphs=20, sweep_robots=(5, 10, 50), sweep_poses=3600, sweep_grid=12, sweep_iterations=200,
-            scale_poses=(100_000, 1_000_000), scale_iterations=(20, 10), scale_robots=100, scale_min_left_s=60.0)
+            scale_poses=(100_000, 1_000_000), scale_iterations=(20, 10), scale_robots=100, scale_min_left_s=60.0,
+            paths_mm=("MITb", "M3500", "sphere2500"), paths_robust=("M3500",), paths_start=("city10000", "sphere2500"),
+            paths_iterations=250)
 QUICK = dict(files=("MITb", "smallGrid3D"), file_iterations=20, robots=10,
              sweep_graphs=3, sweep_robots=(5, 10), sweep_poses=200, sweep_grid=4, sweep_iterations=20,
-             scale_poses=(10_000,), scale_iterations=(5,), scale_robots=10, scale_min_left_s=0.0)
+             scale_poses=(10_000,), scale_iterations=(5,), scale_robots=10, scale_min_left_s=0.0,
+             paths_mm=("MITb",), paths_robust=("MITb",), paths_start=("MITb",), paths_iterations=20)
 
 
 # ----------------------------------------------------------------------------------------------- child
@@ -241,6 +247,75 @@ def part_scale(settings: dict, deadline: float) -> None:
         say(f"{poses} poses: start {row['start_s']:.1f} s, {row['ms_per_iteration']:.1f} ms/iteration")
 
 
+def path_row(case: str, kind: str, name: str, res, **extra) -> dict:
+    return dict(case=case, kind_of=kind, name=name, robots=10, iterations=res.iterations,
+                start_s=res.initialize_seconds, compile_s=res.compile_seconds,
+                ms_per_iteration=res.ms_per_iteration, f=res.f, peak_mib=peak_mib(), **extra)
+
+
+def part_paths(settings: dict, deadline: float) -> None:
+    """MM, robust (centralized and distributed) and the distributed start: what parts (a)-(c) do not run."""
+    import numpy as np
+
+    import mmpgo_jax
+
+    present = {info.name for info in mmpgo_jax.available_benchmarks()}
+    its = settings["paths_iterations"]
+
+    def registered(name):  # "sphere2500" is the registry's "sphere"
+        info = mmpgo_jax.benchmark_info(name)
+        return None if info is None else info.name
+
+    def graph_of(name):
+        return mmpgo_jax.read_g2o(mmpgo_jax.find_benchmark(name)).graph
+
+    # the centralized GNC start last: on the first GPU machine it had not finished M3500 in 140 s
+    cases = [(f"mm {n}", "mm", n) for n in settings["paths_mm"]]
+    cases += [(f"start {n}", "start", n) for n in settings["paths_start"]]
+    cases += [(f"{how} {n}", how, n) for how in ("tls-distributed", "tls") for n in settings["paths_robust"]]
+    for case, how, name in cases:
+        name = registered(name) or name
+        if name not in present:
+            emit("skip", part="paths", case=case, reason="file not in the data folder")
+            continue
+        if out_of_time(deadline, case, "paths"):
+            continue
+        emit("stage", part="paths", case=case, stage=how)
+        try:
+            graph = graph_of(name)
+            if how == "mm":
+                res = mmpgo_jax.solve(graph, 10, method="mm", iterations=its, stop_when_stalled=False)
+                row = path_row(case, how, name, res)
+            elif how.startswith("tls"):
+                rop = mmpgo_jax.contiguous_robots(graph.num_poses, 10)
+                inter = rop[np.asarray(graph.i)] != rop[np.asarray(graph.j)]
+                loops = int((np.abs(np.asarray(graph.i) - np.asarray(graph.j)) != 1).sum())
+                count = round(0.3 * int(inter.sum()) / 0.7)  # 30 % of the inter-robot closures wrong
+                c = mmpgo_jax.add_outlier_loop_closures(graph, count / (loops + count), seed=1, robot_of_pose=rop,
+                                                        inter_robot_only=True,
+                                                        reference=mmpgo_jax.initialize(graph, "chordal"))
+                res = mmpgo_jax.solve(c.graph, rop, loss="tls", iterations=its, stop_when_stalled=False,
+                                      distributed=how == "tls-distributed")
+                s = mmpgo_jax.outlier_scores(res.inliers, c.outlier)
+                row = path_row(case, how, name, res, outliers=int(c.outlier.sum()), precision=s.precision,
+                               recall=s.recall)
+            else:
+                t0 = time.perf_counter()
+                mmpgo_jax.initialize(graph, "distributed-chordal", robots=10)
+                first = time.perf_counter() - t0
+                t0 = time.perf_counter()
+                X = mmpgo_jax.initialize(graph, "distributed-chordal", robots=10)
+                again = time.perf_counter() - t0
+                row = dict(case=case, kind_of=how, name=name, robots=10, first_s=first, again_s=again,
+                           f=2.0 * float(mmpgo_jax.objective(graph, X)), peak_mib=peak_mib())  # f = 2F
+        except Exception as exc:
+            emit("error", part="paths", case=case, error=f"{type(exc).__name__}: {exc}"[:300])
+            say(f"{case}: {type(exc).__name__}: {exc}")
+            continue
+        emit("path", **row)
+        say(f"{case}: done")
+
+
 def child(args) -> int:
     """One part, in this process (its precision set before any array exists)."""
     setup_precision(PRECISIONS[args.part])
@@ -252,6 +327,8 @@ def child(args) -> int:
         part_files(settings, PRECISIONS[args.part], args.deadline)
     elif args.part == "sweep":
         part_sweep(settings, args.deadline)
+    elif args.part == "paths":
+        part_paths(settings, args.deadline)
     else:
         part_scale(settings, args.deadline)
     emit("done")  # a kill after this line loses nothing (the process was only exiting)
@@ -418,9 +495,32 @@ def scale_section(records: list[dict]) -> list[str]:
     return [*lines, ""]
 
 
+def paths_section(records: list[dict], settings: dict) -> list[str]:
+    rows = [r for r in records if r["kind"] == "path"]
+    lines = [f"## (d) Other paths: MM, TLS, the distributed start (10 robots, {settings['paths_iterations']} "
+             "iterations, float64)\n",
+             "MM: `solve(graph, 10, method=\"mm\")`; TLS: 30 % of the inter-robot loop closures wrong "
+             "(`add_outlier_loop_closures(..., inter_robot_only=True, seed=1)`), `solve(..., loss=\"tls\")` from "
+             "the default GNC-chordal start (host) and with `distributed=True`; start: "
+             "`initialize(graph, \"distributed-chordal\", robots=10)`, a first call (compilation included) and "
+             "a second.\n",
+             "| case | start s | compile s | ms / iteration | f | precision / recall | distributed start: first s "
+             "/ again s | peak device MiB |", "|---|---:|---:|---:|---:|---|---|---:|"]
+    for r in rows:
+        if r["kind_of"] == "start":
+            lines.append(f"| {r['case']} | | | | {r['f']:.8g} | | {r['first_s']:.2f} / {r['again_s']:.2f} | "
+                         f"{fmt_mib(r['peak_mib'])} |")
+            continue
+        pr = f"{r['precision']:.3f} / {r['recall']:.3f}" if "precision" in r else ""
+        lines.append(f"| {r['case']} | {r['start_s']:.2f} | {r['compile_s']:.1f} | {r['ms_per_iteration']:.2f} | "
+                     f"{r['f']:.8g} | {pr} | | {fmt_mib(r['peak_mib'])} |")
+    return [*lines, ""]
+
+
 def unfinished(records: list[dict]) -> list[str]:
     """Skipped cases, errors, and the case a killed part was in (its last stage), so nothing is lost silently."""
-    done = {(r["part"], r.get("case", r.get("name"))) for r in records if r["kind"] in ("file", "sweep", "scale")}
+    finished = ("file", "sweep", "scale", "path")
+    done = {(r["part"], r.get("case", r.get("name"))) for r in records if r["kind"] in finished}
     lines = []
     for r in records:
         if r["kind"] == "skip":
@@ -450,6 +550,8 @@ def report(args, parts: list[str], records: list[dict], wall: float, t_start: fl
         lines += sweep_section(records)
     if "scale" in parts:
         lines += scale_section(records)
+    if "paths" in parts:
+        lines += paths_section(records, settings)
     lines += unfinished(records)
     return "\n".join(lines)
 
