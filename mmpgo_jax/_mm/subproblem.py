@@ -78,11 +78,12 @@ class SubproblemConfig(eqx.Module):
 
     The solver stops on accuracy: when the Riemannian gradient of G^alpha has fallen to
     ``gradient_tolerance`` times its value at the start (for MM: times the robot's block of
-    grad F(X^k)); each trust-region step's CG stops at the relative residual ``cg_tolerance``
-    (preconditioned norm). ``max_steps`` (trust-region steps) and ``cg_iterations`` (per step) are
-    safety caps that bound the work of one outer iteration (benchmarks/profile_step.md counts how
-    often they are reached; benchmarks/inner_solver.md compares the result with subproblems
-    solved to convergence).
+    grad F(X^k)), or once a step's predicted decrease is at the rounding level of G^alpha (in
+    float32 the gradient's floor can lie above that target); each trust-region step's CG stops at
+    the relative residual ``cg_tolerance`` (preconditioned norm). ``max_steps`` (trust-region
+    steps) and ``cg_iterations`` (per step) are safety caps that bound the work of one outer
+    iteration (benchmarks/profile_step.md counts how often they are reached;
+    benchmarks/inner_solver.md compares the result with subproblems solved to convergence).
 
     Defaults (0.2 and 0.03, chosen by measurement: benchmarks/inner_tolerances.md): most robots
     take one trust-region step per outer iteration, whose CG stops at 3 % of its starting
