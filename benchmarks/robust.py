@@ -16,7 +16,10 @@ quantile). Besides the kernels:
 * ``tls+gnc``: GNC-TLS run by the distributed solver (``gnc=GNCConfig()``, from the chordal start);
 * ``gnc-start``: the GNC-chordal start alone (centralized GNC, the start of the robust runs);
 * ``gtsam-gnc``: GTSAM's GncOptimizer (TLS, odometry known inliers, the same threshold) from the
-  chordal start: an independent centralized reference (only when gtsam is installed).
+  chordal start: an independent centralized reference (only when gtsam is installed);
+* ``tls-distributed`` (only when named in ``--kernels``): the fully distributed pipeline,
+  ``solve(graph, robots, loss="tls", distributed=True)`` (the distributed robust start, its
+  classification held as the first stage, then TLS).
 
 Reported per run: ATE and rotation RMSE against the ground truth (Cube) or the outlier-free
 optimum (files), precision / recall of the outlier classification (outliers = the edges the run
@@ -74,6 +77,8 @@ def _run(graph, robots, kernel, iterations):
     elif kernel == "gtsam-gnc":
         ref = gtsam_gnc(graph, mg.initialize(graph, "chordal"), scale=mg.chi2_scale(graph.dim))
         r = _Reference(ref.poses, ref.weights > 0.5)
+    elif kernel == "tls-distributed":
+        r = mg.solve(graph, robots, loss="tls", distributed=True, iterations=iterations, grad_tol=1e-6)
     elif kernel == "tls+gnc":
         r = mg.solve(graph, robots, loss="tls", gnc=mg.GNCConfig(), iterations=iterations, grad_tol=1e-6)
     else:
