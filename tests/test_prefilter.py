@@ -1,4 +1,4 @@
-"""PCM as a pre-filter of solve (mmpgo_jax/_solve/prefilter.py), ``mmpgo solve --pcm``, and the
+"""PCM as a pre-filter of solve and sweep (mmpgo_jax/_solve/prefilter.py), ``mmpgo solve / sweep --pcm``, and the
 robot-team generator it is measured on (benchmarks/robust_teams.md)."""
 
 import numpy as np
@@ -91,6 +91,34 @@ def test_a_robot_cut_off_by_pcm_is_solved_in_its_own_frame():
     assert np.isfinite(r.f) and np.all(np.isfinite(np.asarray(r.poses.t)))
 
 
+@pytest.mark.slow  # about 25 s on 2 cores; the CLI test below runs sweep --pcm in the default run
+def test_sweep_prefilter_equals_solve_per_robot_count():
+    """sweep(prefilter=) filters per robot count (PCM's pairs follow the split) and equals solve(prefilter=)
+    configuration by configuration, in the given graph's edge order."""
+    graph, _, planted = _planted()
+    res = mm.sweep({"team": graph}, [2, 3], "mm", 20, prefilter="pcm", loss="tls")
+    for a in (2, 3):
+        key = ("team", a, "mm")
+        ref = mm.solve(graph, a, method="mm", prefilter="pcm", loss="tls", iterations=20, stop_when_stalled=False)
+        got = res.results[key]
+        np.testing.assert_array_equal(got.prefiltered, ref.prefiltered)
+        np.testing.assert_array_equal(res.inliers[key], ref.inliers)
+        np.testing.assert_allclose(res.weights[key], ref.weights, rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(res.histories[key], ref.history.f, rtol=1e-9, atol=0)
+        row = next(r for r in res.configs if r["robots"] == a)
+        assert row["pcm_rejected"] == int(ref.prefiltered.sum()) == ref.stats["pcm_rejected"]
+    assert res.results[("team", 3, "mm")].prefiltered[planted].all()  # the planted closure, between robots 0 and 1
+    ls = mm.sweep(graph, [3], "mm", 0, prefilter=mm.PCM(confidence=0.99))
+    (key,) = ls.histories
+    np.testing.assert_array_equal(ls.inliers[key], ~planted)  # least squares: inliers = ~prefiltered
+    assert key not in ls.weights and ls.configs[0]["pcm_rejected"] == 1
+    kept = mm.solve(graph.select_edges(~planted), 3, iterations=0)
+    np.testing.assert_allclose(ls.histories[key], kept.history.f, rtol=1e-12)
+    assert "pcm_rejected" not in mm.sweep(graph, [3], "mm", 0).configs[0]
+    with pytest.raises(ValueError, match="prefilter"):
+        mm.sweep(graph, [3], "mm", 0, prefilter="ransac")
+
+
 def test_cli_pcm_prints_the_count_and_the_lines(tmp_path, capsys):
     from mmpgo_jax import read_g2o, write_g2o
     from mmpgo_jax.cli import main
@@ -108,6 +136,12 @@ def test_cli_pcm_prints_the_count_and_the_lines(tmp_path, capsys):
     assert f"line {line} of team.g2o" in text
     assert read_g2o(out).graph.num_edges == graph.num_edges - 1
     rc = main(["solve", str(path), "-A", "3", "--pcm-confidence", "0.9", "--no-progress"])
+    assert rc != 0 and "--pcm-confidence applies with --pcm" in capsys.readouterr().err
+    rc = main(["sweep", str(path), "-A", "3", "--pcm", "-n", "5", "--methods", "mm", "--no-progress"])
+    text = capsys.readouterr().out
+    assert rc == 0, text
+    assert "PCM rejected" in text and text.splitlines()[-1].split("|")[-5].strip() == "1"  # its column
+    rc = main(["sweep", str(path), "-A", "3", "--pcm-confidence", "0.9"])
     assert rc != 0 and "--pcm-confidence applies with --pcm" in capsys.readouterr().err
 
 

@@ -91,6 +91,7 @@ from .._mm.solvers import AMM, MM, Solver, run_chunk
 from .._mm.subproblem import SubproblemConfig
 from .._solve.build import finish, prepare, start_for
 from .._solve.methods import MAJORIZATION, check_loss, method_name, solver_for
+from .._solve.prefilter import PCM, apply_prefilter, as_prefilter
 from .._solve.result import SolveResult
 from .outliers import outlier_scores
 
@@ -395,6 +396,7 @@ def sweep(
     loss=None,
     loss_scale: float | None = None,
     gnc: GNCConfig | None = None,
+    prefilter: str | PCM | None = None,
 ) -> SweepResult:
     """Run every (graph, robot count) configuration of each method as one batched computation.
 
@@ -447,6 +449,15 @@ def sweep(
     by name as :func:`~mmpgo_jax.solve`'s do (``gnc`` to the kernels that take one: tls,
     geman-mcclure). Robust configurations report their final ``weights`` and ``inliers``.
 
+    ``prefilter``: ``"pcm"`` or a :class:`~mmpgo_jax.PCM`, as :func:`~mmpgo_jax.solve`'s: per (graph,
+    robot count), PCM removes the inter-robot loop closures it finds inconsistent (its robot pairs
+    depend on the split, so each robot count gets its own filtered graph, partition and start), and
+    the configuration runs on the kept edges. Its ``results`` are put back in the graph's edge order
+    (``prefiltered`` marks the removed edges, ``inliers`` marks them False, ``weights`` holds 0 for
+    them), ``weights`` / ``inliers`` likewise, and ``configs`` gain ``pcm_rejected``; f and the
+    history are those of the filtered graph, while ``fstar`` (and so the gaps) stays what was given
+    for the whole graph.
+
     Equivalent, configuration by configuration, to ``solve(graph, robots, method=..., iterations,
     init, xi, restart, subproblem, fixed, loss, loss_scale, gnc, stop_when_stalled=False)`` (for a
     solver object: ``solve(graph, robots, solver=..., ...)``) (for
@@ -465,7 +476,8 @@ def sweep(
         group_by = "robots" if jax.default_backend() == "cpu" else "method"
     plan = _Plan.make(graphs, robots, iterations, methods=methods, init=init, xi=xi, fstar=fstar,
                       ground_truth=ground_truth, fixed=fixed, split=split, seed=seed, loss=loss, loss_scale=loss_scale,
-                      gnc=gnc, chunk_size=chunk_size, subproblem=subproblem, restart=restart)
+                      gnc=gnc, chunk_size=chunk_size, subproblem=subproblem, restart=restart,
+                      prefilter=as_prefilter(prefilter))
     if max_batch_bytes is None:
         max_batch_bytes = default_max_batch_bytes()
     say = progress or (lambda msg: None)
@@ -507,10 +519,11 @@ class _Plan:
     restart: str
     seconds: dict = field(default_factory=dict)  # initialize seconds per (graph, robots[, start])
     starts: dict = field(default_factory=dict)
+    filtered: dict = field(default_factory=dict)  # (graph, robots) -> Prefiltered (a prefilter given)
 
     @staticmethod
     def make(graphs, robots, iterations, *, methods, init, xi, fstar, ground_truth, fixed, split, seed, loss,
-             loss_scale, gnc, chunk_size, subproblem, restart) -> _Plan:
+             loss_scale, gnc, chunk_size, subproblem, restart, prefilter) -> _Plan:
         names, glist, gts, fixed_of, corrupt = _normalize_graphs(graphs)
         loss_of = _loss_values(loss, loss_scale, gnc)
         labels = list(loss_of)
@@ -525,10 +538,14 @@ class _Plan:
         if ground_truth is not None:
             gts = {k: v for k, v in _per_graph(ground_truth, names, "ground_truth").items() if v is not None}
         robots_of, rops = _splits(names, glist, robots, split, seed)
-        seconds, unpadded, needs = {}, {}, {}
+        seconds, unpadded, needs, filtered = {}, {}, {}, {}
         for (gi, a), rop in rops.items():
             t0 = time.perf_counter()
-            p = partition(glist[gi], rop)
+            graph = glist[gi]
+            if prefilter is not None:  # PCM's robot pairs depend on the split: one filtered graph per count
+                filtered[(gi, a)] = apply_prefilter(graph, rop, prefilter)
+                graph = filtered[(gi, a)].graph
+            p = partition(graph, rop)
             real = int(np.asarray(p.pose_mask).sum(axis=1).max())
             needs[(gi, a)] = (p.max_poses, p.max_edges, gamma_couplings(p.edges), aggregate_size(real, glist[gi].dim))
             unpadded[(gi, a)] = jax.device_get(p)
@@ -539,7 +556,13 @@ class _Plan:
                      all_robots=list(dict.fromkeys(a for gi in range(len(glist)) for a in robots_of[gi])),
                      unpadded=unpadded, needs=needs, rops=rops, fstars=_fstars(fstar, names, glist), xis=xis,
                      axes=axes, init=init, iterations=iterations, chunk_size=chunk_size,
-                     subproblem=subproblem or SubproblemConfig(), restart=restart or "adaptive", seconds=seconds)
+                     subproblem=subproblem or SubproblemConfig(), restart=restart or "adaptive", seconds=seconds,
+                     filtered=filtered)
+
+    def graph_of(self, gi: int, a: int) -> PoseGraph:
+        """The graph a configuration runs on: the given one, or what the prefilter kept of it."""
+        pre = self.filtered.get((gi, a))
+        return self.glist[gi] if pre is None else pre.graph
 
     @property
     def robust(self) -> bool:
@@ -576,7 +599,8 @@ class _Plan:
     def _start_key(self, gi: int, a: int, li: int) -> tuple:
         """(cache key, start method, options, whether it depends on the robot count) of a start."""
         method, options = start_for(self.init, self.loss_of[self.labels[li]])
-        per_robots = isinstance(method, str) and method in ("distributed-chordal", "distributed-robust")
+        per_robots = (isinstance(method, str) and method in ("distributed-chordal", "distributed-robust")) or bool(
+            self.filtered)  # a prefiltered graph is one per robot count
         key = (gi, a if per_robots else None, str(method) if isinstance(method, str) else id(method),
                tuple(sorted(options.items())))
         return key, method, options, per_robots
@@ -590,7 +614,7 @@ class _Plan:
         if key not in self.starts:
             t0 = time.perf_counter()
             robots_kw = {"robots": self.rops[(gi, a)]} if per_robots else {}
-            self.starts[key] = initialize_with_weights(self.glist[gi], method, fixed=fix, **robots_kw, **options)
+            self.starts[key] = initialize_with_weights(self.graph_of(gi, a), method, fixed=fix, **robots_kw, **options)
             self.seconds[("start", key)] = time.perf_counter() - t0
         return self.starts[key]
 
@@ -683,7 +707,7 @@ def _run_group(plan: _Plan, method: str, gkeys: list, out: _Outputs, max_batch_b
         gi, a, x, li = key
         start, weights = plan.start_of(gi, a, li)
         loss = plan.loss_of[plan.labels[li]]
-        run = prepare(plan.glist[gi], plan.solver(method, x), plan.unpadded[(gi, a)], layout, termination,
+        run = prepare(plan.graph_of(gi, a), plan.solver(method, x), plan.unpadded[(gi, a)], layout, termination,
                       fixed=plan.fixed_of[plan.names[gi]], loss=loss, given_start=start,
                       start_weights=None if loss is None else weights)
         run.clock.seconds["initialize"] += plan.initialize_seconds(gi, a, li)  # the partition and the start
@@ -763,10 +787,12 @@ def _record(plan: _Plan, method: str, key: tuple, run, driven: Driven, terminati
     """One configuration's :class:`SolveResult` (by the one solve path's ``finish``), row, history,
     poses and robust outcome."""
     gi, a, x, li = key
-    name, graph = plan.names[gi], plan.glist[gi]
+    name, graph, pre = plan.names[gi], plan.graph_of(gi, a), plan.filtered.get((gi, a))
     k = plan.key_of(gi, a, method, x, li)
     result = finish(graph, plan.solver(method, x), run, driven, termination, fixed=plan.fixed_of[name],
                     ground_truth=plan.gts.get(name))
+    if pre is not None:  # back in the given graph's edge order, the removed edges marked
+        result = pre.report(result)
     result.stats.update(batch=b, batch_size=real)
     out.results[k] = result
     out.histories[k] = f = result.history.f
@@ -785,10 +811,14 @@ def _record(plan: _Plan, method: str, key: tuple, run, driven: Driven, terminati
         row["rpe_rotation_deg"] = result.accuracy.rpe_rotation_deg
     if name in plan.corrupt:
         row.update(outlier_rate=plan.corrupt[name][1], outliers=int(plan.corrupt[name][0].sum()))
+    if pre is not None:
+        row["pcm_rejected"] = int(pre.rejected.sum())
     if result.inliers is not None:
-        out.weights[k], out.inliers[k] = result.weights, result.inliers
-        row.update(rejected=int((~result.inliers).sum()), weight_updates=result.stats["weight_updates"],
-                   gnc_stages=result.stats["gnc_stages"])
+        out.inliers[k] = result.inliers
+        if result.weights is not None:  # (least squares after a prefilter has inliers but no weights)
+            out.weights[k] = result.weights
+        row.update(rejected=int((~result.inliers).sum()), weight_updates=result.stats.get("weight_updates"),
+                   gnc_stages=result.stats.get("gnc_stages"))
         if name in plan.corrupt:
             scores = outlier_scores(result.inliers, plan.corrupt[name][0])
             row.update(precision=scores.precision, recall=scores.recall)

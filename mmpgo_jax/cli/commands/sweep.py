@@ -11,7 +11,7 @@ import argparse
 import math
 import time
 
-from ..options import INT_MAX, ROBOTS, add_common, int_in
+from ..options import INT_MAX, ROBOTS, add_common, finite_float, int_in
 from ..robots import FILE_HELP, add_robots_from
 
 
@@ -60,6 +60,12 @@ def register(sub) -> None:
                         "after the addition; 0 keeps the file as it is. Reports precision and recall of the "
                         "rejected edges; gaps to f* are then left out")
     p.add_argument("--outlier-seed", type=int_in(0), default=1, help="seed of the added outliers (default 1)")
+    p.add_argument("--pcm", action="store_true",
+                   help="per file and robot count, remove the inter-robot loop closures that PCM (pairwise "
+                        "consistency maximization) finds inconsistent before the start and the solve (as mmpgo "
+                        "solve --pcm); the table counts them; gaps to f* are then left out")
+    p.add_argument("--pcm-confidence", metavar="Q", type=finite_float(0.0, strict=True, below=1.0), default=None,
+                   help="chi-square quantile of PCM's pairwise test, in (0, 1) (default 0.99)")
     p.add_argument("--out", help="write the per-iteration table as CSV (graph, robots, method, iteration, f, gaps)")
     p.add_argument("--configs", help="write the per-configuration table as CSV (time, memory, final f and gap)")
     p.add_argument("--no-progress", action="store_true", help="do not print a line per compiled batch")
@@ -79,9 +85,9 @@ def run(args: argparse.Namespace) -> int:
     _check_methods(args, methods)
     rates = None if args.outlier_rates is None else list(dict.fromkeys(args.outlier_rates))
     robust = args.losses is not None and any(k != "l2" for k in args.losses)
-    gaps = args.fstar != "none" and not robust and not any(rates or [])
+    gaps = args.fstar != "none" and not robust and not any(rates or []) and not args.pcm
     if args.fstar != "none" and not gaps:
-        print("robust losses / outliers: f is 2 F_rho or has outlier edges, no gaps to the least-squares f*")
+        print("robust losses / outliers / PCM: f is 2 F_rho or of another edge set, no gaps to the least-squares f*")
     graphs, fstar = {}, {}
     for name in args.files:
         path = resolve_file(name, args.data)
@@ -105,10 +111,10 @@ def run(args: argparse.Namespace) -> int:
     t = time.perf_counter()
     res = sweep(graphs, sorted(set(args.robots)), methods, args.iterations, restart=args.restart,
                 fstar=fstar or None, split=args.robots_from or "blocks", seed=args.seed, progress=say,
-                loss=list(dict.fromkeys(args.losses)) if args.losses else None)
+                loss=list(dict.fromkeys(args.losses)) if args.losses else None, prefilter=_prefilter(args))
     print(f"{len(res.configs)} configurations in {time.perf_counter() - t:.1f} s "
           f"({args.robots_from or 'blocks'} split)")
-    _print_table(res.configs, robust=args.losses is not None or rates is not None)
+    _print_table(res.configs, robust=args.losses is not None or rates is not None or args.pcm, pcm=args.pcm)
     with atomic_group():  # every output, or none
         if args.out:
             res.to_csv(args.out)
@@ -123,6 +129,8 @@ def _check_methods(args, methods: tuple) -> None:
     from ..._solve.methods import MAJORIZATION, solver_for
     from ..errors import CLIError
 
+    if args.pcm_confidence is not None and not args.pcm:
+        raise CLIError("--pcm-confidence applies with --pcm")
     if args.restart is not None and "amm" not in methods:
         raise CLIError(f"--restart applies to amm, which is not among --methods {' '.join(methods)}")
     robust = [k for k in args.losses or () if k != "l2"]
@@ -132,6 +140,15 @@ def _check_methods(args, methods: tuple) -> None:
                        "with mm or amm)")
     for m in others:
         solver_for(m)  # ValueError (one line) where the method is not available
+
+
+def _prefilter(args):
+    """``sweep``'s ``prefilter`` of ``--pcm`` / ``--pcm-confidence`` (None without ``--pcm``)."""
+    if not args.pcm:
+        return None
+    from ..._solve.prefilter import PCM
+
+    return PCM(confidence=0.99 if args.pcm_confidence is None else args.pcm_confidence)
 
 
 def _with_outliers(key: str, graph, rates, seed: int) -> dict:
@@ -144,14 +161,14 @@ def _with_outliers(key: str, graph, rates, seed: int) -> dict:
     return {f"{key}@{rate:g}%": add_outliers(graph, rate / 100.0, reference=reference, seed=seed) for rate in rates}
 
 
-def _print_table(configs, *, robust: bool = False) -> None:
+def _print_table(configs, *, robust: bool = False, pcm: bool = False) -> None:
     """One row per configuration. A batch's configurations run together (one vmapped program), so its
     time is the batch's: "batch ms/it" is the wall time of one iteration of the whole batch of
     "in batch" configurations, and "ms/it share" that time divided among them (what one
     configuration costs inside the batch, not what it costs run alone with ``mmpgo solve``)."""
     timing = ("in batch", "batch ms/it", "ms/it share")
     head = ["file", "method", "robots", *(("loss", "outlier rate %") if robust else ()), "f final", "(f - f*)/f*",
-            *(("precision", "recall") if robust else ()), *timing]
+            *(("precision", "recall") if robust else ()), *(("PCM rejected",) if pcm else ()), *timing]
     print("| " + " | ".join(head) + " |")
     print("|" + "---|" * len(head))
     for row in configs:
@@ -163,5 +180,7 @@ def _print_table(configs, *, robust: bool = False) -> None:
         cells += [f"{row['f']:.10g}", gap]
         if robust:
             cells += ["" if row.get(k) is None else f"{row[k]:.3f}" for k in ("precision", "recall")]
+        if pcm:
+            cells.append(row.get("pcm_rejected", ""))
         cells += [row["batch_size"], f"{row['batch_ms_per_iteration']:.2f}", f"{row['ms_per_iteration']:.2f}"]
         print("| " + " | ".join(str(c) for c in cells) + " |")
