@@ -281,6 +281,37 @@ def test_robust_start_finds_every_outlier_on_a_cube(rate):
     assert _tls_cost(bad.graph, start.poses, start.scale) <= _tls_cost(bad.graph, knows, start.scale) * (1 + 1e-9)
 
 
+def test_gnc_start_tells_the_monitor_how_far_it_is():
+    """A robust solve's GNC-chordal start reports the least-squares stage and every GNC stage through
+    ``Monitor.note`` (the CLI's progress bar shows them): one line per stage, the last with nothing
+    undecided, as many as the start alone runs."""
+    from mmpgo_jax._init.robust_start import gnc_chordal_initialization
+    from mmpgo_jax._mm.driver import Monitor
+
+    class Notes(Monitor):
+        def __init__(self):
+            self.lines, self.phases = [], []
+
+        def phase(self, name):
+            self.phases.append(name)
+
+        def note(self, text):
+            self.lines.append((self.phases[-1], text))
+
+    ds = mg.cube_dataset(0, grid=3, num_poses=60)
+    bad = add_outliers(ds.graph, 0.3, reference=ds.ground_truth, seed=1)
+    notes = Notes()
+    mg.solve(bad.graph, 2, loss="tls", iterations=3, monitor=notes)
+    stages = gnc_chordal_initialization(bad.graph).stages
+    assert stages > 1 and len(notes.lines) == stages + 1
+    assert all(phase == "initializing" for phase, _ in notes.lines)
+    assert notes.lines[0][1].startswith("GNC start: least squares of all")
+    assert [int(t.split("stage ")[1].split(",")[0]) for _, t in notes.lines[1:]] == list(range(1, stages + 1))
+    assert " 0 of " in notes.lines[-1][1] and " 0 of " not in notes.lines[1][1]
+    mg.solve(bad.graph, 2, loss="tls", start="chordal", iterations=0, monitor=(quiet := Notes()))
+    assert quiet.lines == []  # only the GNC start reports stages
+
+
 def test_default_start_of_robust_losses():
     """Least squares starts from the chordal initialization; a robust kernel from the GNC-chordal
     start at its own scale; GNC run by the distributed solver (explicit gnc=) from the chordal one."""

@@ -28,6 +28,7 @@ Section VII starts from the centralized chordal initialization as well); it cost
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -80,11 +81,14 @@ def gnc_chordal_initialization(
     weight_tolerance: float = 1e-4,
     grad_tol: float = 1e-6,
     trusted: np.ndarray | None = None,
+    progress: Callable[[str], None] | None = None,
 ) -> RobustStart:
     """GNC-TLS with chordal + Newton stages (module docstring) at scale c = ``scale`` (default
     :func:`~mmpgo_jax.chi2_scale` of the graph's dimension). ``grad_tol`` ends each stage's Newton
     refinement (relative to nothing: the gradient norm of the weighted f = 2F). ``trusted``: (m,) bool,
-    edges known to be inliers (weight 1) besides the odometry of ``trust_odometry``."""
+    edges known to be inliers (weight 1) besides the odometry of ``trust_odometry``. ``progress(text)``
+    is called before the least-squares stage and after every GNC stage (a line for a progress bar:
+    on graphs with many outliers each stage can take minutes)."""
     if not factor > 1.0:
         raise ValueError(f"factor must be > 1, got {factor!r}")
     g = host_graph(graph)
@@ -93,6 +97,8 @@ def gnc_chordal_initialization(
     if trusted is not None:
         robust &= ~np.asarray(trusted, bool)
     termination = Termination(200, 1, grad_tol, stop_when_stalled=False)  # each stage to grad_tol, as before
+    say = progress or (lambda text: None)
+    say(f"GNC start: least squares of all {g.num_edges} edges")
     w = np.ones(g.num_edges)
     X = _stage_solution(g, w, fixed, termination)
     s = np.asarray(edge_costs(g, X))
@@ -104,6 +110,8 @@ def gnc_chordal_initialization(
         s = np.asarray(edge_costs(g, X))
         stages += 1
         between = robust & (w > weight_tolerance) & (w < 1.0 - weight_tolerance)
+        say(f"GNC start: stage {stages}, {int(between.sum())} of {int(robust.sum())} edges undecided, "
+            f"{int((robust & (w <= weight_tolerance)).sum())} rejected")
         if not between.any():
             break
         mu *= factor

@@ -68,7 +68,8 @@ class Monitor:
     their time alone is ``solve_seconds``), "finishing" (the iterations are over; the result is
     being put together). ``chunk(done, f, grad_norm)``: after each chunk, with
     the iterations so far and the chunk's f = 2F and ||grad F||. Unlike ``callback`` it cannot stop
-    the run, and it needs no fetch beyond the one the driver does anyway.
+    the run, and it needs no fetch beyond the one the driver does anyway. ``note(text)``: how the
+    phase under way is getting on, for phases that take long on their own (the GNC start's stages).
     """
 
     def phase(self, name: str) -> None:
@@ -76,6 +77,9 @@ class Monitor:
 
     def chunk(self, done: int, f: np.ndarray, grad_norm: np.ndarray) -> None:
         """Called after each chunk of iterations."""
+
+    def note(self, text: str) -> None:
+        """Called with a line of text on the phase under way."""
 
 
 class NonFiniteError(ValueError):

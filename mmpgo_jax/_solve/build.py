@@ -130,6 +130,8 @@ def prepare(graph: PoseGraph, solver: Solver, robots, layout, termination: Termi
             snapshot.check(key, termination.iterations)
             X0 = Poses(*(jnp.asarray(x) for x in snapshot.X0))  # the start the checkpointed run was built from
         else:
+            if isinstance(start_method, str) and start_method == "gnc-chordal":  # minutes on some graphs: its stages
+                start_options = dict(start_options, progress=monitor.note)
             X0, from_start = initialize_with_weights(graph, start_method, initial=initial, robots=placement.user_part,
                                                      fixed=fixed, **start_options)
             X0 = placement.share_start(X0)

@@ -73,7 +73,11 @@ class ProgressBar(Monitor):
         elif name == "finishing":
             self.bar.close()  # the rate stays that of the iterations
         else:
+            self.phase_name = name
             self.bar.set_description_str(f"{self.desc}, {name}")
+
+    def note(self, text: str) -> None:
+        self.bar.set_description_str(f"{self.desc}, {getattr(self, 'phase_name', '')} ({text})")
 
     def chunk(self, done: int, f, grad_norm) -> None:
         text = f"f={float(f[-1]):.7g}"
