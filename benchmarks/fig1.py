@@ -137,7 +137,12 @@ def main(argv=None) -> int:
                          "cache and run slower per configuration; all on an accelerator)")
     ap.add_argument("--out", default=str(HERE / "fig1"), help="output prefix (default benchmarks/fig1)")
     ap.add_argument("--note", default="", help="free text added to the report (e.g. why a subset ran)")
+    ap.add_argument("--one-device", action="store_true",
+                    help="keep JAX's single CPU device (default: one per core, mmpgo_jax.use_cpu_cores(): the "
+                         "sweep then runs one batch per core at a time)")
     args = ap.parse_args(argv)
+    if not args.one_device:
+        mmpgo_jax.use_cpu_cores()  # before the first JAX computation of the process
 
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -219,7 +224,9 @@ def main(argv=None) -> int:
                  + ("(method, robot count)" if args.group_by == "robots" else "method")
                  + f"), {batch_configs or 'all'} configuration(s) per batch; every batch of a group reuses "
                  "the group's compiled executable. A batch of one runs the solver unbatched (`jit(run)`), "
-                 "larger batches as `jit(vmap(run))`.\n")
+                 "larger batches as `jit(vmap(run))`. Batches run on "
+                 + f"{max(g.get('devices', 1) for g in res.groups)} CPU device(s) at a time "
+                 "(`use_cpu_cores()` unless `--one-device`; one batch per device).\n")
     lines.append(f"Command: `{command}`\n")
     lines.append(f"Machine: {machine()}\n")
     lines.append(f"Wall time: {wall:.0f} s in total (datasets {t_data:.1f} s, f* {sum(t_fstar.values()):.0f} s, "

@@ -58,6 +58,13 @@ filled up with copies that are discarded), which reuse the same compiled executa
 configuration than a small one (measured, 3600-pose Cube, MM with 5 robots: 32.7 ms per
 configuration and iteration with 7 configurations per batch, 16.8 ms with 1: the working set
 leaves the cache); on an accelerator, larger batches fill the device.
+
+With several CPU devices (:func:`~mmpgo_jax.use_cpu_cores`, which ``mmpgo sweep`` calls) a group's
+batches run one per device at a time, each from its own thread (XLA computes with the GIL released,
+so the devices' cores work at once): a batch is placed on its device whole, so a configuration's
+arithmetic is the one it gets on the default device, and each device compiles the group's program
+once. ``groups`` then report ``devices`` and ``wall_seconds`` (the group's wall time; its
+``run_seconds`` stay the sum of the batches' own times, which overlap).
 """
 
 from __future__ import annotations
@@ -729,26 +736,63 @@ def _run_group(plan: _Plan, method: str, gkeys: list, out: _Outputs, max_batch_b
                  configs_per_batch=per_batch, compile_seconds=0.0, run_seconds=0.0, setup_seconds=0.0,
                  padding_factor=float(A * n_max * C / sum(plan.glist[k[0]].num_poses for k in gkeys)))
     setup = time.perf_counter() - t_build
-    for b in range(num_batches):
-        bkeys = gkeys[b * per_batch:(b + 1) * per_batch]
+    devices = _batch_devices(num_batches)
+    group["devices"] = len(devices)
+    batches = [gkeys[b * per_batch:(b + 1) * per_batch] for b in range(num_batches)]
+
+    def execute(b, device):
         t0 = time.perf_counter()
-        runs = [built.pop(key, None) or prepared(key) for key in bkeys]
-        setup += time.perf_counter() - t0
-        run_s = _run_batch(plan, method, bkeys, runs, per_batch, n_common, termination, per_config, group, out, b)
-        say(f"{method} robots={group['robots']} batch {b + 1}/{num_batches}: {len(bkeys)} configs, "
-            f"{run_s:.1f} s run, {group['compile_seconds']:.1f} s compile")
+        runs = [built.pop(key, None) or prepared(key) for key in batches[b]]
+        set_up = time.perf_counter() - t0
+        return runs, set_up, _execute_batch(plan, method, batches[b], runs, per_batch, n_common, termination, device)
+
+    def record(b, outcome):
+        nonlocal setup
+        runs, set_up, (driven, traces) = outcome
+        setup += set_up
+        if b < len(devices):  # the first batch on each device compiles (then its executable is reused)
+            group["compile_seconds"] += driven.compile_seconds
+            group["traces"] = group.get("traces", 0) + traces
+        _record_batch(plan, method, batches[b], runs, driven, termination, per_config, out, b)
+        group["run_seconds"] += driven.solve_seconds
+        say(f"{method} robots={group['robots']} batch {b + 1}/{num_batches}: {len(batches[b])} configs, "
+            f"{driven.solve_seconds:.1f} s run, {group['compile_seconds']:.1f} s compile")
+
+    t_run = time.perf_counter()
+    if len(devices) == 1:
+        for b in range(num_batches):
+            record(b, execute(b, devices[0]))
+    else:  # one batch per CPU device at a time: JAX releases the GIL while a device computes
+        from concurrent.futures import ThreadPoolExecutor
+
+        with ThreadPoolExecutor(len(devices)) as pool:
+            outcomes = [pool.submit(lambda b: execute(b, devices[b % len(devices)]), b) for b in range(num_batches)]
+            for b, future in enumerate(outcomes):
+                record(b, future.result())
+    group["wall_seconds"] = time.perf_counter() - t_run
     group["setup_seconds"] = setup
     out.groups.append(group)
 
 
-def _run_batch(plan: _Plan, method: str, bkeys: list, runs: list, per_batch: int, n_common: int,
-               termination: Termination, per_config: int, group: dict, out: _Outputs, b: int) -> float:
-    """One batch of a group (filled up to ``per_batch`` with discarded copies: one compiled shape);
-    returns its run seconds."""
-    real = len(bkeys)
-    fill = [runs[-1]] * (per_batch - real)
+def _batch_devices(num_batches: int) -> list:
+    """The devices a group's batches run on: every CPU device (:func:`~mmpgo_jax.use_cpu_cores`) when
+    there are several batches on a CPU backend, one batch per device at a time; else [None] (JAX's
+    default device, one batch after another)."""
+    if num_batches < 2 or jax.default_backend() != "cpu":
+        return [None]
+    devices = jax.devices("cpu")
+    return devices[:num_batches] if len(devices) > 1 else [None]
+
+
+def _execute_batch(plan: _Plan, method: str, bkeys: list, runs: list, per_batch: int, n_common: int,
+                   termination: Termination, device) -> tuple:
+    """Run one batch of a group (filled up to ``per_batch`` with discarded copies: one compiled
+    shape) on ``device`` (None: the default one); returns (the driven batch, traces it made)."""
+    fill = [runs[-1]] * (per_batch - len(runs))
     problem = _stack([_batchable(r.problem, n_common) for r in runs + fill])
     state = _stack([r.state for r in runs + fill])
+    if device is not None:
+        problem, state = jax.device_put((problem, state), device)
     start = tuple(np.stack([np.asarray(x) for x in column])
                   for column in zip(*(r.placement.start_record(r.start) for r in runs + fill), strict=True))
     solver = plan.solver(method, None)  # xi=None: each problem carries its own xi (an array leaf)
@@ -765,9 +809,13 @@ def _run_batch(plan: _Plan, method: str, bkeys: list, runs: list, per_batch: int
         which = ", ".join(f"{plan.names[gi]!r} ({a} robots{f', xi={x:g}' if 'xi' in plan.axes else ''}"
                           f"{f', loss {plan.labels[li]}' if plan.robust else ''})" for gi, a, x, li in bkeys)
         raise NonFiniteError(f"sweep ({method}), in a batch of {which}: {err}") from None
-    if b == 0:
-        group["compile_seconds"] = driven.compile_seconds
-        group["traces"] = sum(TRACE_COUNTS.values()) - traces  # 1 (0: jax's trace cache hit)
+    return driven, sum(TRACE_COUNTS.values()) - traces
+
+
+def _record_batch(plan: _Plan, method: str, bkeys: list, runs: list, driven: Driven, termination: Termination,
+                  per_config: int, out: _Outputs, b: int) -> None:
+    """Each configuration's result of a run batch (its row of the batch's records)."""
+    real = len(bkeys)
     final = jax.device_get(driven.state)
     for c, (key, run) in enumerate(zip(bkeys, runs, strict=True)):
         state = jax.tree.map(lambda x, c=c: x[c], final)
@@ -778,8 +826,6 @@ def _run_batch(plan: _Plan, method: str, bkeys: list, runs: list, per_batch: int
                      result=RESULTS.iterations if keep is None else RESULTS.converged,
                      compile_seconds=driven.compile_seconds / real, solve_seconds=driven.solve_seconds / real)
         _record(plan, method, key, run, one, termination, per_config, b, real, out)
-    group["run_seconds"] += driven.solve_seconds
-    return driven.solve_seconds
 
 
 def _record(plan: _Plan, method: str, key: tuple, run, driven: Driven, termination: Termination, per_config: int,
