@@ -281,6 +281,7 @@ BAD_OPTIONS = [
     (["sweep", _F, "--outlier-rates", "-5"], "--outlier-rates", ">= 0 and < 100"),
     (["sweep", _F, "--outlier-rates", "nan"], "--outlier-rates", ">= 0 and < 100"),
     (["sweep", _F, "--outlier-seed", "-1"], "--outlier-seed", ">= 0"),
+    (["sweep", _F, "--pcm", "--pcm-confidence", "1"], "--pcm-confidence", "finite number in (0, 1)"),
 ]
 
 
@@ -326,7 +327,7 @@ def _numeric_actions():
 def test_every_numeric_option_is_validated_and_swept():
     """No option parses with a bare int/float, and the sweep above covers every typed option."""
     swept = {(a[0], opt.split("/")[0]) for a, opt, _ in BAD_OPTIONS}
-    assert len(swept) == 32  # info 1, solve 17, optimum 2, demo 4, bench 3, sweep 5
+    assert len(swept) == 33  # info 1, solve 17, optimum 2, demo 4, bench 3, sweep 6
     for name, action in _numeric_actions():
         assert action.type not in (int, float), f"{name} {action.option_strings}: unchecked {action.type}"
         assert action.type.__name__ in ("integer", "number", "host_port"), (name, action.option_strings)
