@@ -60,8 +60,9 @@ configuration and iteration with 7 configurations per batch, 16.8 ms with 1: the
 leaves the cache); on an accelerator, larger batches fill the device.
 
 With several CPU devices (:func:`~mmpgo_jax.use_cpu_cores`, which ``mmpgo sweep`` calls) a group's
-batches run one per device at a time, each from its own thread (XLA computes with the GIL released,
-so the devices' cores work at once): a batch is placed on its device whole, so a configuration's
+batches run one per device at a time, batch b on device b mod D from that device's own thread (XLA
+computes with the GIL released, so the devices' cores work at once): a batch is placed on its device
+whole, so a configuration's
 arithmetic is the one it gets on the default device, and each device compiles the group's program
 once. ``groups`` then report ``devices`` and ``wall_seconds`` (the group's wall time; its
 ``run_seconds`` stay the sum of the batches' own times, which overlap).
@@ -762,13 +763,18 @@ def _run_group(plan: _Plan, method: str, gkeys: list, out: _Outputs, max_batch_b
     if len(devices) == 1:
         for b in range(num_batches):
             record(b, execute(b, devices[0]))
-    else:  # one batch per CPU device at a time: JAX releases the GIL while a device computes
+    else:  # one thread per CPU device, its batches in order: JAX releases the GIL while a device computes
         from concurrent.futures import ThreadPoolExecutor
 
-        with ThreadPoolExecutor(len(devices)) as pool:
-            outcomes = [pool.submit(lambda b: execute(b, devices[b % len(devices)]), b) for b in range(num_batches)]
+        queues = [ThreadPoolExecutor(1) for _ in devices]
+        try:
+            outcomes = [queues[b % len(devices)].submit(execute, b, devices[b % len(devices)])
+                        for b in range(num_batches)]
             for b, future in enumerate(outcomes):
                 record(b, future.result())
+        finally:
+            for queue in queues:
+                queue.shutdown(wait=True, cancel_futures=True)
     group["wall_seconds"] = time.perf_counter() - t_run
     group["setup_seconds"] = setup
     out.groups.append(group)
