@@ -177,9 +177,10 @@ def check_solve_flags(args) -> None:
     """Refuse, before anything is read, the option combinations that cannot run: ``--xi`` /
     ``--restart`` / a robust ``--loss`` with a method that does not take them, and of ``--pcm`` and
     ``--distributed``: a centralized step under ``--distributed`` (one line naming the option)."""
+    from .options import pcm_prefilter
+
     check_method_flags(args)
-    if getattr(args, "pcm_confidence", None) is not None and not getattr(args, "pcm", False):
-        raise CLIError("--pcm-confidence applies with --pcm")
+    pcm_prefilter(args)  # --pcm-confidence without --pcm: one line
     if not getattr(args, "distributed", False):
         return
     for (attr, value), why in CENTRALIZED_OPTIONS.items():
@@ -215,10 +216,10 @@ def solve_options(args, data: LoadedInput) -> dict:
     # the methods' own defaults where not given (--xi and --restart only with the methods that take them)
     shortcuts = {k: getattr(args, k) for k in ("xi", "restart") if getattr(args, k) is not None}
     check_solve_flags(args)
-    if getattr(args, "pcm", False):
-        from .._solve.prefilter import PCM
+    from .options import pcm_prefilter
 
-        robust["prefilter"] = PCM(confidence=0.99 if args.pcm_confidence is None else args.pcm_confidence)
+    if (prefilter := pcm_prefilter(args)) is not None:
+        robust["prefilter"] = prefilter
     if getattr(args, "distributed", False):
         robust["distributed"] = True
     return dict(method=args.method, iterations=args.iterations, init=data.start(args.init, SOLVE_STARTS),

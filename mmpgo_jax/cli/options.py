@@ -44,6 +44,31 @@ def add_common(p: argparse.ArgumentParser) -> None:
                        help="compile afresh, write no cache (also: MMPGO_COMPILATION_CACHE=off)")
 
 
+def add_pcm_options(group, what: str) -> None:
+    """--pcm (``what``: the sentence after "remove the inter-robot loop closures that PCM finds
+    inconsistent") and --pcm-confidence, of ``mmpgo solve`` and ``mmpgo sweep``."""
+    group.add_argument("--pcm", action="store_true",
+                       help="remove the inter-robot loop closures that PCM (pairwise consistency maximization) "
+                            f"finds inconsistent {what}")
+    group.add_argument("--pcm-confidence", metavar="Q", type=finite_float(0.0, strict=True, below=1.0),
+                       default=None, help="chi-square quantile of PCM's pairwise test, in (0, 1) (default 0.99)")
+
+
+def pcm_prefilter(args):
+    """The ``prefilter`` of ``--pcm`` / ``--pcm-confidence``: None without ``--pcm`` (then a given
+    ``--pcm-confidence`` is a one-line error), else a :class:`~mmpgo_jax.PCM`."""
+    from .errors import CLIError
+
+    confidence = getattr(args, "pcm_confidence", None)
+    if not getattr(args, "pcm", False):
+        if confidence is not None:
+            raise CLIError("--pcm-confidence applies with --pcm")
+        return None
+    from .._solve.prefilter import PCM
+
+    return PCM() if confidence is None else PCM(confidence=confidence)
+
+
 def add_strict(p: argparse.ArgumentParser) -> None:
     p.add_argument("--strict-information", action="store_true",
                    help="refuse information matrices that are not positive definite (default: warn and use "

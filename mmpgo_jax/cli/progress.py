@@ -62,6 +62,7 @@ class ProgressBar(Monitor):
 
         file = sys.stderr if file is None else file
         self.desc = desc
+        self.phase_name = ""  # the phase a note() belongs to
         self.show_gradient = show_gradient
         self.bar = tqdm(total=total, desc=desc, unit="it", file=file, leave=leave, disable=None,
                         **terminal_size_options(file))
@@ -77,7 +78,7 @@ class ProgressBar(Monitor):
             self.bar.set_description_str(f"{self.desc}, {name}")
 
     def note(self, text: str) -> None:
-        self.bar.set_description_str(f"{self.desc}, {getattr(self, 'phase_name', '')} ({text})")
+        self.bar.set_description_str(f"{self.desc}, {self.phase_name} ({text})")
 
     def chunk(self, done: int, f, grad_norm) -> None:
         text = f"f={float(f[-1]):.7g}"

@@ -10,7 +10,7 @@ import argparse
 import time
 
 from ..devices import add_checkpoint_options, add_cli_options, add_threads_option, configure_cpu_devices
-from ..options import INT_MAX, ITERATIONS, ROBOTS, add_common, add_strict, finite_float, int_in
+from ..options import INT_MAX, ITERATIONS, ROBOTS, add_common, add_pcm_options, add_strict, finite_float, int_in
 from ..robots import FILE_HELP, add_robots_from
 
 
@@ -102,11 +102,7 @@ def _add_robust_options(p: argparse.ArgumentParser) -> None:
                    help="write every edge's final weight and inlier flag as CSV (i, j, weight, inlier; original ids)")
     g.add_argument("--drop-outliers", action="store_true",
                    help="--out / --out-dir keep only the inlier edges (by default every edge is written)")
-    g.add_argument("--pcm", action="store_true",
-                   help="remove the inter-robot loop closures that PCM (pairwise consistency maximization) finds "
-                        "inconsistent before the start and the solve; the count and lines are printed")
-    g.add_argument("--pcm-confidence", metavar="Q", type=finite_float(0.0, strict=True, below=1.0), default=None,
-                   help="chi-square quantile of PCM's pairwise test, in (0, 1) (default 0.99)")
+    add_pcm_options(g, "before the start and the solve; the count and lines are printed")
 
 
 def preload() -> None:

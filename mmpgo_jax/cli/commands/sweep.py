@@ -11,7 +11,7 @@ import argparse
 import math
 import time
 
-from ..options import INT_MAX, ROBOTS, add_common, finite_float, int_in
+from ..options import INT_MAX, ROBOTS, add_common, add_pcm_options, int_in, pcm_prefilter
 from ..robots import FILE_HELP, add_robots_from
 
 
@@ -60,12 +60,8 @@ def register(sub) -> None:
                         "after the addition; 0 keeps the file as it is. Reports precision and recall of the "
                         "rejected edges; gaps to f* are then left out")
     p.add_argument("--outlier-seed", type=int_in(0), default=1, help="seed of the added outliers (default 1)")
-    p.add_argument("--pcm", action="store_true",
-                   help="per file and robot count, remove the inter-robot loop closures that PCM (pairwise "
-                        "consistency maximization) finds inconsistent before the start and the solve (as mmpgo "
-                        "solve --pcm); the table counts them; gaps to f* are then left out")
-    p.add_argument("--pcm-confidence", metavar="Q", type=finite_float(0.0, strict=True, below=1.0), default=None,
-                   help="chi-square quantile of PCM's pairwise test, in (0, 1) (default 0.99)")
+    add_pcm_options(p, "before the start and the solve, per file and robot count (as mmpgo solve --pcm); the "
+                       "table counts them; gaps to f* are then left out")
     p.add_argument("--out", help="write the per-iteration table as CSV (graph, robots, method, iteration, f, gaps)")
     p.add_argument("--configs", help="write the per-configuration table as CSV (time, memory, final f and gap)")
     p.add_argument("--no-progress", action="store_true", help="do not print a line per compiled batch")
@@ -111,7 +107,7 @@ def run(args: argparse.Namespace) -> int:
     t = time.perf_counter()
     res = sweep(graphs, sorted(set(args.robots)), methods, args.iterations, restart=args.restart,
                 fstar=fstar or None, split=args.robots_from or "blocks", seed=args.seed, progress=say,
-                loss=list(dict.fromkeys(args.losses)) if args.losses else None, prefilter=_prefilter(args))
+                loss=list(dict.fromkeys(args.losses)) if args.losses else None, prefilter=pcm_prefilter(args))
     print(f"{len(res.configs)} configurations in {time.perf_counter() - t:.1f} s "
           f"({args.robots_from or 'blocks'} split)")
     _print_table(res.configs, robust=args.losses is not None or rates is not None or args.pcm, pcm=args.pcm)
@@ -129,8 +125,7 @@ def _check_methods(args, methods: tuple) -> None:
     from ..._solve.methods import MAJORIZATION, solver_for
     from ..errors import CLIError
 
-    if args.pcm_confidence is not None and not args.pcm:
-        raise CLIError("--pcm-confidence applies with --pcm")
+    pcm_prefilter(args)  # --pcm-confidence without --pcm: one line
     if args.restart is not None and "amm" not in methods:
         raise CLIError(f"--restart applies to amm, which is not among --methods {' '.join(methods)}")
     robust = [k for k in args.losses or () if k != "l2"]
@@ -140,15 +135,6 @@ def _check_methods(args, methods: tuple) -> None:
                        "with mm or amm)")
     for m in others:
         solver_for(m)  # ValueError (one line) where the method is not available
-
-
-def _prefilter(args):
-    """``sweep``'s ``prefilter`` of ``--pcm`` / ``--pcm-confidence`` (None without ``--pcm``)."""
-    if not args.pcm:
-        return None
-    from ..._solve.prefilter import PCM
-
-    return PCM(confidence=0.99 if args.pcm_confidence is None else args.pcm_confidence)
 
 
 def _with_outliers(key: str, graph, rates, seed: int) -> dict:
