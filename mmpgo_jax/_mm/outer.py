@@ -415,7 +415,7 @@ def step(problem: MMProblem, config: MMConfig, st: MMState, comm: Collectives = 
     else:
         raise ValueError(f"unknown method {config.method!r}: use 'mm' or 'amm'")
     grad, share, renewed, weighting, settled = problem.weighting.update(problem, config, st.weighting, X_new, comm)
-    s_new = jnp.where(renewed, 1.0, s_new)  # a new majorizer: AMM's momentum starts afresh
+    s_new = jnp.where(renewed, 1.0, s_new)  # a new objective (GNC stage): AMM's momentum starts afresh
     new = MMState(
         X=X_new,
         grad=grad,
