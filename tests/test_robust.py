@@ -312,6 +312,30 @@ def test_gnc_start_tells_the_monitor_how_far_it_is():
     assert quiet.lines == []  # only the GNC start reports stages
 
 
+@pytest.mark.parametrize("installed", [False, True])
+def test_gnc_start_says_when_pardiso_is_missing(monkeypatch, installed):
+    """Without MKL PARDISO the GNC start's Newton steps fall back to SuperLU (several times slower from
+    PARDISO_NEWTON_MIN_SIZE unknowns): the start says so once, as a warning and a progress line, and
+    says nothing when PARDISO is there or the graph is below that size."""
+    import warnings
+
+    import mmpgo_jax._init.robust_start as rs
+
+    ds = mg.cube_dataset(0, grid=3, num_poses=30)
+    bad = add_outliers(ds.graph, 0.2, reference=ds.ground_truth, seed=1)
+    monkeypatch.setattr(rs, "pardiso_available", lambda: installed)
+    for threshold, expected in ((30 * 6, not installed), (30 * 6 + 1, False)):  # 30 poses x 6 unknowns
+        monkeypatch.setattr(rs, "PARDISO_NEWTON_MIN_SIZE", threshold)
+        lines = []
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            rs.gnc_chordal_initialization(bad.graph, progress=lines.append)
+        said = [str(w.message) for w in caught if "PARDISO" in str(w.message)]
+        assert said == ([rs.MISSING_PARDISO] if expected else []), said
+        assert (lines[0] == "GNC start: " + rs.MISSING_PARDISO) == expected
+        assert sum("PARDISO" in line for line in lines) == int(expected)
+
+
 def test_default_start_of_robust_losses():
     """Least squares starts from the chordal initialization; a robust kernel from the GNC-chordal
     start at its own scale; GNC run by the distributed solver (explicit gnc=) from the chordal one."""

@@ -28,6 +28,7 @@ Section VII starts from the centralized chordal initialization as well); it cost
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -35,7 +36,8 @@ import numpy as np
 
 from .._core.gauge import FixedPoses
 from .._core.pose_graph import PoseGraph, Poses, edge_costs, host_graph
-from .._mm.centralized import newton_optimum
+from .._core.sparse import pardiso_available
+from .._mm.centralized import PARDISO_NEWTON_MIN_SIZE, newton_optimum
 from .._mm.driver import Termination
 from .._mm.robust import TLS, chi2_scale, gnc_initial_mu, gnc_weight
 from .chordal import chordal_initialization
@@ -70,6 +72,21 @@ def _stage_solution(graph: PoseGraph, w: np.ndarray, fixed, termination) -> Pose
     return Poses(R, t)
 
 
+#: What a graph's GNC start says once when its Newton steps would use PARDISO but it is not installed.
+MISSING_PARDISO = ("the GNC start's Newton steps use SciPy's SuperLU because MKL PARDISO is not installed: "
+                   "several times slower on graphs this size (M3500 with 30 % outliers: 68 s against 17 s); "
+                   "pip install 'mmpgo-jax[large]' (x86-64)")
+
+
+def _note_missing_pardiso(graph: PoseGraph, say: Callable[[str], None]) -> None:
+    """Tell the user (a warning, and the progress line) when the start's Newton systems are large
+    enough for PARDISO (``PARDISO_NEWTON_MIN_SIZE`` unknowns) and it is missing."""
+    unknowns = graph.num_poses * graph.dim * (graph.dim + 1) // 2
+    if unknowns >= PARDISO_NEWTON_MIN_SIZE and not pardiso_available():
+        warnings.warn(MISSING_PARDISO, stacklevel=3)
+        say("GNC start: " + MISSING_PARDISO)
+
+
 def gnc_chordal_initialization(
     graph: PoseGraph,
     *,
@@ -98,6 +115,7 @@ def gnc_chordal_initialization(
         robust &= ~np.asarray(trusted, bool)
     termination = Termination(200, 1, grad_tol, stop_when_stalled=False)  # each stage to grad_tol, as before
     say = progress or (lambda text: None)
+    _note_missing_pardiso(g, say)
     say(f"GNC start: least squares of all {g.num_edges} edges")
     w = np.ones(g.num_edges)
     X = _stage_solution(g, w, fixed, termination)
