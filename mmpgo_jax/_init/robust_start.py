@@ -74,7 +74,8 @@ def _stage_solution(graph: PoseGraph, w: np.ndarray, fixed, termination) -> Pose
 
 #: What a graph's GNC start says once when its Newton steps would use PARDISO but it is not installed.
 MISSING_PARDISO = ("the GNC start's Newton steps use SciPy's SuperLU because MKL PARDISO is not installed: "
-                   "several times slower on graphs this size (M3500 with 30 % outliers: 68 s against 17 s); "
+                   "several times slower on graphs this size (M3500 with 30 % wrong inter-robot closures: 68 s "
+                   "against 17 s on a 2-core CPU); "
                    "pip install 'mmpgo-jax[large]' (x86-64)")
 
 

@@ -250,7 +250,7 @@ class Reweighted(Weighting):
         # AMM's momentum is dropped only when the objective changes: at a GNC stage (mu moves) or at the
         # end of the held start weights. An M-estimator's reweighting keeps F_rho and only tightens its
         # majorizer; dropping the momentum there made AMM an MM method whenever weights moved at every
-        # iteration (Huber on city10000: f after 300 iterations 1.1 % higher; benchmarks/robust_cost.md)
+        # iteration (Huber on city10000: f after 300 iterations 1.0 % higher; benchmarks/robust_cost.md)
         renewed = update & (jnp.asarray(self.loss.use_gnc) | state.schedule.held)
         settled = (schedule.done | ~jnp.asarray(self.loss.use_gnc)) & ~schedule.held
         rebuilds = state.rebuilds + rebuild.astype(jnp.int32)
