@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import CLIError
+from .options import pcm_prefilter
 from .robots import read_input, robot_split
 
 SOLVE_STARTS = ("chordal", "distributed-chordal", "distributed-robust", "gnc-chordal", "vertices", "odometry")
@@ -177,8 +178,6 @@ def check_solve_flags(args) -> None:
     """Refuse, before anything is read, the option combinations that cannot run: ``--xi`` /
     ``--restart`` / a robust ``--loss`` with a method that does not take them, and of ``--pcm`` and
     ``--distributed``: a centralized step under ``--distributed`` (one line naming the option)."""
-    from .options import pcm_prefilter
-
     check_method_flags(args)
     pcm_prefilter(args)  # --pcm-confidence without --pcm: one line
     if not getattr(args, "distributed", False):
@@ -216,8 +215,6 @@ def solve_options(args, data: LoadedInput) -> dict:
     # the methods' own defaults where not given (--xi and --restart only with the methods that take them)
     shortcuts = {k: getattr(args, k) for k in ("xi", "restart") if getattr(args, k) is not None}
     check_solve_flags(args)
-    from .options import pcm_prefilter
-
     if (prefilter := pcm_prefilter(args)) is not None:
         robust["prefilter"] = prefilter
     if getattr(args, "distributed", False):
