@@ -33,7 +33,8 @@ FILES = ["MITb", "intel", "CSAIL", "M3500", "sphere2500", "garage", "torus3D", "
          "kitti_02", "kitti_05", "sphere_bignoise_vertex3", "chain15k"]
 HELD_OUT = {"kitti_02", "kitti_05", "sphere_bignoise_vertex3"}
 REFERENCE_FILE = Path(__file__).with_name("inner_solver_reference.json")
-REFERENCE = mg.SubproblemConfig(max_steps=30, cg_iterations=300, cg_tolerance=1e-3, gradient_tolerance=1e-4)
+REFERENCE = mg.SubproblemConfig(max_steps=30, cg_iterations=300, cg_tolerance=1e-3, gradient_tolerance=1e-4,
+                             decrease_tolerance=0.0)
 
 
 def load(name: str):

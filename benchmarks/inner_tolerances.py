@@ -11,6 +11,12 @@ and method serves every pair)::
 
     python benchmarks/inner_tolerances.py --pairs 0.01,0.1 0.03,0.2 --out benchmarks/inner_tolerances.md
 
+``--decrease`` runs each pair with each given ``decrease_tolerance`` (the rule that stops a robot's
+solve once the decrease still to gain is below that fraction of its objective share; default: the
+current default only), e.g. the study of that rule::
+
+    python benchmarks/inner_tolerances.py --pairs 0.03,0.2 --decrease 0 1e-8 1e-7 --out FILE
+
 kitti_02, kitti_05 and sphere_bignoise_vertex3 are held out: never used to choose the defaults.
 """
 
@@ -49,6 +55,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--pairs", nargs="+", type=pair, default=[(0.01, 0.1), (0.03, 0.2)],
                     help="cg_tolerance,gradient_tolerance pairs (default: the earlier and the current default)")
+    ap.add_argument("--decrease", nargs="+", type=float, default=[mg.SubproblemConfig().decrease_tolerance],
+                    help="decrease_tolerance values run with every pair (default: the current default)")
     ap.add_argument("--files", nargs="+", default=FILES)
     ap.add_argument("--out", help="Markdown file (rewritten after every graph)")
     args = ap.parse_args()
@@ -58,21 +66,21 @@ def main() -> None:
               f"{dt.datetime.now(dt.UTC):%Y-%m-%d %H:%M} UTC, {platform.machine()}, {os.cpu_count()} cores, "
               f"load average at start {load_start:.2f}. f columns: (f - f_ref) / f_ref, f_ref with subproblems "
               "solved to convergence (inner_solver_reference.json). ms/it: one CPU device.\n\n"
-              "| graph | method | cg_tolerance | gradient_tolerance | ms/it | "
+              "| graph | method | cg_tolerance | gradient_tolerance | decrease_tolerance | ms/it | "
               + " | ".join(f"f@{k}" for k in CHECKPOINTS)
-              + " |\n|---|---|---:|---:|---:|" + "---:|" * len(CHECKPOINTS) + "\n")
+              + " |\n|---|---|---:|---:|---:|---:|" + "---:|" * len(CHECKPOINTS) + "\n")
     rows = []
     for name in args.files:
         graph = load(name)
         for method in ("amm", "mm"):
             ref = reference[f"{name}/{method}/1000"]["f"]
-            for cg, grad in args.pairs:
-                sub = mg.SubproblemConfig(cg_tolerance=cg, gradient_tolerance=grad)
+            for (cg, grad), dec in ((p, d) for p in args.pairs for d in args.decrease):
+                sub = mg.SubproblemConfig(cg_tolerance=cg, gradient_tolerance=grad, decrease_tolerance=dec)
                 r = mg.solve(graph, 10, method=method, iterations=1000, subproblem=sub)
                 diffs = [(float(r.history.f[k]) - ref[str(k)]) / ref[str(k)] for k in CHECKPOINTS]
                 mark = " (held out)" if name in HELD_OUT else ""
-                rows.append(f"| {name}{mark} | {method.upper()} | {cg:g} | {grad:g} | {r.ms_per_iteration:.2f} | "
-                            + " | ".join(f"{d:+.1e}" for d in diffs) + " |\n")
+                rows.append(f"| {name}{mark} | {method.upper()} | {cg:g} | {grad:g} | {dec:g} | "
+                            f"{r.ms_per_iteration:.2f} | " + " | ".join(f"{d:+.1e}" for d in diffs) + " |\n")
                 print(rows[-1], end="", flush=True)
             if args.out:
                 tmp = args.out + ".tmp"

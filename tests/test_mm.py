@@ -38,7 +38,8 @@ NUM_ROBOTS = 4
 CHUNK = 100  # iterations per run() call (one compile per configuration)
 XI = MMConfig().xi
 
-CONVERGE = SubproblemConfig(max_steps=50, cg_iterations=200, gradient_tolerance=1e-9, cg_tolerance=1e-10)
+CONVERGE = SubproblemConfig(max_steps=50, cg_iterations=200, gradient_tolerance=1e-9, cg_tolerance=1e-10,
+                            decrease_tolerance=0.0)
 
 
 def COMMON_PADDING(graph):
@@ -160,7 +161,9 @@ class _Runs:
         """A = 1 (centralized) and A = n (one pose per robot), 600 iterations each, both padded to
         one common shape (one compile)."""
         g, n = self.p["graph"], N
-        cfg = MMConfig(method="mm")
+        # A = 1 must reach a critical point to 1e-8: subproblems solved to the gradient criterion, without
+        # the rule that stops them once 1e-8 of F is left to gain (test_trust_region.py covers that rule)
+        cfg = MMConfig(method="mm", subproblem=SubproblemConfig(decrease_tolerance=0.0))
         out = {}
         for name, robots in (("A=1", np.zeros(n, int)), ("A=n", np.arange(n))):
             _, problem, st0 = setup_mm(g, self.p["X0"], robots, cfg, **COMMON_PADDING(g))

@@ -324,14 +324,15 @@ def init_state(problem: MMProblem, X0: Poses, config: MMConfig = None) -> MMStat
     )
 
 
-def _mm_update(problem: MMProblem, config: MMConfig, X, grad, gamma=None, pre=None):
+def _mm_update(problem: MMProblem, config: MMConfig, X, grad, gamma=None, pre=None, share=None):
     """X^{alpha,k+1} = argmin G^alpha(. | X^k) for every robot (Algorithm 1 line 6); ``gamma``,
     ``pre``: the majorizer's Gamma^alpha and preconditioner (default: the problem's)."""
-    def solve(G, P, x, g, free):
-        return solve_subproblem(G, P, x, x, g, config.subproblem, free)[0]
+    def solve(G, P, x, g, free, scale):
+        return solve_subproblem(G, P, x, x, g, config.subproblem, free, scale)[0]
     if gamma is None:
         gamma, pre = problem.gamma_soa, problem.preconditioner(config)
-    return jax.vmap(solve, in_axes=(0, 0, 0, 0, _free_axis(problem)))(gamma, pre, X, grad, problem.free)
+    return jax.vmap(solve, in_axes=(0, 0, 0, 0, _free_axis(problem), None if share is None else 0))(
+        gamma, pre, X, grad, problem.free, share)
 
 
 def _free_axis(problem: MMProblem):
@@ -349,8 +350,8 @@ def _amm_update(problem: MMProblem, config: MMConfig, st: MMState, gamma_soa, pr
     if problem.free is not None:  # fixed slots have Y = X exactly; unprojected, they stay bit-exact
         start = jnp.where(problem.free[..., None, None], start, Y)
 
-    def solve(G, P, x0, c, g, free):
-        return solve_subproblem(G, P, x0, c, g, config.subproblem, free)[0]
+    def solve(G, P, x0, c, g, free, scale):
+        return solve_subproblem(G, P, x0, c, g, config.subproblem, free, scale)[0]
 
     def restart_test(Z):
         # G^alpha(Z | X^k) - Gbar^alpha(k): no objective evaluation needed (paper Eq. (19); docs/conventions.md §3).
@@ -381,9 +382,9 @@ def _amm_update(problem: MMProblem, config: MMConfig, st: MMState, gamma_soa, pr
     def body(carry):
         k, restart, soft, soft_hits, _ = carry
         r = restart[:, None, None, None]
-        Z = jax.vmap(solve, in_axes=(0, 0, 0, 0, 0, _free_axis(problem)))(
+        Z = jax.vmap(solve, in_axes=(0, 0, 0, 0, 0, _free_axis(problem), 0))(
             gamma_soa, pre, jnp.where(r, st.X, start), jnp.where(r, st.X, Y), jnp.where(r, st.grad, gY),
-            problem.free)
+            problem.free, st.share)
         first = k == 0
         tested = restart_test(Z)
         restart, soft, soft_hits = (jnp.where(first, new, old) for new, old in zip(tested, (restart, soft, soft_hits),
@@ -406,7 +407,7 @@ def step(problem: MMProblem, config: MMConfig, st: MMState, comm: Collectives = 
     majorizer are set at the new iterate when their schedule says so (:func:`~mmpgo_jax._mm.robust.next_weights`)."""
     gamma, pre = problem.weighting.operators(problem, config, st.weighting)
     if config.method == "mm":
-        X_new = _mm_update(problem, config, st.X, st.grad, gamma, pre)
+        X_new = _mm_update(problem, config, st.X, st.grad, gamma, pre, st.share)
         s_new = st.s
         restart = jnp.zeros_like(st.s, dtype=bool)
         soft_hits = st.soft_hits

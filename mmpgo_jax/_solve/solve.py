@@ -302,7 +302,9 @@ def centralized_optimum(
     xi = 1e-6 if xi is None else xi
     # float32 cannot resolve a 1e-8 residual: CG would always run to its cap
     tol = 1e-8 if float64_enabled() else 1e-4
-    sub = subproblem or SubproblemConfig(max_steps=4, gradient_tolerance=0.1, cg_iterations=1000, cg_tolerance=tol)
+    # a run to grad_tol: no stop at 1e-8 of F left to gain, which would slow the last digits
+    sub = subproblem or SubproblemConfig(max_steps=4, gradient_tolerance=0.1, cg_iterations=1000, cg_tolerance=tol,
+                                         decrease_tolerance=0.0)
     # float32 stalls far above grad_tol: stop once a chunk no longer lowers f
     termination = Termination(max_iterations, chunk_size, grad_tol,
                               rel_decrease_tol=None if float64_enabled() else 1e-7)
