@@ -26,13 +26,14 @@ def _model(H, g, v):
     return g @ v + 0.5 * v @ H @ v
 
 
-def _tcg(H, Minv, g, radius, tol=1e-12, iterations=100, enough=None):
+def _tcg(H, Minv, g, radius, tol=1e-12, iterations=100, enough=None, flag=False):
     config = SubproblemConfig(cg_tolerance=tol, cg_iterations=iterations)
     Hj, Pj = jnp.asarray(H), jnp.asarray(Minv)
-    v, vnorm, model, boundary, k = jax.jit(
+    v, vnorm, model, boundary, k, small = jax.jit(
         lambda g, r: _truncated_cg(lambda x: Hj @ x, lambda x: Pj @ x, g, r, config, enough)
     )(jnp.asarray(g), jnp.asarray(radius, jnp.float64))
-    return np.asarray(v), float(vnorm), float(model), bool(boundary), int(k)
+    out = np.asarray(v), float(vnorm), float(model), bool(boundary), int(k)
+    return (*out, bool(small)) if flag else out
 
 
 @pytest.fixture
@@ -96,9 +97,9 @@ def test_cg_stops_once_little_model_decrease_is_left(dense):
     lam = np.linalg.eigvals(Minv @ H).real  # M^-1 H's spectrum: 1/2 r^T H^-1 r <= 1/2 r^T M^-1 r / lam.min()
     for fraction in (0.3, 1e-2, 1e-5):
         enough = fraction * total
-        v, _, model, boundary, k = _tcg(H, Minv, g, np.inf, enough=enough)
+        v, _, model, boundary, k, small = _tcg(H, Minv, g, np.inf, enough=enough, flag=True)
         r = -g - H @ v
-        assert not boundary
+        assert small and not boundary
         assert 0.5 * r @ Minv @ r <= enough * (1 + 1e-9)
         assert model - (-total) <= enough / lam.min() * (1 + 1e-9)
         if k > 1:  # the iterate before was not yet good enough
@@ -108,11 +109,13 @@ def test_cg_stops_once_little_model_decrease_is_left(dense):
     # fewer iterations for a looser bound; a bound above the whole decrease still takes one iteration
     counts = [_tcg(H, Minv, g, np.inf, enough=f * total)[4] for f in (10.0, 0.3, 1e-2, 1e-5)]
     assert counts[0] == 1 and counts == sorted(counts) and counts[-1] > counts[1]
+    # stopped by the residual test with much left to gain: not flagged
+    assert not _tcg(H, Minv, g, np.inf, tol=0.5, enough=1e-12 * total, flag=True)[5]
 
 
 def test_subproblem_stops_once_its_objective_share_says_enough():
     """``decrease_tolerance`` with the robot's objective share as ``scale``: the solve stops once a
-    step leaves at most decrease_tolerance * scale of decrease to gain (estimated) -- far fewer CG
+    step leaves about decrease_tolerance * scale of decrease to gain (estimated) -- far fewer CG
     iterations, and G^alpha within a small multiple of that of the converged subproblem; with a
     tolerance of 0 the solve is the plain gradient-criterion one, to the last bit."""
     graph = mg.grid_2d_dataset(1, grid=8, num_poses=300).graph

@@ -88,18 +88,20 @@ class SubproblemConfig(eqx.Module):
     benchmarks/inner_solver.md compares the result with subproblems solved to convergence).
 
     The work follows the need (``decrease_tolerance``): the outer loop passes each robot's share of
-    the objective, Gbar^alpha(k), and the solve also stops -- CG within a step, the trust-region
-    loop after a step -- once the decrease still to gain, estimated by 1/2 <g, P g> (g the gradient
-    or CG's residual, P the preconditioner; exact for P = H^-1), is at most ``decrease_tolerance``
-    times that share. Early in a run an outer iteration lowers F by 1e-4-1e-2 of its value and this
-    rule does not act; late in an AMM run, where an iteration gains 1e-8 of F or less, a step of one
-    or two CG iterations is enough and is all it takes. Default 1e-8 (benchmarks/inner_solver.md:
-    the 0.1 % criterion against converged inner solves at 100/250/1000 iterations on every benchmark
-    file; 1e-6 missed it on kitti_00). The price: once less than 1e-8 of F is left to gain in an
-    outer iteration, every robot takes one preconditioned step per iteration, so a run to a tight
-    ``grad_tol`` (with one robot, a run to a critical point) reaches its last digits in more (if
-    cheaper) iterations -- set 0 there, as ``centralized_optimum(method="mm")`` does. Callers
-    without a share (RBCD's block solves) never use the rule.
+    the objective, Gbar^alpha(k), and CG stops once the model decrease still to gain, estimated by
+    1/2 <r, P r> (r CG's residual, P the preconditioner; exact for P = H^-1), is at most
+    ``decrease_tolerance`` times that share; the trust-region loop then stops too if the step was
+    accepted and its model predicted the actual decrease to within the same amount (so the new point
+    has about twice that left at most; no further evaluation needed). Early in a run an outer
+    iteration lowers F by 1e-4-1e-2 of its value and this rule does not act; late in an AMM run,
+    where an iteration gains 1e-8 of F or less, a step of one or two CG iterations is enough and is
+    all it takes. Default 1e-8 (benchmarks/inner_solver.md: the 0.1 % criterion against converged
+    inner solves at 100/250/1000 iterations on every benchmark file; 1e-6 missed it on kitti_00).
+    The price: once less than 1e-8 of F is left to gain in an outer iteration, every robot takes one
+    preconditioned step per iteration, so a run to a tight ``grad_tol`` (with one robot, a run to a
+    critical point) reaches its last digits in more (if cheaper) iterations -- set 0 there, as
+    ``centralized_optimum(method="mm")`` does. Callers without a share (RBCD's block solves) never
+    use the rule.
 
     Defaults (0.2 and 0.03, chosen by measurement: benchmarks/inner_tolerances.md): most robots
     take one trust-region step per outer iteration, whose CG stops at 3 % of its starting
@@ -215,7 +217,8 @@ def _truncated_cg(hess, precond, grad, radius, config: SubproblemConfig, enough=
     it moves to the boundary; with an infinite radius it keeps v, at the first iteration the
     preconditioned gradient), and -- with ``enough`` -- once the model decrease still to gain,
     estimated by 1/2 <r, M^-1 r> (exact for M = H), is at most ``enough`` (after one iteration at
-    least). Returns (v, ||v||_M, m(v), hit the boundary, CG iterations).
+    least). Returns (v, ||v||_M, m(v), hit the boundary, CG iterations, whether ``enough`` was
+    reached inside the region).
     """
     r = -grad  # residual of H v = -grad at v = 0
     z = precond(r)
@@ -266,7 +269,8 @@ def _truncated_cg(hess, precond, grad, radius, config: SubproblemConfig, enough=
     s0 = jnp.stack([zero, rz, zero, zero, rz, zero, (rz > 0).astype(rz.dtype)])
     v, r, _, s = jax.lax.while_loop(cond, body, (jnp.zeros_like(grad), r, z, s0))
     model = 0.5 * (_inner(grad, v) - _inner(v, r))  # = <grad, v> + 1/2 <v, H v>, as r = -grad - H v
-    return v, jnp.sqrt(s[_VMV]), model, s[_OUT] > 0, s[_K].astype(jnp.int32)
+    small = False if enough is None else (s[_OUT] == 0) & (s[_RZ] <= 2.0 * enough)
+    return v, jnp.sqrt(s[_VMV]), model, s[_OUT] > 0, s[_K].astype(jnp.int32), small
 
 
 class _TrustRegionState(eqx.Module):
@@ -279,7 +283,7 @@ class _TrustRegionState(eqx.Module):
     radius: jax.Array
     moved: jax.Array  # a step has been accepted, or none can be: its predicted decrease is at rounding level
     flat: jax.Array  # the last step's predicted decrease was within the rounding level of G^alpha: stop
-    enough: jax.Array  # the last step was accepted and left at most ``enough`` decrease to gain (estimated): stop
+    enough: jax.Array  # the last step left at most ~2 ``enough`` to gain (CG's estimate, an accurate model): stop
 
 
 # Trust-region steps allowed beyond ``max_steps`` while none has been accepted: each rejection
@@ -318,8 +322,8 @@ def _solve(gamma, preconditioner, start, center, g, config: SubproblemConfig, fr
             return tangent(Y, jnp.concatenate([GV[:, :1], GV[:, 1:] - soa_bmm(V[:, 1:], weingarten)], axis=1))
 
         precond = preconditioner.at(Y, weingarten)
-        V, vnorm, model, boundary, cg = _truncated_cg(hess, lambda V: masked(precond(V)), rgrad, st.radius, config,
-                                                      enough)
+        V, vnorm, model, boundary, cg, small = _truncated_cg(hess, lambda V: masked(precond(V)), rgrad, st.radius,
+                                                             config, enough)
         Yc = _retract_soa(Y, V)
         if free is not None:  # re-projecting a fixed rotation would change its last bits
             Yc = jnp.where(free, Yc, Y)
@@ -336,8 +340,9 @@ def _solve(gamma, preconditioner, start, center, g, config: SubproblemConfig, fr
         Y_new = jnp.where(accept, Yc, Y)
         egrad_new = jnp.where(accept, egrad_c, egrad)
         rgrad_new = tangent(Y_new, egrad_new)
-        # what is left to gain at the new point, by the same estimate as CG's (this step's preconditioner)
-        done = st.enough if enough is None else accept & (0.5 * _inner(rgrad_new, masked(precond(rgrad_new))) <= enough)
+        # CG left at most ``enough`` of the model to gain, and the model predicted this step's decrease
+        # to within ``enough``: to that accuracy the new point has at most about 2 ``enough`` left
+        done = st.enough if enough is None else accept & small & (jnp.abs(st.value - value_c - predicted) <= enough)
         return _TrustRegionState(
             steps=st.steps + 1, cg=st.cg + cg, Y=Y_new, egrad=egrad_new,
             value=jnp.where(accept, value_c, st.value),
