@@ -95,8 +95,9 @@ class SubproblemConfig(eqx.Module):
     has about twice that left at most; no further evaluation needed). Early in a run an outer
     iteration lowers F by 1e-4-1e-2 of its value and this rule does not act; late in an AMM run,
     where an iteration gains 1e-8 of F or less, a step of one or two CG iterations is enough and is
-    all it takes. Default 1e-8 (benchmarks/inner_solver.md: the 0.1 % criterion against converged
-    inner solves at 100/250/1000 iterations on every benchmark file; 1e-6 missed it on kitti_00).
+    all it takes. Default 1e-8, chosen in benchmarks/inner_tolerances.md (1e-7 left a long-chain
+    graph at 6.6e-4 of converged inner solves, 1e-6 missed the 0.1 % on kitti_00) and checked in
+    benchmarks/inner_solver.md (the 0.1 % criterion at 100/250/1000 iterations on every file).
     The price: once less than 1e-8 of F is left to gain in an outer iteration, every robot takes one
     preconditioned step per iteration, so a run to a tight ``grad_tol`` (with one robot, a run to a
     critical point) reaches its last digits in more (if cheaper) iterations -- set 0 there, as
@@ -382,8 +383,8 @@ def solve_subproblem(gamma, preconditioner, start, center, g, config: Subproblem
     more than the rounding of its evaluation.
 
     ``scale`` (scalar, optional): the robot's share of the objective (the outer loop passes
-    Gbar^alpha(k)); with it, the solve also stops once a step leaves at most
-    ``config.decrease_tolerance * scale`` of its model's decrease to gain (see
+    Gbar^alpha(k)); with it, the solve also stops once a step leaves about
+    ``config.decrease_tolerance * scale`` of decrease to gain (see
     :class:`SubproblemConfig`). Without it only the gradient criterion stops the solve.
     Internally everything runs in the structure-of-arrays layout (d, d+1, n).
     """
