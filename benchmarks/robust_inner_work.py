@@ -33,8 +33,8 @@ from robust_cost import corrupted  # noqa: E402
 import mmpgo_jax as mm  # noqa: E402
 from mmpgo_jax._init.start import initialize_with_weights  # noqa: E402
 from mmpgo_jax._io.atomic import atomic_write  # noqa: E402
-from mmpgo_jax._mm.outer import MMConfig, MMProblem, start_state, step  # noqa: E402
-from mmpgo_jax._mm.subproblem import project_rotations, subproblem_steps  # noqa: E402
+from mmpgo_jax._mm.outer import MMConfig, MMProblem, momentum_point, start_state, step  # noqa: E402
+from mmpgo_jax._mm.subproblem import subproblem_steps  # noqa: E402
 from mmpgo_jax.cli.bench import machine_info  # noqa: E402
 
 LOSSES = ("l2", "tls", "huber", "cauchy", "huber-fixed")
@@ -51,14 +51,12 @@ def kernel(name: str, iterations: int):
 def first_pass_work(problem: MMProblem, config: MMConfig, st):
     """(steps, cg) per robot of the subproblem AMM's first pass solves in the next iteration."""
     gamma, pre = problem.weighting.operators(problem, config, st.weighting)
-    s_next = 0.5 * (jnp.sqrt(4.0 * st.s**2 + 1.0) + 1.0)
-    a = ((st.s - 1.0) / s_next)[:, None, None, None]
-    Y = st.X + a * (st.X - st.X_prev)
-    gY = st.grad + a * (st.grad - st.grad_prev)
-    start = Y.at[..., 1:].set(project_rotations(Y[..., 1:]))
+    _, Y, gY, start = momentum_point(problem, st)
     free_axis = None if problem.free is None else 0
-    out = jax.vmap(lambda G, P, x0, c, g, free: subproblem_steps(G, P, x0, c, g, config.subproblem, free),
-                   in_axes=(0, 0, 0, 0, 0, free_axis))(gamma, pre, start, Y, gY, problem.free)
+    # with the robot's share as scale, as the outer loop solves it (the decrease rule included)
+    out = jax.vmap(lambda G, P, x0, c, g, free, share: subproblem_steps(G, P, x0, c, g, config.subproblem, free,
+                                                                          share),
+                   in_axes=(0, 0, 0, 0, 0, free_axis, 0))(gamma, pre, start, Y, gY, problem.free, st.share)
     return out.steps, out.cg
 
 

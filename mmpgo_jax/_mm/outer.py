@@ -339,9 +339,9 @@ def _free_axis(problem: MMProblem):
     return None if problem.free is None else 0
 
 
-def _amm_update(problem: MMProblem, config: MMConfig, st: MMState, gamma_soa, pre):
-    """Algorithm 2 lines 11-20 (per robot) with the configured restart test, for the majorizer with
-    Gamma^alpha ``gamma_soa`` and preconditioner ``pre``."""
+def momentum_point(problem: MMProblem, st: MMState):
+    """Algorithm 2 lines 11-13: (s^{k+1}, the momentum point Y, its extrapolated gradient, and Y with
+    its rotations projected to SO(d), where the robots' subproblems start)."""
     s_next = 0.5 * (jnp.sqrt(4.0 * st.s**2 + 1.0) + 1.0)
     gamma = ((st.s - 1.0) / s_next)[:, None, None, None]
     Y = st.X + gamma * (st.X - st.X_prev)
@@ -349,6 +349,13 @@ def _amm_update(problem: MMProblem, config: MMConfig, st: MMState, gamma_soa, pr
     start = Y.at[..., 1:].set(project_rotations(Y[..., 1:]))
     if problem.free is not None:  # fixed slots have Y = X exactly; unprojected, they stay bit-exact
         start = jnp.where(problem.free[..., None, None], start, Y)
+    return s_next, Y, gY, start
+
+
+def _amm_update(problem: MMProblem, config: MMConfig, st: MMState, gamma_soa, pre):
+    """Algorithm 2 lines 11-20 (per robot) with the configured restart test, for the majorizer with
+    Gamma^alpha ``gamma_soa`` and preconditioner ``pre``."""
+    s_next, Y, gY, start = momentum_point(problem, st)
 
     def solve(G, P, x0, c, g, free, scale):
         return solve_subproblem(G, P, x0, c, g, config.subproblem, free, scale)[0]
