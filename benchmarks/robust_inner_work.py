@@ -50,7 +50,7 @@ def kernel(name: str, iterations: int):
 
 def first_pass_work(problem: MMProblem, config: MMConfig, st):
     """(steps, cg) per robot of the subproblem AMM's first pass solves in the next iteration."""
-    gamma, pre = problem.weighting.operators(problem, config, st.weighting)
+    gamma, pre, _ = problem.weighting.operators(problem, config, st.weighting)
     _, Y, gY, start = momentum_point(problem, st)
     free_axis = None if problem.free is None else 0
     # with the robot's share as scale, as the outer loop solves it (the decrease rule included)

@@ -33,7 +33,8 @@ Public API (the private modules are implementation details):
   of large graphs over the cores)
 * sharding over devices and processes: :mod:`mmpgo_jax.sharding` (``solve_sharded``)
 * plots (imports matplotlib): :mod:`mmpgo_jax.plotting`
-* precision: :func:`enable_float64`; compilation: :func:`enable_compilation_cache` (JAX's persistent cache)
+* precision: :func:`enable_float64`; compilation: :func:`enable_compilation_cache` (JAX's persistent cache),
+  :func:`set_compile_mode` (fast compile or fastest iterations)
 """
 
 import importlib
@@ -43,6 +44,7 @@ if TYPE_CHECKING:  # the same names, eagerly, for type checkers and IDEs
     from ._baselines.dgs import DGS, DGSResult, dgs
     from ._baselines.rbcd import RBCD, rbcd_poses_sent
     from ._core.compilation_cache import enable_compilation_cache
+    from ._core.compile_mode import set_compile_mode
     from ._core.gauge import FixedPoses, express_in_frame
     from ._core.geometry import project_to_so, quaternion_to_rotation, rotation_2d
     from ._core.metrics import (
@@ -138,6 +140,7 @@ if TYPE_CHECKING:  # the same names, eagerly, for type checkers and IDEs
 
 _LAZY = {  # public name -> the private module that defines it (imported on first use)
     "enable_compilation_cache": "._core.compilation_cache",
+    "set_compile_mode": "._core.compile_mode",
     "FixedPoses": "._core.gauge",
     "express_in_frame": "._core.gauge",
     "project_to_so": "._core.geometry",
@@ -375,6 +378,7 @@ __all__ = [
     "robots_from_symbols",
     "rotation_2d",
     "run",
+    "set_compile_mode",
     "solve",
     "split_robots",
     "step",

@@ -23,6 +23,8 @@ from pathlib import Path
 import jax
 import numpy as np
 
+from .compile_mode import compile_lowered, compiler_options, program_slots
+
 ENV = "MMPGO_COMPILATION_CACHE"
 _OFF = {"off", "0", "no", "false", "none"}
 
@@ -130,7 +132,7 @@ def compile_exported(fn, args: tuple, static_argnums: tuple[int, ...], out_struc
             os.replace(tmp, path)
         except OSError:  # a read-only cache costs only the speed-up
             pass
-    compiled = jax.jit(exported.call).lower(*leaves).compile()
+    compiled = compile_lowered(jax.jit(exported.call).lower(*leaves), compiler_options(program_slots(args)))
 
     def call(*values):
         return jax.tree.unflatten(out_tree, compiled(*jax.tree.leaves(values)))

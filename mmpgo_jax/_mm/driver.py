@@ -23,6 +23,7 @@ import jax
 import numpy as np
 
 from .._core.compilation_cache import compile_exported
+from .._core.compile_mode import compile_lowered, compiler_options, program_slots
 from .._core.validate import check_count, check_flag, check_real
 
 __all__ = ["RESULTS", "STALL_EPS", "History", "Monitor", "NonFiniteError", "Termination", "compile_once", "drive"]
@@ -203,18 +204,20 @@ def _signature(tree):
 
 def compile_once(fn, *args, static=(), exported=None):
     """``fn.lower(*args).compile()`` (``fn`` jitted; ``static`` its hashable static values, also
-    part of the key), cached per argument structure, shapes, dtypes and shardings. ``exported``:
+    part of the key) with the compile mode's options, cached per argument structure, shapes, dtypes,
+    shardings and those options. ``exported``:
     ``(python function, static argument positions, output structure)`` to keep the traced program
     in the persistent cache when it is on (:func:`~mmpgo_jax._core.compilation_cache.compile_exported`:
     a warm process does not trace again)."""
-    key = (fn, static, _signature(args))
+    options = compiler_options(program_slots(args))
+    key = (fn, static, _signature(args), tuple(sorted((options or {}).items())))
     compiled = _COMPILED.get(key)
     if compiled is None:
         if len(_COMPILED) > 64:  # bounded: long sessions with many shapes
             _COMPILED.pop(next(iter(_COMPILED)))
         compiled = compile_exported(*exported[:1], args, *exported[1:]) if exported is not None else None
         if compiled is None:
-            compiled = fn.lower(*args).compile()
+            compiled = compile_lowered(fn.lower(*args), options)
         _COMPILED[key] = compiled
     return compiled
 

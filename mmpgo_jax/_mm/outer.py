@@ -412,7 +412,7 @@ def _amm_update(problem: MMProblem, config: MMConfig, st: MMState, gamma_soa, pr
 def step(problem: MMProblem, config: MMConfig, st: MMState, comm: Collectives = LOCAL):
     """One outer iteration; returns (new state, record). With a robust loss the weights of the next
     majorizer are set at the new iterate when their schedule says so (:func:`~mmpgo_jax._mm.robust.next_weights`)."""
-    gamma, pre = problem.weighting.operators(problem, config, st.weighting)
+    gamma, pre, weighting = problem.weighting.operators(problem, config, st.weighting)
     if config.method == "mm":
         X_new = _mm_update(problem, config, st.X, st.grad, gamma, pre, st.share)
         s_new = st.s
@@ -422,7 +422,7 @@ def step(problem: MMProblem, config: MMConfig, st: MMState, comm: Collectives = 
         X_new, s_new, restart, soft_hits = _amm_update(problem, config, st, gamma, pre)
     else:
         raise ValueError(f"unknown method {config.method!r}: use 'mm' or 'amm'")
-    grad, share, renewed, weighting, settled = problem.weighting.update(problem, config, st.weighting, X_new, comm)
+    grad, share, renewed, weighting, settled = problem.weighting.update(problem, config, weighting, X_new, comm)
     s_new = jnp.where(renewed, 1.0, s_new)  # a new objective (GNC stage): AMM's momentum starts afresh
     new = MMState(
         X=X_new,

@@ -377,27 +377,34 @@ def _scaled_pseudo_inverse(M):
 
 
 def newton_from_gamma(diag, base: NewtonPreconditioner, parts: CoarseParts | None, weights,
-                      slot_weight, coarse_inverse=None) -> NewtonPreconditioner:
+                      slot_weight, coarse_inverse=None, refresh=None) -> NewtonPreconditioner:
     """The preconditioner of one robot whose Gamma has the diagonal blocks ``diag`` (n, k, k) (JAX):
     its fine level from ``diag``; with a coarse level (``base`` built by
     :func:`build_newton_preconditioner`, ``parts`` by :func:`build_coarse_parts`), B^T Gamma B from
     the edge ``weights`` (e_max,) and ``slot_weight`` (n,), the coefficient of each slot's identity
     block in Gamma (xi, or 1 where the block was empty), then its pseudo-inverse, or
-    ``coarse_inverse`` as given (a coarse level kept from earlier weights)."""
+    ``coarse_inverse`` as given (a coarse level kept from earlier weights); with both
+    ``coarse_inverse`` and a traced flag ``refresh``, the new one where ``refresh`` holds (one copy of
+    the fine level in the compiled program, whichever is taken)."""
     gamma00, g, schur = _fine_constants(diag, jnp)
     fine = dict(gamma00=gamma00, coupling=jnp.moveaxis(g, 0, -1), schur=jnp.moveaxis(schur, 0, -1))
     if not base.has_coarse:
         return NewtonPreconditioner(**fine)
-    if coarse_inverse is not None:
-        return NewtonPreconditioner(**fine, frame=base.frame, real=base.real, coarse_inverse=coarse_inverse,
-                                    aggregate=base.aggregate)
     size = base.coarse_inverse.shape[-1]
 
     def scatter(values, index):  # sum values (..., r, r) into the coarse matrix at index (..., r)
         flat = index[..., :, None] * size + index[..., None, :]
         return jax.ops.segment_sum(values.reshape(-1), flat.reshape(-1), size * size).reshape(size, size)
 
-    coarse = scatter(weights[:, None, None] * parts.edge_blocks, parts.edge_index) + \
-        scatter(slot_weight[:, None, None] * parts.slot_blocks, parts.slot_index)
-    return NewtonPreconditioner(**fine, frame=base.frame, real=base.real,
-                                coarse_inverse=_scaled_pseudo_inverse(coarse), aggregate=base.aggregate)
+    def computed():
+        coarse = scatter(weights[:, None, None] * parts.edge_blocks, parts.edge_index) + \
+            scatter(slot_weight[:, None, None] * parts.slot_blocks, parts.slot_index)
+        return _scaled_pseudo_inverse(coarse)
+
+    if coarse_inverse is None:
+        coarse_inverse = computed()
+    elif refresh is not None:
+        kept = coarse_inverse
+        coarse_inverse = jax.lax.cond(refresh, computed, lambda: kept)
+    return NewtonPreconditioner(**fine, frame=base.frame, real=base.real, coarse_inverse=coarse_inverse,
+                                aggregate=base.aggregate)

@@ -411,12 +411,13 @@ def robust_outcome(loss: RobustLoss, graph, partition, weights, poses):
     incident-edge ``weights`` (A, e_max) of ``partition`` at ``poses`` (global order, any frame):
     the weights of the last majorizer and the edges whose residual is within the scale, s <= c^2
     (for TLS after GNC: the edges of weight 1)."""
-    from .._core.pose_graph import edge_costs
+    from .._core.pose_graph import Poses, edge_costs, host_graph
 
     index = incident_edge_index(graph.i, graph.j, partition.robot_of_pose, partition.num_robots,
                                 partition.max_edges)
     w = edge_values(np.asarray(weights), index, graph.num_edges)
-    s = np.asarray(edge_costs(graph, poses))
+    # on the host: op by op on the device, each operation would compile a program of its own
+    s = edge_costs(host_graph(graph), Poses(np.asarray(poses.R), np.asarray(poses.t)))
     return w, (s <= float(np.asarray(loss.scale)) ** 2) | ~robust_edges(loss, graph.i, graph.j)
 
 

@@ -93,6 +93,11 @@ class WeightState(eqx.Module):
     gamma_weights: jax.Array  # (A, e_max) the weights Γ^α was built with (>= weights, see GAMMA_SLACK)
     coarse_weights: jax.Array  # (A, e_max) the weights the preconditioner's coarse level was built with
     coarse_rebuilds: jax.Array  # () int32: times that coarse level was rebuilt after the start
+    # Γ^α and the preconditioner are rebuilt from gamma_weights when the next step asks for them
+    # (:meth:`Reweighted.operators`), the coarse level too with ``refresh``: one copy of the assembly
+    # in the compiled loop, none in the start's program (whose operators are placeholders, pending)
+    pending: jax.Array  # () bool
+    refresh: jax.Array  # () bool
 
 
 class Weighting(eqx.Module):
@@ -105,7 +110,7 @@ class Weighting(eqx.Module):
         raise NotImplementedError
 
     def operators(self, problem, config, state):
-        """(Γ^α, preconditioner) of the current majorizer."""
+        """(Γ^α, preconditioner) of the current majorizer, and the state that holds them."""
         raise NotImplementedError
 
     def update(self, problem, config, state, X, comm: Collectives):
@@ -126,7 +131,7 @@ class LeastSquares(Weighting):
         return grad, share, local, NoWeights()
 
     def operators(self, problem, config, state):
-        return problem.gamma_soa, problem.preconditioner(config)
+        return problem.gamma_soa, problem.preconditioner(config), state
 
     def update(self, problem, config, state, X, comm: Collectives):
         grad, share, _ = gradients(problem, X, comm)
@@ -175,10 +180,11 @@ class Reweighted(Weighting):
         weighted = jax.vmap(robot_share)(part.edges, weights * s)
         return grad, share, weighted
 
-    def _operators_of(self, problem, config, weights, coarse_inverse=None):
+    def _operators_of(self, problem, config, weights, coarse_inverse=None, refresh=None):
         """Γ^α (structure of arrays) and the preconditioner of every robot for edge ``weights``,
         assembled in the compiled step; the coarse level only when the config uses it, and then
-        ``coarse_inverse`` (A, ...) kept as it is when given (:data:`COARSE_DRIFT`)."""
+        ``coarse_inverse`` (A, ...) kept as it is when given, unless the traced flag ``refresh``
+        holds (:data:`COARSE_DRIFT`)."""
         block_jacobi = config.subproblem.preconditioner == "block-jacobi"
         base = problem.newton.without_coarse() if block_jacobi else problem.newton
         n_max = problem.partition.max_poses
@@ -186,7 +192,8 @@ class Reweighted(Weighting):
         def one(edges, layout, w, base_a, parts_a, kept_a):
             gamma, empty = assemble_gamma(edges, layout, w, problem.xi, n_max)
             slot_weight = jnp.where(empty, 1.0, problem.xi).astype(w.dtype)
-            return gamma_to_soa(gamma), newton_from_gamma(gamma.diag, base_a, parts_a, w, slot_weight, kept_a)
+            return gamma_to_soa(gamma), newton_from_gamma(gamma.diag, base_a, parts_a, w, slot_weight, kept_a,
+                                                          refresh)
 
         parts = self.coarse if base.has_coarse else None
         kept = coarse_inverse if base.has_coarse else None
@@ -200,22 +207,36 @@ class Reweighted(Weighting):
         E, s = self._residuals(problem, X0)
         weights = start_weights(self.loss, s, self.robust_edge, self.given, self.use_given)
         gamma_weights = self._inflated(weights)
-        gamma, newton = self._operators_of(problem, config, gamma_weights)
+        shapes = jax.eval_shape(lambda: self._operators_of(problem, config, gamma_weights))
+        gamma, newton = jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), shapes)  # pending: built in step 1
         grad, share, weighted = self._gradients(problem, E, s, weights)
         local = 0.5 * jnp.sum(robust_cost(self.loss, s, self.robust_edge), axis=-1)
         schedule = initial_schedule(self.loss, 2.0 * jnp.sum(weighted), self.use_given)
-        zero = jnp.zeros((), jnp.int32)
+        zero, yes = jnp.zeros((), jnp.int32), jnp.ones((), bool)
         return grad, share, local, WeightState(weights, gamma, newton, schedule, zero, gamma_weights, gamma_weights,
-                                               zero)
+                                               zero, pending=yes, refresh=yes)
 
     def operators(self, problem, config, state: WeightState):
+        """Γ^α and the preconditioner, rebuilt first when the last update (or the start) left them
+        pending (the coarse level's pseudo-inverse only where refreshed)."""
         problem.preconditioner(config)  # checks that the config's preconditioner was built
+        has_coarse = state.newton.coarse_inverse is not None  # the config's preconditioner has that level
+
+        def rebuilt():
+            kept = state.newton.coarse_inverse if has_coarse else None
+            return self._operators_of(problem, config, state.gamma_weights, kept,
+                                      refresh=state.refresh if has_coarse else None)
+
+        gamma, newton = jax.lax.cond(state.pending, rebuilt, lambda: (state.gamma, state.newton))
+        no = jnp.zeros((), bool)
+        state = eqx.tree_at(lambda st: (st.gamma, st.newton, st.pending, st.refresh), state, (gamma, newton, no, no))
         block_jacobi = config.subproblem.preconditioner == "block-jacobi"
-        return state.gamma, state.newton.without_coarse() if block_jacobi else state.newton
+        return gamma, newton.without_coarse() if block_jacobi else newton, state
 
     def update(self, problem, config, state: WeightState, X, comm: Collectives):
-        """The weights (updated when the schedule says so, and Γ^α with its preconditioner rebuilt
-        then only), the gradient of the new majorizer, the robust shares."""
+        """The weights (updated when the schedule says so, and Γ^α with its preconditioner left to
+        rebuild then only, by the next :meth:`operators`), the gradient of the new majorizer, the
+        robust shares."""
         E, s = self._residuals(problem, X, comm)
         weighted_f = 2.0 * comm.sum(jax.vmap(robot_share)(problem.partition.edges, state.weights * s))
         s_max = comm.max(jnp.where(self.robust_edge, s, 0.0))
@@ -237,14 +258,6 @@ class Reweighted(Weighting):
         coarse = rebuild & anywhere(drift > COARSE_DRIFT * jnp.sum(state.coarse_weights, axis=-1)) & has_coarse
         coarse_weights = jnp.where(coarse, gamma_weights, state.coarse_weights)
 
-        def rebuilt():
-            if not has_coarse:
-                return self._operators_of(problem, config, gamma_weights)
-            return jax.lax.cond(coarse, lambda: self._operators_of(problem, config, gamma_weights),
-                                lambda: self._operators_of(problem, config, gamma_weights,
-                                                           state.newton.coarse_inverse))
-
-        gamma, newton = jax.lax.cond(rebuild, rebuilt, lambda: (state.gamma, state.newton))
         grad, share, weighted = self._gradients(problem, E, s, weights)
         schedule = eqx.tree_at(lambda sc: sc.weighted_f, schedule, 2.0 * comm.sum(weighted))
         # AMM's momentum is dropped only when the objective changes: at a GNC stage (mu moves) or at the
@@ -255,8 +268,9 @@ class Reweighted(Weighting):
         settled = (schedule.done | ~jnp.asarray(self.loss.use_gnc)) & ~schedule.held
         rebuilds = state.rebuilds + rebuild.astype(jnp.int32)
         coarse_rebuilds = state.coarse_rebuilds + coarse.astype(jnp.int32)
-        return grad, share, renewed, WeightState(weights, gamma, newton, schedule, rebuilds, gamma_weights,
-                                                coarse_weights, coarse_rebuilds), settled
+        return grad, share, renewed, WeightState(weights, state.gamma, state.newton, schedule, rebuilds, gamma_weights,
+                                                coarse_weights, coarse_rebuilds, pending=rebuild,
+                                                refresh=coarse), settled
 
     def outcome(self, graph, part, state: WeightState, poses, to_host=np.asarray) -> tuple[dict, dict]:
         loss = jax.device_get(self.loss)

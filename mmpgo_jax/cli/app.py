@@ -131,6 +131,10 @@ def _run(args, *, program: bool = False) -> int:
 
         enable_float64()
     _use_compilation_cache(args)
+    if getattr(args, "compile_mode", None) is not None:
+        from .._core.compile_mode import set_compile_mode
+
+        set_compile_mode(args.compile_mode)
     if program:
         preload = getattr(args, "preload", None)
         if preload is not None:

@@ -1,0 +1,84 @@
+"""How XLA:CPU compiles the solver's programs: quickly, or for the fastest iterations.
+
+XLA:CPU turns a program's fused kernels into machine code through its MLIR fusion emitters (XLA's
+default) or through its older LLVM IR emitters (``xla_cpu_use_fusion_emitters=False``). Measured on
+the benchmark files (``benchmarks/compile_mode.md``, AMM, 10 robots, 2-core AMD EPYC): the older
+emitters compile the outer-loop program in 1.3-2.0 s instead of 2.0-2.8 s (0.6-0.8 s less on every
+file, 1.3 s less for a TLS run), and its iterations run 0-12 % slower (most files 0-5 %). The saving
+is a fixed amount per compiled program; the cost grows with the iterations' work. So ``"auto"``
+(the default) compiles programs of at most :data:`FAST_COMPILE_SLOTS` padded pose slots (all the
+benchmark files at 10 robots) the fast way, where 1000 iterations at the measured 5 % lose less
+than the compile saves, and larger programs for the fastest iterations; ``"fast"`` and
+``"optimized"`` force one or the other. A per-program compiler option: no global XLA flag is set.
+Only the CPU backend has the choice; on a GPU the setting has no effect.
+"""
+
+from __future__ import annotations
+
+import os
+
+import jax
+import numpy as np
+
+ENV = "MMPGO_COMPILE_MODE"
+MODES = ("auto", "fast", "optimized")
+#: Programs with at most this many padded pose slots (robots x poses per robot, times the
+#: configurations of a sweep) compile the fast way under "auto": about 1.5 ms per iteration at
+#: 10^4 slots on the measured CPU, so 5 % of 1000 iterations is ~0.1 s at 2 * 10^4 against the
+#: 0.6-0.8 s the fast compile saves.
+FAST_COMPILE_SLOTS = 20_000
+_FAST = {"xla_cpu_use_fusion_emitters": False}
+_mode: str | None = None
+
+
+def set_compile_mode(mode: str) -> None:
+    """``"auto"`` (default), ``"fast"`` or ``"optimized"`` for the programs compiled from now on in
+    this process (see the module docstring). Programs already compiled are kept."""
+    if mode not in MODES:
+        raise ValueError(f"compile mode must be one of {', '.join(MODES)}, got {mode!r}")
+    global _mode
+    _mode = mode
+
+
+def compile_mode() -> str:
+    """The mode in use: :func:`set_compile_mode`'s, else ``MMPGO_COMPILE_MODE``, else ``"auto"``."""
+    if _mode is not None:
+        return _mode
+    value = os.environ.get(ENV, "auto").strip().lower() or "auto"
+    if value not in MODES:
+        raise ValueError(f"{ENV} must be one of {', '.join(MODES)}, got {value!r}")
+    return value
+
+
+def program_slots(args) -> int | None:
+    """The padded pose slots of a program's arguments: those of the first argument with a
+    ``partition`` (every solver problem has one), or None."""
+    for a in args:
+        part = getattr(a, "partition", None)
+        if part is not None and hasattr(part, "pose_mask"):
+            return int(np.size(part.pose_mask))
+    return None
+
+
+def compiler_options(slots: int | None) -> dict | None:
+    """XLA compiler options for a program of ``slots`` padded pose slots, or None (XLA's defaults)."""
+    if jax.default_backend() != "cpu":
+        return None
+    mode = compile_mode()
+    if mode == "fast" or (mode == "auto" and slots is not None and slots <= FAST_COMPILE_SLOTS):
+        return dict(_FAST)
+    return None
+
+
+def compile_lowered(lowered, options: dict | None):
+    """``lowered.compile()`` with the XLA ``options`` of :func:`compiler_options`; an XLA that no
+    longer knows the option compiles with its defaults (the choice moves compile and run time and
+    rounding only)."""
+    if options is None:
+        return lowered.compile()
+    try:
+        return lowered.compile(compiler_options=options)
+    except Exception as err:  # an unknown option: XLA's message names it
+        if "fusion_emitters" not in str(err):
+            raise
+        return lowered.compile()

@@ -1,0 +1,81 @@
+"""The compile mode: which programs compile the fast way, the setting's sources and checks, the
+fallback when XLA no longer knows the option, and the same solution either way."""
+
+from pathlib import Path
+from types import SimpleNamespace
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import mmpgo_jax as mm
+from mmpgo_jax._core import compile_mode as cm
+from mmpgo_jax._core.partition import partition
+
+TINY = Path(__file__).parent / "data" / "tiny2d.g2o"
+
+
+@pytest.fixture
+def mode():
+    """Restore the process's mode after a test that sets it."""
+    yield
+    cm._mode = None
+
+
+def test_auto_compiles_small_programs_fast(mode, monkeypatch):
+    monkeypatch.delenv(cm.ENV, raising=False)
+    assert cm.compile_mode() == "auto"
+    assert cm.compiler_options(cm.FAST_COMPILE_SLOTS) == {"xla_cpu_use_fusion_emitters": False}
+    assert cm.compiler_options(cm.FAST_COMPILE_SLOTS + 1) is None
+    assert cm.compiler_options(None) is None  # size unknown: XLA's defaults
+
+
+def test_modes_force_one_way(mode, monkeypatch):
+    monkeypatch.setenv(cm.ENV, "optimized")
+    assert cm.compiler_options(10) is None
+    mm.set_compile_mode("fast")  # the call wins over the environment
+    assert cm.compiler_options(10**9) == {"xla_cpu_use_fusion_emitters": False}
+
+
+def test_bad_modes_are_refused(mode, monkeypatch):
+    with pytest.raises(ValueError, match="compile mode must be one of auto, fast, optimized"):
+        mm.set_compile_mode("quick")
+    monkeypatch.setenv(cm.ENV, "quick")
+    with pytest.raises(ValueError, match="MMPGO_COMPILE_MODE must be one of"):
+        cm.compile_mode()
+
+
+def test_program_slots_of_a_problem():
+    """The padded pose slots of the first argument with a partition (a solver problem)."""
+    graph = mm.read_g2o(TINY).graph
+    part = partition(graph, mm.contiguous_robots(graph.num_poses, 3))
+    problem = SimpleNamespace(partition=part)
+    assert cm.program_slots((1, problem, "x")) == part.num_robots * part.max_poses >= graph.num_poses
+    assert cm.program_slots((1, 2)) is None
+
+
+def test_an_unknown_option_falls_back_to_xla_defaults(monkeypatch):
+    """A later XLA without the option: the program still compiles (with XLA's defaults) and computes
+    the same values; any other compile error is raised."""
+    lowered = jax.jit(lambda x: jnp.sin(x) * 2.0 + jnp.sum(x)).lower(jnp.arange(4.0))
+    monkeypatch.setattr(cm, "_FAST", {"xla_cpu_use_fusion_emitters_gone": False})
+    monkeypatch.setattr(cm, "_mode", "fast")
+    compiled = cm.compile_lowered(lowered, cm.compiler_options(1))
+    x = jnp.arange(4.0)
+    np.testing.assert_allclose(compiled(x), jnp.sin(x) * 2.0 + jnp.sum(x), rtol=1e-6)
+    monkeypatch.setattr(cm, "_FAST", {"no_such_xla_option": False})
+    with pytest.raises(Exception, match="no_such_xla_option"):
+        cm.compile_lowered(lowered, cm.compiler_options(1))
+
+
+def test_both_modes_reach_the_same_solution(mode):
+    """The fast and the optimized programs of one run: the same f to rounding (different code
+    generators may round differently), every iteration."""
+    graph = mm.read_g2o(TINY).graph
+    runs = {}
+    for m in ("fast", "optimized"):
+        mm.set_compile_mode(m)
+        runs[m] = mm.solve(graph, 2, iterations=30, stop_when_stalled=False)
+    fast, opt = runs["fast"].history.f, runs["optimized"].history.f
+    np.testing.assert_allclose(fast, opt, rtol=1e-9)
