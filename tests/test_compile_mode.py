@@ -53,6 +53,7 @@ def test_program_slots_of_a_problem():
     problem = SimpleNamespace(partition=part)
     assert cm.program_slots((1, problem, "x")) == part.num_robots * part.max_poses >= graph.num_poses
     assert cm.program_slots((1, 2)) is None
+    assert cm.program_slots((SimpleNamespace(pose_slots=7),)) == 7  # the distributed chordal start's stages
 
 
 def test_an_unknown_option_falls_back_to_xla_defaults(monkeypatch):

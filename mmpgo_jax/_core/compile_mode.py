@@ -52,11 +52,15 @@ def compile_mode() -> str:
 
 def program_slots(args) -> int | None:
     """The padded pose slots of a program's arguments: those of the first argument with a
-    ``partition`` (every solver problem has one), or None."""
+    ``partition`` (every solver problem has one) or a ``pose_slots`` count (the distributed chordal
+    start's stages), or None."""
     for a in args:
         part = getattr(a, "partition", None)
         if part is not None and hasattr(part, "pose_mask"):
             return int(np.size(part.pose_mask))
+        slots = getattr(a, "pose_slots", None)
+        if isinstance(slots, int):
+            return slots
     return None
 
 

@@ -383,6 +383,11 @@ class _Stage(eqx.Module):
     anchor: jax.Array
     Ginv: jax.Array
 
+    @property
+    def pose_slots(self) -> int:
+        """The padded pose slots (robots x poses per robot): the size the compile mode reads."""
+        return int(np.size(self.anchor))
+
     def gradient(self, X):
         """(grad F(X) per robot, the relaxed objective 2F(X))."""
         raise NotImplementedError
