@@ -2,10 +2,12 @@
 
 XLA:CPU turns a program's fused kernels into machine code through its MLIR fusion emitters (XLA's
 default) or through its older LLVM IR emitters (``xla_cpu_use_fusion_emitters=False``). Measured on
-the benchmark files (``benchmarks/compile_mode.md``, AMM, 10 robots, 2-core AMD EPYC): the older
-emitters compile the outer-loop program in 1.3-2.0 s instead of 2.0-2.8 s (0.6-0.8 s less on every
-file, 1.3 s less for a TLS run), and its iterations run 0-12 % slower (most files 0-5 %). The saving
-is a fixed amount per compiled program; the cost grows with the iterations' work. So ``"auto"``
+the benchmark files (``benchmarks/compile_mode.md``, AMM, 10 robots, 2-core AMD EPYC): with the older
+emitters the CLI's whole compile phase takes 1.4-2.0 s instead of 2.1-3.0 s (0.55-0.94 s less on
+every file, 0.74-1.01 s on the held-out ones, 1.1 s less for a TLS run), and the iterations run 0-5 %
+slower in warm interleaved runs (XLA then executes the loop closures' scatter-adds and some layout
+changes as small loops instead of fused kernels). The saving is a fixed amount per compiled
+program; the cost grows with the iterations' work. So ``"auto"``
 (the default) compiles programs of at most :data:`FAST_COMPILE_SLOTS` padded pose slots (all the
 benchmark files at 10 robots) the fast way, where 1000 iterations at the measured 5 % lose less
 than the compile saves, and larger programs for the fastest iterations; ``"fast"`` and
