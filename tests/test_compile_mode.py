@@ -1,6 +1,7 @@
 """The compile mode: which programs compile the fast way, the setting's sources and checks, the
 fallback when XLA no longer knows the option, and the same solution either way."""
 
+import re
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -80,3 +81,15 @@ def test_both_modes_reach_the_same_solution(mode):
         runs[m] = mm.solve(graph, 2, iterations=30, stop_when_stalled=False)
     fast, opt = runs["fast"].history.f, runs["optimized"].history.f
     np.testing.assert_allclose(fast, opt, rtol=1e-9)
+    assert {m: r.stats["compile_mode"] for m, r in runs.items()} == {"fast": "fast", "optimized": "optimized"}
+
+
+def test_the_cli_names_the_mode_in_its_time_line(mode, monkeypatch, capsys):
+    from mmpgo_jax.cli import main
+
+    monkeypatch.delenv(cm.ENV, raising=False)
+    assert main(["solve", str(TINY), "--robots", "2", "-n", "5", "--no-progress", "--no-compilation-cache"]) == 0
+    assert re.search(r"compile [0-9.]+ s \(fast\),", capsys.readouterr().out)  # a tiny graph: auto -> fast
+    assert main(["solve", str(TINY), "--robots", "2", "-n", "5", "--no-progress", "--no-compilation-cache",
+                 "--compile-mode", "optimized"]) == 0
+    assert re.search(r"compile [0-9.]+ s \(optimized\),", capsys.readouterr().out)

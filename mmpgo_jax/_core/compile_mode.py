@@ -76,6 +76,14 @@ def compiler_options(slots: int | None) -> dict | None:
     return None
 
 
+def code_generation(slots: int | None) -> str:
+    """How a program of ``slots`` padded pose slots is compiled now: ``"fast"``, ``"optimized"``
+    (XLA:CPU's default), or ``"default"`` off the CPU backend (a run's ``stats["compile_mode"]``)."""
+    if jax.default_backend() != "cpu":
+        return "default"
+    return "fast" if compiler_options(slots) else "optimized"
+
+
 def compile_lowered(lowered, options: dict | None):
     """``lowered.compile()`` with the XLA ``options`` of :func:`compiler_options`; an XLA that no
     longer knows the option compiles with its defaults (the choice moves compile and run time and

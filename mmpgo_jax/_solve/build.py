@@ -17,6 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._core.compile_mode import code_generation, program_slots
 from .._core.metrics import trajectory_accuracy
 from .._core.pose_graph import PoseGraph, Poses
 from .._init.start import initialize_with_weights
@@ -196,7 +197,8 @@ def finish(graph: PoseGraph, solver: Solver, run: Prepared, driven, termination:
         _partition=placement.user_part,
         config=getattr(solver, "config", None),
         result=driven.result,
-        stats={**run.clock.stats(driven.compile_seconds, driven.solve_seconds), **placement.stats(), **robust_stats},
+        stats={**run.clock.stats(driven.compile_seconds, driven.solve_seconds), **placement.stats(), **robust_stats,
+               "compile_mode": code_generation(program_slots((run.problem,)))},
         accuracy=None if ground_truth is None else trajectory_accuracy(poses, ground_truth),
         termination=termination,
         start=output_frame(run.start_poses, fixed, frame),

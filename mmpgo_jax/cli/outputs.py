@@ -204,7 +204,9 @@ def print_summary(result, fstar, data: LoadedInput | None = None) -> None:
 def print_timing(result, *, read: float, write: float) -> None:
     """The time line: every phase of the run, in the order it ran."""
     setup = f"initialize {result.initialize_seconds:.2f} s, build {result.build_seconds:.2f} s"
-    print(f"time        read {read:.2f} s, {setup}, compile {result.compile_seconds:.2f} s, "
+    mode = result.stats.get("compile_mode")
+    compiled = f"compile {result.compile_seconds:.2f} s" + (f" ({mode})" if mode in ("fast", "optimized") else "")
+    print(f"time        read {read:.2f} s, {setup}, {compiled}, "
           f"iterations {result.solve_seconds:.2f} s ({result.ms_per_iteration:.2f} ms/iteration), write {write:.2f} s")
 
 
