@@ -23,7 +23,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from .compile_mode import compile_lowered, compiler_options, program_slots
+from .compile_mode import compile_lowered
 
 ENV = "MMPGO_COMPILATION_CACHE"
 _OFF = {"off", "0", "no", "false", "none"}
@@ -94,7 +94,7 @@ def _program_key(name: str, args, static) -> str:
     return h.hexdigest()
 
 
-def compile_exported(fn, args: tuple, static_argnums: tuple[int, ...], out_structure):
+def compile_exported(fn, args: tuple, static_argnums: tuple[int, ...], out_structure, options: dict | None = None):
     """``fn`` (a function of ``args``; the positions ``static_argnums`` are hashable static
     values) compiled for ``args``, with its traced program kept in the persistent cache: the first
     call traces and serializes it (``jax.export``), later processes deserialize it instead of
@@ -102,7 +102,8 @@ def compile_exported(fn, args: tuple, static_argnums: tuple[int, ...], out_struc
     flat outputs). Arguments sharded over several devices of this process (``shard_map``
     programs) keep their layout: it is part of the key, and the deserialized program takes and
     returns the same shardings. Returns a callable of the non-static arguments, or None when the
-    persistent cache is off or the program spans several processes (the caller compiles as usual)."""
+    persistent cache is off or the program spans several processes (the caller compiles as usual).
+    ``options``: XLA compiler options (:func:`~mmpgo_jax._core.compile_mode.compiler_options`)."""
     folder = compilation_cache_dir()
     dynamic = tuple(a for i, a in enumerate(args) if i not in static_argnums)
     leaves, in_tree = jax.tree.flatten(dynamic)
@@ -132,7 +133,7 @@ def compile_exported(fn, args: tuple, static_argnums: tuple[int, ...], out_struc
             os.replace(tmp, path)
         except OSError:  # a read-only cache costs only the speed-up
             pass
-    compiled = compile_lowered(jax.jit(exported.call).lower(*leaves), compiler_options(program_slots(args)))
+    compiled = compile_lowered(jax.jit(exported.call).lower(*leaves), options)
 
     def call(*values):
         return jax.tree.unflatten(out_tree, compiled(*jax.tree.leaves(values)))

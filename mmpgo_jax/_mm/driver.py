@@ -215,7 +215,7 @@ def compile_once(fn, *args, static=(), exported=None):
     if compiled is None:
         if len(_COMPILED) > 64:  # bounded: long sessions with many shapes
             _COMPILED.pop(next(iter(_COMPILED)))
-        compiled = compile_exported(*exported[:1], args, *exported[1:]) if exported is not None else None
+        compiled = compile_exported(*exported[:1], args, *exported[1:], options) if exported is not None else None
         if compiled is None:
             compiled = compile_lowered(fn.lower(*args), options)
         _COMPILED[key] = compiled
