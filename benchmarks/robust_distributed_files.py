@@ -15,8 +15,11 @@ loop-closure information) so that ``rate`` percent of the inter-robot closures a
   distributed robust start (each robot's own GNC-TLS, then the robots' frames from a robust solve of
   their inter-robot closures' frame hypotheses), its classification of the edges held as the first
   stage, then TLS;
-* ``central``: ``solve(graph, robots, loss="tls")``: today's default (the centralized GNC-chordal
-  start, then TLS);
+* ``central``: ``solve(graph, robots, loss="tls", start="gnc-chordal")``: the centralized GNC-chordal
+  start, then TLS (the default until 2026-12-05);
+* ``default``: ``solve(graph, robots, loss="tls")``: the default since 2026-12-05, a run from each of
+  ``ROBUST_STARTS`` (the GNC-chordal and the distributed robust start), the lower TLS objective kept
+  (the report names the start kept);
 * ``gtsam``: a reference outside this package: GTSAM's ``GncOptimizer`` (TLS, Levenberg-Marquardt
   stages) from the centralized chordal start, odometry known inliers, the same scale c
   (:func:`~mmpgo_jax._experiments.gtsam_lm.gtsam_gnc`; needs ``pip install gtsam``); its inliers are
@@ -50,7 +53,8 @@ from mmpgo_jax._io.atomic import atomic_write  # noqa: E402
 from mmpgo_jax.cli.bench import machine_info  # noqa: E402
 
 HERE = Path(__file__).parent
-PIPELINES = {"distributed": dict(distributed=True), "central": {}, "gtsam": None}
+PIPELINES = {"distributed": dict(distributed=True), "central": dict(start="gnc-chordal"), "default": {},
+             "gtsam": None}
 
 
 def _gtsam(graph):
@@ -107,6 +111,7 @@ def run(args, saved: dict) -> None:
                         res = mm.solve(c.graph, rop, loss="tls", iterations=args.iterations, **PIPELINES[pipe])
                         poses, inliers = res.poses, res.inliers
                         iterations, start_s = res.iterations, res.stats["initialize_seconds"]
+                        kept = [row["start"] for row in res.stats.get("starts", ()) if row["kept"]]
                     sec = time.perf_counter() - t
                     s = mm.outlier_scores(inliers, c.outlier)
                     rejected = ~np.asarray(inliers, bool)
@@ -118,6 +123,8 @@ def run(args, saved: dict) -> None:
                         ate=ate, extent=extent, ate_percent=100 * ate / extent, iterations=iterations,
                         start_s=start_s, seconds=sec, optimum_s=t_opt,
                         held=pipe != "gtsam" and bool(res.stats.get("start_weights_given", False)),
+                        kept=kept[0] if pipe != "gtsam" and kept else None,
+                        starts=None if pipe == "gtsam" else res.stats.get("starts"),
                         date=time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
                         load=" ".join(f"{x:.2f}" for x in os.getloadavg()))
                     print(key, {k: saved[key][k] for k in ("precision", "recall", "ate_percent", "seconds")},
@@ -132,6 +139,10 @@ def _ok(row) -> str:
 
 def _iterations(row) -> str:
     return "—" if row["pipeline"] == "gtsam" else str(row["iterations"])  # GTSAM's LM iterations are not kept
+
+
+def _pipeline(row) -> str:
+    return row["pipeline"] + (f" (kept {row['kept']})" if row.get("kept") else "")
 
 
 def report(saved: dict, machine: str) -> str:
@@ -153,7 +164,7 @@ def report(saved: dict, machine: str) -> str:
     ]
     for r in rows:
         lines.append(
-            f"| {r['file']} | {r['poses']} | {r['inter']} | {r['rate']:g} | {r['seed']} | {r['pipeline']} | "
+            f"| {r['file']} | {r['poses']} | {r['inter']} | {r['rate']:g} | {r['seed']} | {_pipeline(r)} | "
             f"{r['outliers']} | {r['rejected']} | {r['correct_rejected']} | {r['precision']:.3f} | "
             f"{r['recall']:.3f} | {r['ate']:.4g} | {r['ate_percent']:.3g} | {_ok(r)} | {_iterations(r)} | "
             f"{r['start_s']:.1f} | {r['seconds']:.1f} |")

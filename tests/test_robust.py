@@ -303,7 +303,7 @@ def test_gnc_start_tells_the_monitor_how_far_it_is():
     ds = mg.cube_dataset(0, grid=3, num_poses=60)
     bad = add_outliers(ds.graph, 0.3, reference=ds.ground_truth, seed=1)
     notes = Notes()
-    mg.solve(bad.graph, 2, loss="tls", iterations=3, monitor=notes)
+    mg.solve(bad.graph, 2, loss="tls", start="gnc-chordal", iterations=3, monitor=notes)
     stages = gnc_chordal_initialization(bad.graph).stages
     assert stages > 1 and len(notes.lines) == stages + 1
     assert all(phase == "initializing" for phase, _ in notes.lines)

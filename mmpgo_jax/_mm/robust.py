@@ -85,17 +85,19 @@ def loss_code(name) -> int:
 
 
 def rho(kernel, s, c2):
-    """rho_c(s) for the kernel code ``kernel`` and c^2 = ``c2`` (elementwise)."""
+    """rho_c(s) for the kernel code ``kernel`` and c^2 = ``c2`` (elementwise); NumPy in, NumPy out
+    (on the host, op-by-op JAX would compile each operation)."""
+    xp = np if isinstance(s, np.ndarray) else jnp
     q = s / c2
     branches = [
         s,
-        jnp.where(s <= c2, s, 2.0 * jnp.sqrt(c2 * s) - c2),
-        c2 * jnp.log1p(q),
+        xp.where(s <= c2, s, 2.0 * xp.sqrt(c2 * s) - c2),
+        c2 * xp.log1p(q),
         c2 * q / (1.0 + q),
-        -c2 * jnp.expm1(-q),
-        jnp.minimum(s, c2),
+        -c2 * xp.expm1(-q),
+        xp.minimum(s, c2),
     ]
-    return jnp.select([kernel == k for k in range(len(LOSSES))], branches, s)
+    return xp.select([kernel == k for k in range(len(LOSSES))], branches, s)
 
 
 def weight(kernel, s, c2):
@@ -419,6 +421,18 @@ def robust_outcome(loss: RobustLoss, graph, partition, weights, poses):
     # on the host: op by op on the device, each operation would compile a program of its own
     s = edge_costs(host_graph(graph), Poses(np.asarray(poses.R), np.asarray(poses.t)))
     return w, (s <= float(np.asarray(loss.scale)) ** 2) | ~robust_edges(loss, graph.i, graph.j)
+
+
+def robust_objective(loss: RobustLoss, graph, poses) -> float:
+    """f = 2 F_rho = sum of rho_c(s) over the loss's edges plus s over the others, at ``poses``
+    (global order, any frame), computed on the host: the number two robust runs of one graph are
+    compared by."""
+    from .._core.pose_graph import Poses, edge_costs, host_graph
+
+    s = edge_costs(host_graph(graph), Poses(np.asarray(poses.R), np.asarray(poses.t)))
+    c2 = float(np.asarray(loss.scale)) ** 2
+    costs = np.where(robust_edges(loss, graph.i, graph.j), rho(int(np.asarray(loss.kernel)), s, c2), s)
+    return float(np.sum(costs))
 
 
 def edge_values(per_slot, index: np.ndarray, num_edges: int) -> np.ndarray:

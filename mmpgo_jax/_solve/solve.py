@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import functools
 import os
+import time
 from collections.abc import Callable, Sequence
 from typing import Literal
 
@@ -25,17 +26,17 @@ from .._init.start import initialize
 from .._mm.centralized import NewtonConfig, newton_optimum
 from .._mm.checkpoint import DEFAULT_EVERY
 from .._mm.driver import RESULTS, History, Monitor, NonFiniteError, Termination, drive
-from .._mm.robust import GNCConfig, RobustLoss, as_loss
+from .._mm.robust import L2, GNCConfig, RobustLoss, as_loss, robust_objective
 from .._mm.solvers import MM, Solver, as_solver
 from .._mm.subproblem import SubproblemConfig
-from .build import ROBUST_START, Clock, as_termination, finish, prepare
+from .build import ROBUST_START, ROBUST_STARTS, Clock, as_termination, finish, prepare
 from .devices import auto_layout
 from .methods import check_loss, solver_for
 from .prefilter import PCM, apply_prefilter
 from .result import SolveResult, output_frame
 
-__all__ = ["RESULTS", "ROBUST_START", "History", "NonFiniteError", "SolveResult", "centralized_optimum", "output_frame",
-           "solve", "solve_sharded"]
+__all__ = ["RESULTS", "ROBUST_START", "ROBUST_STARTS", "History", "NonFiniteError", "SolveResult",
+           "centralized_optimum", "output_frame", "solve", "solve_sharded"]
 
 
 def solve(
@@ -181,16 +182,77 @@ def solve(
         layout = auto_layout(graph.num_poses, _robot_count(robots))
     if pre is not None and start_weights is not None and np.shape(start_weights) == pre.rejected.shape:
         start_weights = np.asarray(start_weights)[~pre.rejected]  # the given weights of the kept edges
-    run = prepare(graph, solver, robots, layout, termination, start=start,
-                  initial=initial, fixed=fixed, loss=loss, monitor=monitor,
-                  checkpoint=checkpoint, checkpoint_every=checkpoint_every, resume=resume,
-                  start_weights=start_weights)
-    placement = run.placement
-    out = drive(placement.compile_chunk(solver, run.problem), run.state, placement.start_record(run.start),
-                termination, fetch=placement.fetch, callback=callback, agree=placement.agree, monitor=monitor,
-                checkpoint=run.saver, history=None if run.snapshot is None else run.snapshot.history)
-    result = finish(graph, solver, run, out, termination, fixed=fixed, frame=frame, ground_truth=ground_truth)
+
+    def run_from(begin, monitor: Monitor = monitor) -> SolveResult:
+        run = prepare(graph, solver, robots, layout, termination, start=begin,
+                      initial=initial, fixed=fixed, loss=loss, monitor=monitor,
+                      checkpoint=checkpoint, checkpoint_every=checkpoint_every, resume=resume,
+                      start_weights=start_weights)
+        placement = run.placement
+        out = drive(placement.compile_chunk(solver, run.problem), run.state, placement.start_record(run.start),
+                    termination, fetch=placement.fetch, callback=callback, agree=placement.agree, monitor=monitor,
+                    checkpoint=run.saver, history=None if run.snapshot is None else run.snapshot.history)
+        return finish(graph, solver, run, out, termination, fixed=fixed, frame=frame, ground_truth=ground_truth)
+
+    starts = _starts(start, loss, robots, start_weights=start_weights, checkpoint=checkpoint, resume=resume)
+    result = run_from(starts[0]) if len(starts) == 1 else _best_of(starts, run_from, graph, monitor)
     return result if pre is None else pre.report(result)
+
+
+class _FromStart(Monitor):
+    """``monitor`` for one of several runs: the phases before the iterations carry the start's label
+    ("initializing, start 1 of 2, gnc-chordal")."""
+
+    def __init__(self, inner: Monitor, label: str):
+        self.inner, self.label = inner, label
+
+    def phase(self, name: str) -> None:
+        self.inner.phase(name if name in ("iterating", "finishing") else f"{name}, {self.label}")
+
+    def chunk(self, done: int, f: np.ndarray, grad_norm: np.ndarray) -> None:
+        self.inner.chunk(done, f, grad_norm)
+
+    def note(self, text: str) -> None:
+        self.inner.note(text)
+
+
+def _starts(start, loss: RobustLoss | None, robots, *, start_weights, checkpoint, resume) -> tuple:
+    """The starts a run goes from: ``start`` (one, or a sequence of them), or by default for a robust
+    loss (without GNC in the solver, given weights, a checkpoint or a resume, and with two robots or
+    more) :data:`ROBUST_STARTS`; None: the solver's default start."""
+    if isinstance(start, (tuple, list)):
+        if not start:
+            raise ValueError("start: an empty sequence of starts")
+        if len(start) > 1 and (checkpoint is not None or resume is not None):
+            raise ValueError("checkpoint= / resume= run from one start: give one start, not a sequence")
+        return tuple(start)
+    robust = loss is not None and int(np.asarray(loss.kernel)) != L2 and not bool(np.asarray(loss.use_gnc))
+    if (start is None and robust and start_weights is None and checkpoint is None and resume is None
+            and _robot_count(robots) > 1):
+        return ROBUST_STARTS
+    return (start,)
+
+
+def _best_of(starts: tuple, run_from: Callable, graph: PoseGraph, monitor: Monitor) -> SolveResult:
+    """Run from each start and keep the run whose final objective is lowest (f, or for a robust loss
+    2 F_rho recomputed at the final poses on the host, so that each run is judged by the same
+    number). ``stats["starts"]``: per start its name, f, iterations, rejected edges and seconds;
+    the kept run's own timings stay its own."""
+    runs, rows = [], []
+    for k, begin in enumerate(starts):
+        name = begin if isinstance(begin, str) else type(begin).__name__
+        t = time.perf_counter()
+        run = run_from(begin, _FromStart(monitor, f"start {k + 1} of {len(starts)}, {name}"))
+        f = run.f if run.loss is None else robust_objective(run.loss, graph, run.poses)
+        rejected = None if run.inliers is None else int((~np.asarray(run.inliers, bool)).sum())
+        rows.append(dict(start=name, f=f, iterations=run.iterations, rejected=rejected,
+                         seconds=time.perf_counter() - t))
+        runs.append(run)
+    best = int(np.argmin([row["f"] for row in rows]))  # the first of equal ones
+    for k, row in enumerate(rows):
+        row["kept"] = k == best
+    runs[best].stats["starts"] = rows
+    return runs[best]
 
 
 #: starts that need the whole graph in one place, and why (refused by ``distributed=True``)
@@ -205,9 +267,10 @@ def _distributed_defaults(start, loss, gnc):
     """(start, gnc) of a ``distributed=True`` run: a centralized start refused with its name; by
     default the distributed chordal start for least squares and the distributed robust start for a
     robust loss (its weights held as the first stage, then the kernel's own)."""
-    if isinstance(start, str) and start in CENTRALIZED_STARTS:
-        raise ValueError(f"distributed=True: the start {start!r} {CENTRALIZED_STARTS[start]}; "
-                         "use start='distributed-chordal' or 'distributed-robust'")
+    for one in start if isinstance(start, (tuple, list)) else (start,):
+        if isinstance(one, str) and one in CENTRALIZED_STARTS:
+            raise ValueError(f"distributed=True: the start {one!r} {CENTRALIZED_STARTS[one]}; "
+                             "use start='distributed-chordal' or 'distributed-robust'")
     robust = isinstance(loss, RobustLoss) or (loss is not None and loss != "l2") or gnc is not None
     if start is None:
         start = "distributed-robust" if robust else "distributed-chordal"

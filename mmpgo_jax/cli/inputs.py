@@ -98,9 +98,16 @@ class LoadedInput:
         return full if self.keep is None else Poses(full.R[self.keep], full.t[self.keep])
 
     def start(self, init: str | None, methods: tuple[str, ...]):
-        """``init`` for the solver: a method name, the poses of a file, or None (the solver's default)."""
+        """``init`` for the solver: a method name, several joined by commas (a run from each, the
+        lowest objective kept), the poses of a file, or None (the solver's default)."""
         if init is None or init in methods:
             return init
+        names = init.split(",")
+        if len(names) > 1 and not Path(init).is_file():
+            unknown = [name for name in names if name not in methods]
+            if unknown:
+                raise CLIError(f"--init {init!r}: {unknown[0]!r} is not a known start ({', '.join(methods)})")
+            return tuple(names)
         if not Path(init).is_file():
             raise CLIError(f"--init {init!r}: not a known method ({', '.join(methods)}) nor a file")
         return self.poses_file(init, "--init file")
@@ -183,7 +190,8 @@ def check_solve_flags(args) -> None:
     if not getattr(args, "distributed", False):
         return
     for (attr, value), why in CENTRALIZED_OPTIONS.items():
-        if getattr(args, attr, None) == value:
+        given = getattr(args, attr, None)
+        if value in (given.split(",") if attr == "init" and isinstance(given, str) else [given]):
             raise CLIError(f"--distributed: {why}")
 
 

@@ -187,6 +187,12 @@ def print_summary(result, fstar, data: LoadedInput | None = None) -> None:
         if stats["pcm_components"] > 1:
             print(f"            the graph without them has {stats['pcm_components']} connected components: each "
                   "is solved in its own frame (its first pose at the identity), not placed relative to the others")
+    for row in result.stats.get("starts", ()):
+        kept = "kept" if row["kept"] else "not kept"
+        count = row["rejected"]
+        rejected = "" if count is None else f", {count} edge{'' if count == 1 else 's'} rejected"
+        print(f"start       {row['start']}: f = {row['f']:.6f}{rejected}, {row['iterations']} iterations, "
+              f"{row['seconds']:.2f} s ({kept})")
     if result.loss is not None:
         robust = ~result.inliers if prefiltered is None else ~result.inliers & ~prefiltered
         used = len(result.inliers) - (0 if prefiltered is None else int(prefiltered.sum()))

@@ -64,15 +64,20 @@ class ProgressBar(Monitor):
         self.desc = desc
         self.phase_name = ""  # the phase a note() belongs to
         self.show_gradient = show_gradient
-        self.bar = tqdm(total=total, desc=desc, unit="it", file=file, leave=leave, disable=None,
-                        **terminal_size_options(file))
+        self._new_bar = lambda: tqdm(total=total, desc=desc, unit="it", file=file, leave=leave, disable=None,
+                                     **terminal_size_options(file))
+        self.bar = self._new_bar()
+        self.closed = False
 
     def phase(self, name: str) -> None:
+        if self.closed and name != "finishing":  # a solve from several starts: the next run's bar
+            self.bar, self.closed = self._new_bar(), False
         if name == "iterating":
             self.bar.set_description_str(self.desc, refresh=False)
             self.bar.reset(total=self.bar.total)  # the clock of the rate and ETA starts now
         elif name == "finishing":
             self.bar.close()  # the rate stays that of the iterations
+            self.closed = True
         else:
             self.phase_name = name
             self.bar.set_description_str(f"{self.desc}, {name}")

@@ -64,10 +64,11 @@ def _add_solver_options(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--init",
         default=None,
-        help="start: chordal (default for least squares), gnc-chordal (default for a robust --loss: GNC-TLS with "
-             "chordal stages, not bent by outliers), distributed-chordal, distributed-robust (each robot's own GNC "
-             "map, placed by robust averaging of the inter-robot closures), vertices, odometry, or a .g2o/.npz file "
-             "of poses",
+        help="start: chordal (default for least squares), gnc-chordal (GNC-TLS with chordal stages, not bent by "
+             "outliers), distributed-chordal, distributed-robust (each robot's own GNC map, placed by robust "
+             "averaging of the inter-robot closures), vertices, odometry, or a .g2o/.npz file of poses; several "
+             "names joined by commas run from each and keep the lowest objective (the default for a robust --loss: "
+             "gnc-chordal,distributed-robust)",
     )
     p.add_argument("--restart", choices=("adaptive", "average", "paper"), default=None,
                    help="AMM restart rule (default adaptive; see README); --method amm only")

@@ -1,0 +1,111 @@
+"""A solve from several starts keeps the run of lowest objective; a robust loss runs from the
+GNC-chordal and the distributed robust start by default."""
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from test_robust import _outlier_problem, _rho_np
+
+import mmpgo_jax as mg
+from mmpgo_jax import edge_costs
+from mmpgo_jax._experiments.outliers import add_outliers
+from mmpgo_jax._mm.robust import LOSSES, rho, robust_objective
+from mmpgo_jax._solve.build import ROBUST_STARTS
+
+
+def _tls_objective(graph, poses, c):
+    """sum of min(s, c^2) over the loop closures plus s over the odometry (the default trusts it),
+    written out again from the edge costs."""
+    s = np.asarray(edge_costs(graph, poses))
+    loop = np.abs(np.asarray(graph.i) - np.asarray(graph.j)) != 1
+    return float(np.sum(np.where(loop, np.minimum(s, c * c), s)))
+
+
+@pytest.mark.parametrize("name", LOSSES)
+def test_host_rho_is_the_device_rho(name):
+    """rho on NumPy arrays (the host objective) is the traced rho, kernel by kernel, and the kernels
+    written out in NumPy."""
+    s = np.concatenate([[0.0], np.geomspace(1e-3, 1e3, 40)])
+    code = LOSSES.index(name)
+    host = rho(code, s, 2.25)
+    assert isinstance(host, np.ndarray)
+    np.testing.assert_allclose(host, np.asarray(rho(code, jnp.asarray(s), 2.25)), rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(host, _rho_np(name, s, 1.5), rtol=1e-12, atol=1e-15)
+
+
+def test_several_starts_keep_the_lowest_objective():
+    """start=(a, b): the result is the single-start run of lower robust objective (poses and f as that
+    run alone gives them), and stats["starts"] reports both runs' objectives, computed independently
+    here from the edge residuals."""
+    graph, _, _ = _outlier_problem(seed=5, n=20, loops=8, outliers=5)
+    options = dict(loss="tls", iterations=60, stop_when_stalled=False)
+    alone = {name: mg.solve(graph, 2, start=name, **options) for name in ("odometry", "gnc-chordal")}
+    c = float(alone["odometry"].loss.scale)
+    f = {name: _tls_objective(graph, r.poses, c) for name, r in alone.items()}
+    both = mg.solve(graph, 2, start=("odometry", "gnc-chordal"), **options)
+    rows = both.stats["starts"]
+    assert [row["start"] for row in rows] == ["odometry", "gnc-chordal"]
+    np.testing.assert_allclose([row["f"] for row in rows], [f["odometry"], f["gnc-chordal"]], rtol=1e-9)
+    best = min(f, key=f.get)
+    assert [row["kept"] for row in rows] == [name == best for name in ("odometry", "gnc-chordal")]
+    np.testing.assert_allclose(np.asarray(both.poses.t), np.asarray(alone[best].poses.t), atol=1e-9)
+    np.testing.assert_allclose(both.f, alone[best].f, rtol=1e-12)
+    # the history's f of a robust run is the same objective
+    np.testing.assert_allclose(both.f, _tls_objective(graph, both.poses, c), rtol=1e-9)
+
+
+def test_robust_default_runs_from_both_starts():
+    """A robust loss without a start runs from ROBUST_STARTS and keeps the lower objective; it
+    finds the planted outliers of a small Cube graph. One start (given, or with a checkpoint) runs
+    once."""
+    ds = mg.cube_dataset(0, grid=3, num_poses=80)
+    bad = add_outliers(ds.graph, 0.3, reference=ds.ground_truth, seed=2)
+    r = mg.solve(bad.graph, 3, loss="tls", iterations=200)
+    rows = r.stats["starts"]
+    assert tuple(row["start"] for row in rows) == ROBUST_STARTS == ("gnc-chordal", "distributed-robust")
+    kept = [row for row in rows if row["kept"]]
+    assert len(kept) == 1 and kept[0]["f"] == min(row["f"] for row in rows)
+    np.testing.assert_allclose(kept[0]["f"], robust_objective(r.loss, bad.graph, r.poses), rtol=1e-12)
+    assert mg.outlier_scores(r.inliers, bad.outlier).recall == 1.0
+    assert "starts" not in mg.solve(bad.graph, 3, loss="tls", start="gnc-chordal", iterations=5).stats
+    assert "starts" not in mg.solve(bad.graph, 1, loss="tls", iterations=5).stats  # one robot: one start
+    assert "starts" not in mg.solve(bad.graph, 3, loss="tls", gnc=mg.GNCConfig(), iterations=5).stats
+    assert "starts" not in mg.solve(bad.graph, 3, iterations=5).stats  # least squares
+
+
+def test_several_starts_refusals(tmp_path):
+    graph, _, _ = _outlier_problem(seed=1)
+    with pytest.raises(ValueError, match="one start"):
+        mg.solve(graph, 2, loss="tls", start=("odometry", "chordal"), checkpoint=tmp_path / "c.npz", iterations=2)
+    with pytest.raises(ValueError, match="empty"):
+        mg.solve(graph, 2, loss="tls", start=(), iterations=2)
+    with pytest.raises(ValueError, match="'gnc-chordal' runs GNC"):
+        mg.solve(graph, 2, loss="tls", start=ROBUST_STARTS, distributed=True, iterations=2)
+    # with a checkpoint the default is one start (the file holds one run)
+    r = mg.solve(graph, 2, loss="tls", checkpoint=tmp_path / "d.npz", iterations=2)
+    assert "starts" not in r.stats
+
+
+def test_cli_several_starts(tmp_path, capsys):
+    """mmpgo solve --init a,b prints a line per start and which was kept; an unknown name and a
+    centralized one beside --distributed are one-line errors."""
+    from mmpgo_jax import write_g2o
+    from mmpgo_jax.cli import main
+
+    graph, X0, _ = _outlier_problem(seed=5, n=20, loops=8, outliers=5)
+    path = tmp_path / "bad.g2o"
+    write_g2o(path, graph, X0)
+    rc = main(["solve", str(path), "-A", "2", "--loss", "tls", "-n", "20", "--init", "odometry,gnc-chordal",
+               "--no-progress"])
+    out = capsys.readouterr().out
+    assert rc == 0
+    lines = [line for line in out.splitlines() if line.startswith("start ")]
+    assert len(lines) == 2 and lines[0].startswith("start       odometry: f = ")
+    assert sum("(kept)" in line for line in lines) == 1
+    rc = main(["solve", str(path), "-A", "2", "--loss", "tls", "--init", "odometry,bogus", "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc != 0 and "'bogus' is not a known start" in err and len(err.strip().splitlines()) == 1
+    rc = main(["solve", str(path), "-A", "2", "--loss", "tls", "--distributed", "--init",
+               "distributed-robust,gnc-chordal", "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc != 0 and "gnc-chordal" in err and len(err.strip().splitlines()) == 1
