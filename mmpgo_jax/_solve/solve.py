@@ -20,7 +20,7 @@ import numpy as np
 
 from .._core.gauge import FixedPoses
 from .._core.partition import Partition, partition
-from .._core.pose_graph import HostPoses, PoseGraph, Poses
+from .._core.pose_graph import HostPoses, PoseGraph, Poses, connected_components
 from .._core.precision import float64_enabled
 from .._init.start import initialize
 from .._mm.centralized import NewtonConfig, newton_optimum
@@ -94,8 +94,11 @@ def solve(
 
     ``robots``: a count (contiguous blocks, as in the paper), an (n,) robot-of-pose array, or a
     prepared :class:`Partition`. ``start``: see :func:`mmpgo_jax.initialize` (default ``"chordal"``,
-    the paper's start; for a robust loss :data:`ROBUST_START`); ``initial`` holds the file's VERTEX
-    estimates for ``init="vertices"``.
+    the paper's start; for a robust loss :data:`ROBUST_STARTS`, below); ``initial`` holds the file's
+    VERTEX estimates for ``init="vertices"``. A sequence of starts runs the whole solve from each and
+    returns the run of lowest final objective (f, or for a robust loss 2 F_rho recomputed at each
+    run's poses); ``stats["starts"]`` lists each start's f, iterations, rejected edges and seconds
+    and which was kept (the other stats are the kept run's). Not with ``checkpoint`` / ``resume``.
     ``restart``: AMM's restart rule, ``"adaptive"`` (default), ``"average"`` or ``"paper"`` (see
     :class:`MMConfig`; measured in benchmarks/restart_rules.md). Stops after ``iterations`` or,
     checked after each chunk of ``chunk_size`` iterations, when
@@ -120,9 +123,13 @@ def solve(
     §10): "l2" (least squares, the default), "huber", "cauchy", "geman-mcclure", "welsch" or
     "tls" (truncated least squares), or a :class:`~mmpgo_jax.RobustLoss` with its weight-update
     options; ``loss_scale``: c in residual units (default :func:`~mmpgo_jax.chi2_scale`). A robust
-    kernel starts by default from ``init="gnc-chordal"`` (GNC-TLS with chordal + Newton stages, at
-    the loss's scale); ``gnc``: a :class:`~mmpgo_jax.GNCConfig` (tls, geman-mcclure) runs GNC stages
-    in the distributed solver instead, from the chordal start.
+    kernel runs by default from both :data:`ROBUST_STARTS`, ``"gnc-chordal"`` (GNC-TLS with chordal +
+    Newton stages of the whole graph, at the loss's scale) and ``"distributed-robust"`` (each robot's
+    own GNC, then the robots' frames from their inter-robot closures), and keeps the lower robust
+    objective: each start wins on other graphs (benchmarks/robust_distributed_files_findings.md);
+    one start when given, with one robot, with ``start_weights``, ``checkpoint`` or ``resume``
+    (then ``"gnc-chordal"``). ``gnc``: a :class:`~mmpgo_jax.GNCConfig` (tls, geman-mcclure) runs GNC
+    stages in the distributed solver instead, from the chordal start.
     f and the history are then f = 2 F_rho, and the result holds the final edge ``weights`` and the
     ``inliers`` (edges whose final residual is within the scale).
 
@@ -195,8 +202,27 @@ def solve(
         return finish(graph, solver, run, out, termination, fixed=fixed, frame=frame, ground_truth=ground_truth)
 
     starts = _starts(start, loss, robots, start_weights=start_weights, checkpoint=checkpoint, resume=resume)
-    result = run_from(starts[0]) if len(starts) == 1 else _best_of(starts, run_from, graph, monitor)
+    if len(starts) == 1:
+        result = run_from(starts[0])
+    else:  # a centralized run may finish each robust candidate at the optimum of the edges it keeps
+        finish_centrally = None if distributed or loss is None else functools.partial(_kept_edges_optimum, fixed=fixed)
+        result = _best_of(starts, run_from, graph, monitor, finish_centrally)
     return result if pre is None else pre.report(result)
+
+
+def _objective(run: SolveResult, graph: PoseGraph) -> float:
+    return run.f if run.loss is None else robust_objective(run.loss, graph, run.poses)
+
+
+def _kept_edges_optimum(graph: PoseGraph, run: SolveResult, fixed=None) -> Poses | None:
+    """The optimum of the edges a robust run keeps (its inliers), by centralized Newton from its
+    poses: what the GNC-chordal start ends with, for a run whose iterations had not converged (a
+    distributed robust start's rigid maps take thousands of iterations to bend into the optimum).
+    None when those edges leave the graph disconnected (no relative placement to optimize)."""
+    kept = np.asarray(run.inliers, bool)
+    if len(connected_components(graph.num_poses, np.asarray(graph.i)[kept], np.asarray(graph.j)[kept])) > 1:
+        return None
+    return centralized_optimum(graph.select_edges(kept), init=run.poses, fixed=fixed, frame="raw").poses
 
 
 class _FromStart(Monitor):
@@ -233,19 +259,31 @@ def _starts(start, loss: RobustLoss | None, robots, *, start_weights, checkpoint
     return (start,)
 
 
-def _best_of(starts: tuple, run_from: Callable, graph: PoseGraph, monitor: Monitor) -> SolveResult:
+def _best_of(starts: tuple, run_from: Callable, graph: PoseGraph, monitor: Monitor,
+             finish_centrally: Callable | None = None) -> SolveResult:
     """Run from each start and keep the run whose final objective is lowest (f, or for a robust loss
     2 F_rho recomputed at the final poses on the host, so that each run is judged by the same
-    number). ``stats["starts"]``: per start its name, f, iterations, rejected edges and seconds;
-    the kept run's own timings stay its own."""
+    number). ``finish_centrally(graph, run)``: for a run that used its whole iteration budget, a
+    start at the optimum of the edges it keeps (or None), from which a second run goes on; kept when
+    its objective is lower. ``stats["starts"]``: per start its name, f, iterations (the second
+    run's added), rejected edges, seconds and whether it was finished centrally (``finished``:
+    the f before); the kept run's own timings stay its own."""
     runs, rows = [], []
     for k, begin in enumerate(starts):
         name = begin if isinstance(begin, str) else type(begin).__name__
+        label = f"start {k + 1} of {len(starts)}, {name}"
         t = time.perf_counter()
-        run = run_from(begin, _FromStart(monitor, f"start {k + 1} of {len(starts)}, {name}"))
-        f = run.f if run.loss is None else robust_objective(run.loss, graph, run.poses)
+        run = run_from(begin, _FromStart(monitor, label))
+        f, before, iterations = _objective(run, graph), None, run.iterations
+        if finish_centrally is not None and run.result is RESULTS.iterations:
+            start = finish_centrally(graph, run)
+            if start is not None:
+                again = run_from(start, _FromStart(monitor, f"{label}, finished at its kept edges' optimum"))
+                iterations += again.iterations
+                if _objective(again, graph) < f:
+                    run, before, f = again, f, _objective(again, graph)
         rejected = None if run.inliers is None else int((~np.asarray(run.inliers, bool)).sum())
-        rows.append(dict(start=name, f=f, iterations=run.iterations, rejected=rejected,
+        rows.append(dict(start=name, f=f, iterations=iterations, rejected=rejected, finished=before,
                          seconds=time.perf_counter() - t))
         runs.append(run)
     best = int(np.argmin([row["f"] for row in rows]))  # the first of equal ones
