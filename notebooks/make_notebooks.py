@@ -371,10 +371,13 @@ def outliers() -> nbformat.NotebookNode:
             "probability 1 % under SE-Sync's noise model (`mm.chi2_scale`). Each kernel is concave in s, so "
             "the paper's majorizer with every edge's κ, τ multiplied by the weight w = ρ'(s) at the current "
             "iterate majorizes F_ρ: MM keeps F_ρ non-increasing. Least squares (and so the chordal "
-            "start) is bent by the outliers, so every robust kernel starts by default from "
-            "`init=\"gnc-chordal\"`: graduated non-convexity with TLS (Yang et al., RA-L 2020), a sequence "
-            "of surrogate kernels from least squares to TLS with the weights set in closed form after each "
-            "stage, every stage solved from scratch (chordal relaxation of the weighted graph, then Newton). "
+            "start) is bent by the outliers, so every robust kernel runs by default from two robust starts "
+            "and keeps the run of lower F_ρ: `\"gnc-chordal\"`, graduated non-convexity with TLS (Yang et "
+            "al., RA-L 2020), a sequence of surrogate kernels from least squares to TLS with the weights set "
+            "in closed form after each stage, every stage solved from scratch (chordal relaxation of the "
+            "weighted graph, then Newton), and `\"distributed-robust\"`, each robot's own GNC map placed by "
+            "the frames its inter-robot closures agree on (`res.stats[\"starts\"]` reports both; `mm.sweep` "
+            "runs from `\"gnc-chordal\"` alone). "
             "Odometry edges (consecutive poses) keep weight 1. Details: `docs/conventions.md` §10. "
             "The kernels are `mm.loss_rho` and `mm.loss_weight` (ρ and ρ' of a kernel by name, "
             "at scale c; `mm.LOSSES` lists the names)."),
@@ -418,8 +421,8 @@ def outliers() -> nbformat.NotebookNode:
             "squares runs here as "
             "`RobustLoss(\"l2\")`: the same objective through the weighted program (every weight 1), so that "
             "the four runs share one compilation; its \"rejected\" edges are those whose final residual "
-            "lies beyond the scale (it starts from the chordal start, the robust kernels from the GNC "
-            "start). The clean graph's ATE is the 0 % row of the sweep below. `gnc=mm.GNCConfig()` would "
+            "lies beyond the scale (it starts from the chordal start, the robust kernels from their two "
+            "robust starts). The clean graph's ATE is the 0 % row of the sweep below. `gnc=mm.GNCConfig()` would "
             "run GNC's stages inside the distributed solver instead (fully distributed, from the chordal "
             "start; less reliable, see `benchmarks/robust.md`)."),
         new_code_cell(

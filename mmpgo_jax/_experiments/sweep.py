@@ -422,9 +422,11 @@ def sweep(
     ``graphs``: a PoseGraph, a dataset with ``.graph`` (and ``.ground_truth``, used for ATE/RPE
     unless ``ground_truth`` is given), or a sequence / name-keyed mapping of them (same d; n may
     differ). ``robots``: robot counts (contiguous blocks, as :func:`~mmpgo_jax.solve`).
-    ``init``: the start (any :func:`~mmpgo_jax.initialize` method; by default, as in
-    :func:`~mmpgo_jax.solve`, "chordal" for least squares and "gnc-chordal" at the loss's scale for a
-    robust kernel; each start is computed once per graph). ``fstar``: per-graph optimum (mapping or
+    ``init``: the start (any :func:`~mmpgo_jax.initialize` method; by default "chordal" for least
+    squares and "gnc-chordal" at the loss's scale for a robust kernel; each start is computed once per
+    graph). A robust configuration therefore equals ``solve(..., start="gnc-chordal")``, not
+    :func:`~mmpgo_jax.solve`'s default, which runs from two starts and keeps the better run (one
+    compiled batch runs one start per configuration). ``fstar``: per-graph optimum (mapping or
     sequence), or ``"centralized"`` to compute it with :func:`reference_optimum`; relative gaps need it.
     ``max_batch_bytes``: see the module docstring; ``max_batch_configs`` caps the configurations per
     batch as well (on a CPU, small batches are faster: cache-sized working sets). ``group_by``: "method"
