@@ -150,3 +150,24 @@ def test_cli_error_clears_the_bar(command, monkeypatch, tmp_path):
         monkeypatch.undo()
     last = out.text.replace("\r", "\n").strip().splitlines()[-1]
     assert last.startswith("mmpgo: error: ") and "bad.g2o:2:" in last, out.text
+
+
+def test_bar_of_a_solve_from_two_starts():
+    """A solve from several starts reports each run's phases with its start's label, and the bar,
+    closed when the first run's iterations end, opens again for the next run."""
+    from test_robust import _outlier_problem
+
+    graph, _, _ = _outlier_problem(seed=5, n=20, loops=8, outliers=5)
+    rec = Recorder()
+    mm.solve(graph, 2, loss="tls", start=("odometry", "gnc-chordal"), iterations=4, chunk_size=2, monitor=rec)
+    phases = rec.phases
+    assert "initializing, start 1 of 2, odometry" in phases and "initializing, start 2 of 2, gnc-chordal" in phases
+    assert phases.count("iterating") >= 2 and phases.count("finishing") >= 2
+    with unsized_terminal() as (term, out):
+        bar = ProgressBar("AMM-PGO", 4, file=term)
+        for name in phases:
+            bar.phase(name)
+            if name == "iterating":
+                bar.chunk(4, np.array([1.5]), np.array([1e-3]))
+        bar.close()
+    assert out.text.count("4/4") >= 2 and "start 2 of 2, gnc-chordal" in out.text, out.text
