@@ -11,9 +11,11 @@ inter-robot loop closures with ``add_outlier_loop_closures(..., inter_robot_only
 ``--rate`` percent (its definition: the outliers' share of all loop closures after the addition).
 Methods (AMM, the team's robots, ``--iterations`` at most, default stopping rules):
 
-* ``tls``: ``loss="tls"`` from its default start (the centralized GNC-chordal start);
+* ``tls``: ``loss="tls"`` from its default start (the centralized GNC-chordal start until 2026-12-05,
+  the rows of the tables before then; since, a run from it and from the distributed robust start, the
+  lower objective kept);
 * ``pcm``: ``prefilter="pcm"`` then least squares (chordal start);
-* ``pcm+tls``: ``prefilter="pcm"`` then ``loss="tls"`` (GNC-chordal start on the filtered graph);
+* ``pcm+tls``: ``prefilter="pcm"`` then ``loss="tls"`` (its default start on the filtered graph);
 * ``l2``: least squares on the corrupted graph (no defence);
 * ``dist-tls``, ``dist-pcm+tls``: ``distributed=True`` (distributed chordal start, GNC in the solver);
 * ``pcm-filter``: ``pcm_filter`` alone (no solve), with the robot pairs holding one or two closures.
