@@ -273,8 +273,11 @@ def _check_losses_sweep(ds, graphs, methods, check_graphs, iterations=30):
         for name in check_graphs:
             bad = graphs[name]
             for kernel in KERNELS:
+                # a sweep's robust configuration runs from the GNC-chordal start alone (solve's default
+                # runs from two starts)
                 ref = mm.solve(bad.graph, 3, method=method, iterations=iterations, chunk_size=10, subproblem=STABLE,
-                               loss=kernel, gnc=FIXED_STAGES if kernel == "tls" else None)
+                               loss=kernel, gnc=FIXED_STAGES if kernel == "tls" else None,
+                               start=None if kernel == "tls" else "gnc-chordal")
                 key = res.key(name, 3, method, loss=kernel)
                 msg = f"{method} {name} {kernel}"
                 np.testing.assert_allclose(res.histories[key], ref.history.f, rtol=1e-9, atol=0, err_msg=msg)
