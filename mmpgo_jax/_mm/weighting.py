@@ -255,7 +255,11 @@ class Reweighted(Weighting):
         # the coarse level too when some robot's weights drifted from the ones it was built with
         drift = jnp.sum(jnp.abs(gamma_weights - state.coarse_weights), axis=-1)
         has_coarse = state.newton.coarse_inverse is not None  # the config's preconditioner has that level
-        coarse = rebuild & anywhere(drift > COARSE_DRIFT * jnp.sum(state.coarse_weights, axis=-1)) & has_coarse
+        # the robot's total weight over its real incident edges: padding slots (weight 1) would make the
+        # rule depend on how far the arrays were padded (a sweep's batch against a plain solve)
+        edges = problem.partition.edges
+        total = jnp.sum(jnp.where(edges.local_i | edges.local_j, state.coarse_weights, 0.0), axis=-1)
+        coarse = rebuild & anywhere(drift > COARSE_DRIFT * total) & has_coarse
         coarse_weights = jnp.where(coarse, gamma_weights, state.coarse_weights)
 
         grad, share, weighted = self._gradients(problem, E, s, weights)
