@@ -98,7 +98,8 @@ def solve(
     VERTEX estimates for ``init="vertices"``. A sequence of starts runs the whole solve from each and
     returns the run of lowest final objective (f, or for a robust loss 2 F_rho recomputed at each
     run's poses); ``stats["starts"]`` lists each start's f, iterations, rejected edges and seconds
-    and which was kept (the other stats are the kept run's). Not with ``checkpoint`` / ``resume``.
+    and which was kept (the other stats are the kept run's); ``callback`` and ``monitor`` see each
+    run in turn (k counts from 0 again). Not with ``checkpoint`` / ``resume``.
     ``restart``: AMM's restart rule, ``"adaptive"`` (default), ``"average"`` or ``"paper"`` (see
     :class:`MMConfig`; measured in benchmarks/restart_rules.md). Stops after ``iterations`` or,
     checked after each chunk of ``chunk_size`` iterations, when
