@@ -413,23 +413,26 @@ def robust_outcome(loss: RobustLoss, graph, partition, weights, poses):
     incident-edge ``weights`` (A, e_max) of ``partition`` at ``poses`` (global order, any frame):
     the weights of the last majorizer and the edges whose residual is within the scale, s <= c^2
     (for TLS after GNC: the edges of weight 1)."""
-    from .._core.pose_graph import Poses, edge_costs, host_graph
-
     index = incident_edge_index(graph.i, graph.j, partition.robot_of_pose, partition.num_robots,
                                 partition.max_edges)
     w = edge_values(np.asarray(weights), index, graph.num_edges)
-    # on the host: op by op on the device, each operation would compile a program of its own
-    s = edge_costs(host_graph(graph), Poses(np.asarray(poses.R), np.asarray(poses.t)))
+    s = _host_edge_costs(graph, poses)
     return w, (s <= float(np.asarray(loss.scale)) ** 2) | ~robust_edges(loss, graph.i, graph.j)
+
+
+def _host_edge_costs(graph, poses) -> np.ndarray:
+    """Per-edge costs s at ``poses`` (global order), with NumPy on the host: op by op on the device,
+    each operation would compile a program of its own."""
+    from .._core.pose_graph import Poses, edge_costs, host_graph
+
+    return edge_costs(host_graph(graph), Poses(np.asarray(poses.R), np.asarray(poses.t)))
 
 
 def robust_objective(loss: RobustLoss, graph, poses) -> float:
     """f = 2 F_rho = sum of rho_c(s) over the loss's edges plus s over the others, at ``poses``
     (global order, any frame), computed on the host: the number two robust runs of one graph are
     compared by."""
-    from .._core.pose_graph import Poses, edge_costs, host_graph
-
-    s = edge_costs(host_graph(graph), Poses(np.asarray(poses.R), np.asarray(poses.t)))
+    s = _host_edge_costs(graph, poses)
     c2 = float(np.asarray(loss.scale)) ** 2
     costs = np.where(robust_edges(loss, graph.i, graph.j), rho(int(np.asarray(loss.kernel)), s, c2), s)
     return float(np.sum(costs))

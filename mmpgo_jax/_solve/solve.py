@@ -281,8 +281,9 @@ def _best_of(starts: tuple, run_from: Callable, graph: PoseGraph, monitor: Monit
             if start is not None:
                 again = run_from(start, _FromStart(monitor, f"{label}, finished at its kept edges' optimum"))
                 iterations += again.iterations
-                if _objective(again, graph) < f:
-                    run, before, f = again, f, _objective(again, graph)
+                f_again = _objective(again, graph)
+                if f_again < f:
+                    run, before, f = again, f, f_again
         rejected = None if run.inliers is None else int((~np.asarray(run.inliers, bool)).sum())
         rows.append(dict(start=name, f=f, iterations=iterations, rejected=rejected, finished=before,
                          seconds=time.perf_counter() - t))
