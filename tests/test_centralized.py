@@ -160,3 +160,56 @@ def test_gauss_newton_start_and_factor_reuse_reach_the_same_optimum(benchmark_fi
         NewtonConfig(reuse_contraction=1.0)
     with pytest.raises(ValueError, match="gauss_newton_steps"):
         NewtonConfig(gauss_newton_steps=-1)
+
+
+def test_uncoupled_edges_leave_the_matrix_not_the_objective():
+    """Edges left out of the Newton matrix's couplings (``coupled``) keep their diagonal blocks and
+    their whole part of the cost and gradient; the matrix is the full one less exactly their
+    off-diagonal blocks, and the iterations still reach the full solve's optimum."""
+    from mmpgo_jax import cube_dataset
+    from mmpgo_jax._init.chordal import chordal_initialization
+    from mmpgo_jax._mm.centralized import newton_optimum
+    from mmpgo_jax._mm.driver import Termination
+
+    cube = cube_dataset(0, grid=4, num_poses=120).graph
+    rng = np.random.default_rng(1)
+    coupled = np.ones(cube.num_edges, bool)
+    loops = np.flatnonzero(np.abs(np.asarray(cube.i) - np.asarray(cube.j)) != 1)
+    coupled[rng.choice(loops, 10, replace=False)] = False
+    w = np.where(coupled, 1.0, 1e-4)  # negligible weights, the intended use
+    graph = PoseGraph(cube.i, cube.j, cube.R, cube.t, cube.kappa * w, cube.tau * w, num_poses=cube.num_poses)
+    X = chordal_initialization(graph)
+    R, t = np.asarray(X.R, np.float64), np.asarray(X.t, np.float64)
+    full, thin = _Problem(graph, None, dense=False), _Problem(graph, None, dense=False, matrix_edges=coupled)
+    g_full, H_full = full.linearize(R, t)
+    g_thin, H_thin = thin.linearize(R, t)
+    assert thin.cost(R, t) == full.cost(R, t)
+    A, B = _array(full.matrix(H_full)), _array(thin.matrix(H_thin))
+    np.testing.assert_allclose(g_thin[thin.index], g_full[full.index], rtol=1e-13, atol=1e-12)
+    # in pose order: B = A less each uncoupled edge's off-diagonal blocks, and nothing else
+    pose = lambda pb, M: M[np.ix_(pb.index.reshape(-1), pb.index.reshape(-1))]
+    A, B = pose(full, A), pose(thin, B)
+    b = full.b
+    diff = A - B
+    off = np.zeros_like(diff, dtype=bool)
+    for e in np.flatnonzero(~coupled):
+        i, j = int(graph.i[e]), int(graph.j[e])
+        off[b * i:b * i + b, b * j:b * j + b] = off[b * j:b * j + b, b * i:b * i + b] = True
+    assert np.abs(diff[off]).max() > 0
+    np.testing.assert_allclose(diff[~off], 0.0, atol=1e-10 * np.abs(A).max())
+    stop = Termination(200, 1, 1e-7, stop_when_stalled=False)
+    R1, t1, h1, *_ = newton_optimum(graph, R, t, stop)
+    R2, t2, h2, *_ = newton_optimum(graph, R, t, stop, coupled=coupled)
+    assert h1.grad_norm[-1] <= 1e-7 and h2.grad_norm[-1] <= 1e-7
+    assert h2.f[-1] == pytest.approx(h1.f[-1], rel=1e-12)
+    np.testing.assert_allclose(t2, t1, atol=1e-7)
+    np.testing.assert_allclose(R2, R1, atol=1e-7)
+
+
+def test_damping_decrease_is_validated():
+    from mmpgo_jax._mm.centralized import NewtonConfig
+
+    for bad in (0.0, 1.0, -0.5, float("nan")):
+        with pytest.raises(ValueError, match="damping_decrease"):
+            NewtonConfig(damping_decrease=bad)
+    assert NewtonConfig(damping_decrease=1 / 3).damping_decrease == pytest.approx(1 / 3)

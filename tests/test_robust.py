@@ -313,7 +313,7 @@ def test_gnc_start_tells_the_monitor_how_far_it_is():
     stages = gnc_chordal_initialization(bad.graph).stages
     assert stages > 1 and len(notes.lines) == stages + 1
     assert all(phase == "initializing" for phase, _ in notes.lines)
-    assert notes.lines[0][1].startswith("GNC start: least squares of all")
+    assert notes.lines[0][1].startswith("GNC start: chordal relaxation of all")
     assert [int(t.split("stage ")[1].split(",")[0]) for _, t in notes.lines[1:]] == list(range(1, stages + 1))
     assert " 0 of " in notes.lines[-1][1] and " 0 of " not in notes.lines[1][1]
     mg.solve(bad.graph, 2, loss="tls", start="chordal", iterations=0, monitor=(quiet := Notes()))
@@ -487,3 +487,42 @@ def test_m_estimator_reweighting_keeps_amm_momentum(name):
     f_mm, f_amm = np.asarray(mm_run.history.f), np.asarray(amm_run.history.f)
     assert np.max(np.abs(f_amm - f_mm) / f_mm) > 1e-6  # AMM took momentum steps
     assert f_amm[-1] < f_mm[-1] * (1 - 1e-6), (f_amm[-1], f_mm[-1])
+
+
+def test_gnc_stages_leave_out_couplings_only_when_they_fill_the_factor():
+    """The GNC start's Newton matrices leave out the couplings of negligible-weight edges only on
+    graphs factored by PARDISO and only when those couplings multiply the factor's nonzeros
+    (THIN_FILL): random long-range edges on a grid do, edges between neighbours do not, and edges of
+    real weight always stay in."""
+    import mmpgo_jax._init.robust_start as rs
+    from mmpgo_jax._core.sparse import pardiso_available
+
+    if not pardiso_available():
+        pytest.skip("needs MKL PARDISO (pip install 'mmpgo-jax[large]')")
+    side = 45  # a 2025-pose grid in 2D: 6075 unknowns, factored by PARDISO
+    grid = np.arange(side * side).reshape(side, side)
+    gi = np.concatenate([grid[:, :-1].ravel(), grid[:-1].ravel()])
+    gj = np.concatenate([grid[:, 1:].ravel(), grid[1:].ravel()])
+    rng = np.random.default_rng(0)
+    far = rng.integers(0, side * side, (2, 1500))  # 8x the grid's factor
+    far = far[:, far[0] != far[1]]
+    near = np.stack([grid[:-1:2, :-1:2].ravel(), grid[1::2, 1::2].ravel()])  # diagonal neighbours
+
+    def graph(extra, weight):
+        i, j = np.concatenate([gi, extra[0]]), np.concatenate([gj, extra[1]])
+        m = i.size
+        w = np.concatenate([np.ones(gi.size), np.full(extra.shape[1], weight)])
+        R = np.broadcast_to(np.eye(2), (m, 2, 2))
+        return PoseGraph.from_arrays(i, j, R, np.ones((m, 2)), w, w, num_poses=side * side, dtype=np.float64), w
+
+    g, w = graph(far, 1e-5)
+    coupled = rs._coupled(g, w)
+    assert coupled is not None and (coupled == (w >= rs.NEGLIGIBLE_WEIGHT)).all() and not coupled.all()
+    assert rs._coupled(*graph(far, 0.5)) is None  # real weights
+    assert rs._coupled(*graph(near, 1e-5)) is None  # no fill to save
+    monkeypatched = rs.PARDISO_NEWTON_MIN_SIZE
+    try:
+        rs.PARDISO_NEWTON_MIN_SIZE = 10**9  # a graph below PARDISO's size: SuperLU, nothing left out
+        assert rs._coupled(g, w) is None
+    finally:
+        rs.PARDISO_NEWTON_MIN_SIZE = monkeypatched

@@ -169,3 +169,31 @@ def test_pardiso_solves_are_reproducible():
     np.testing.assert_allclose(A @ first, b, atol=1e-8)
     for _ in range(5):
         np.testing.assert_array_equal(solve_spd(A, b, backend="pardiso"), first)
+
+
+@needs_pardiso
+def test_cholesky_fill_counts_the_factor_of_known_patterns():
+    """PARDISO's count (of the order of L's and U's entries): a pattern without edges counts about its
+    diagonal, a complete graph at least its whole lower triangle, a path a few entries per node, a
+    cycle more (it cannot be eliminated without fill), and a few random long-range edges on a grid
+    (outlier closures) multiply it."""
+    from mmpgo_jax._core.sparse import cholesky_fill
+
+    n = 40
+    none = np.array([], dtype=np.int64)
+    assert n <= cholesky_fill(n, none, none) <= n + 1
+    i, j = np.triu_indices(n, 1)
+    assert cholesky_fill(n, i, j) >= n * (n + 1) // 2
+    ring = np.arange(n)
+    path = cholesky_fill(n, ring[:-1], ring[1:])
+    assert 2 * n <= path <= 4 * n
+    assert cholesky_fill(n, ring, (ring + 1) % n) > path
+    side = 60  # a grid: its factor under nested dissection, and with 300 random long edges added
+    grid = np.arange(side * side).reshape(side, side)
+    gi = np.concatenate([grid[:, :-1].ravel(), grid[:-1].ravel()])
+    gj = np.concatenate([grid[:, 1:].ravel(), grid[1:].ravel()])
+    rng = np.random.default_rng(0)
+    ri, rj = rng.integers(0, side * side, (2, 1500))
+    plain = cholesky_fill(side * side, gi, gj)
+    noisy = cholesky_fill(side * side, np.concatenate([gi, ri]), np.concatenate([gj, rj]))
+    assert noisy > 3 * plain

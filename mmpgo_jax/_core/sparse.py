@@ -34,7 +34,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-__all__ = ["PARDISO_MIN_SIZE", "PardisoCholesky", "SymmetricFactor", "block_order", "factor_symmetric",
+__all__ = ["PARDISO_MIN_SIZE", "PardisoCholesky", "SymmetricFactor", "block_order", "cholesky_fill", "factor_symmetric",
            "pardiso_available", "pose_order", "solve_spd"]
 
 #: Unknowns from which :func:`solve_spd` uses PARDISO when it is installed (the measured
@@ -194,10 +194,17 @@ class PardisoCholesky:
         # a varying order, and a GNC start on top of it classified M3500's outliers differently
         # from run to run (measured 2026-12-05: 19-25 stages, weights differing, same input)
         self._iparm[33] = _threads()
+        self._iparm[17] = -1  # report the factor's nonzeros
         self._ptr = ctypes.c_void_p
         self._int = ctypes.c_int32
         self._factored = False
         self._run(11, np.zeros(1), np.zeros(1))
+
+    @property
+    def factor_nonzeros(self) -> int:
+        """PARDISO's count of the factor's nonzeros in its fill-reducing order, from the analysis (its
+        own count: about twice those of the lower triangle, a measure of the factorization's size)."""
+        return int(self._iparm[17])
 
     def _run(self, phase: int, b: np.ndarray, x: np.ndarray, nrhs: int = 1) -> int:
         error = ctypes.c_int32(0)
@@ -230,6 +237,23 @@ class PardisoCholesky:
     def close(self) -> None:
         """Release PARDISO's memory for this pattern."""
         self._run(-1, np.zeros(1), np.zeros(1))
+
+
+def cholesky_fill(n: int, i: np.ndarray, j: np.ndarray) -> int:
+    """The size of the Cholesky factor of the n x n pattern of the edges (i, j) and the diagonal (one
+    node per pose): :attr:`PardisoCholesky.factor_nonzeros` of PARDISO's analysis (METIS order); the
+    factorization's work grows with it. Needs :func:`pardiso_available`."""
+    lo, hi = np.minimum(i, j), np.maximum(i, j)
+    rows = np.concatenate([np.arange(n), lo])
+    cols = np.concatenate([np.arange(n), hi])
+    upper = sp.csr_matrix((np.ones(rows.size), (rows, cols)), shape=(n, n))
+    upper.sum_duplicates()
+    upper.sort_indices()
+    chol = PardisoCholesky(upper)
+    try:
+        return chol.factor_nonzeros
+    finally:
+        chol.close()
 
 
 def _pardiso_solve_spd(A: sp.spmatrix, B: np.ndarray) -> np.ndarray:
