@@ -526,3 +526,29 @@ def test_gnc_stages_leave_out_couplings_only_when_they_fill_the_factor():
         assert rs._coupled(g, w) is None
     finally:
         rs.PARDISO_NEWTON_MIN_SIZE = monkeypatched
+
+
+def test_gnc_start_does_not_stop_while_weights_are_tiny_but_not_zero():
+    """One wrong closure with a huge information matrix makes mu_0 so small that after the first
+    stage every loop closure's weight is below 1e-4, none 0: GNC goes on until the weights are 0 or
+    1, and rejects that closure and at most one correct one beside it (measured: one; counting tiny
+    weights as decided stopped after the first stage with all 13 correct loop closures rejected)."""
+    from mmpgo_jax._init.robust_start import gnc_chordal_initialization
+
+    ds = mg.cube_dataset(0, grid=3, num_poses=60)
+    g = ds.graph
+    loop = np.flatnonzero(np.abs(np.asarray(g.i) - np.asarray(g.j)) != 1)
+    assert loop.size >= 5
+    far = 0 if int(g.i[0]) != 0 else 1
+    i = np.concatenate([np.asarray(g.i), [far]])
+    j = np.concatenate([np.asarray(g.j), [g.num_poses - 1]])
+    R = np.concatenate([np.asarray(g.R), np.eye(3)[None]])
+    t = np.concatenate([np.asarray(g.t), [[50.0, -40.0, 30.0]]])
+    kappa = np.concatenate([np.asarray(g.kappa), [np.median(np.asarray(g.kappa)[loop]) * 1e6]])
+    tau = np.concatenate([np.asarray(g.tau), [np.median(np.asarray(g.tau)[loop]) * 1e6]])
+    bad = PoseGraph.from_arrays(i, j, R, t, kappa, tau, num_poses=g.num_poses, dtype=np.float64)
+    start = gnc_chordal_initialization(bad)
+    assert not (gnc_chordal_initialization(g).weights == 0).any()  # the clean graph: nothing rejected
+    rejected = np.flatnonzero(start.weights == 0)
+    assert rejected[-1] == bad.num_edges - 1 and rejected.size <= 2  # the outlier, at most one more
+    assert start.stages > 2

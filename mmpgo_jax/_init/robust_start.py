@@ -169,8 +169,13 @@ def gnc_chordal_initialization(
     :func:`~mmpgo_jax.chi2_scale` of the graph's dimension). ``grad_tol`` ends each stage's Newton
     refinement (relative to nothing: the gradient norm of the weighted f = 2F). ``trusted``: (m,) bool,
     edges known to be inliers (weight 1) besides the odometry of ``trust_odometry``. ``progress(text)``
-    is called before the least-squares stage and after every GNC stage (a line for a progress bar:
-    on graphs with many outliers each stage can take minutes)."""
+    is called before the first chordal relaxation and after every GNC stage (a line for a progress
+    bar). GNC ends when every robust edge's weight is 0 or at least 1 - ``weight_tolerance``: a
+    weight that is tiny but not 0 is not decided (while mu is small every loop closure's weight is
+    tiny beside the trusted odometry's 1; counting those as rejected ended GNC after two stages with
+    every correct closure rejected on kitti_00 with 50 % wrong inter-robot closures). When no stage
+    runs (every residual within the scale, or an infinite one) the start is the least-squares
+    optimum of all edges."""
     if not factor > 1.0:
         raise ValueError(f"factor must be > 1, got {factor!r}")
     g = host_graph(graph)
@@ -192,9 +197,9 @@ def gnc_chordal_initialization(
         X = _stage_solution(g, w, fixed, termination)
         s = np.asarray(edge_costs(g, X))
         stages += 1
-        between = robust & (w > weight_tolerance) & (w < 1.0 - weight_tolerance)
+        between = robust & (w > 0.0) & (w < 1.0 - weight_tolerance)
         say(f"GNC start: stage {stages}, {int(between.sum())} of {int(robust.sum())} edges undecided, "
-            f"{int((robust & (w <= weight_tolerance)).sum())} rejected")
+            f"{int((robust & (w == 0.0)).sum())} rejected")
         if not between.any():
             break
         mu *= factor
