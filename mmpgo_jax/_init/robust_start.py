@@ -25,7 +25,8 @@ This start is centralized, like the default chordal start of the least-squares r
 Section VII starts from the centralized chordal initialization as well); it costs about
 ``stages`` sparse factorizations of the chordal system plus the Newton refinements. What keeps
 that cost down on large graphs with many wrong closures (city10000 with 30 % wrong inter-robot
-closures: did not finish in 19 minutes before, about 2.5 minutes now; measured 2026-12-05):
+closures: did not finish in 19 minutes before; the start and the TLS run after it now take 53 s,
+exact; measured 2026-12-05, benchmarks/robust_distributed_files_findings.md):
 
 * the least-squares stage over all edges is the chordal relaxation alone: its Newton refinement,
   pulled by every outlier, ran to its iteration limit without converging (M3500 with 30 %: 200
@@ -36,7 +37,9 @@ closures: did not finish in 19 minutes before, about 2.5 minutes now; measured 2
   weight when they multiply the factor's nonzeros (:data:`NEGLIGIBLE_WEIGHT`, :data:`THIN_FILL`):
   random long-range wrong closures otherwise fill the factorization, and their tiny weights'
   products run into subnormal numbers;
-* the chordal solves use PARDISO from the Newton steps' size.
+* the chordal solves use PARDISO from the Newton steps' size;
+* a weight counts as decided only at 0 or within ``weight_tolerance`` of 1 (see
+  :func:`gnc_chordal_initialization`).
 
 Measured against the previous stage solves on the Cube (10-80 %), MIT, intel (10-50 %) and M3500
 (10-70 %, three seeds) graphs: the same classification on most runs, better on some (MIT 50 %: one
