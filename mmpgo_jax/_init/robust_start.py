@@ -104,7 +104,9 @@ STAGE_NEWTON = NewtonConfig(damping_decrease=1.0 / 3.0)
 
 
 def _large(graph: PoseGraph) -> bool:
-    """Whether the graph's Newton systems are factored by PARDISO (installed, large enough)."""
+    """Whether the graph's Newton systems are factored by PARDISO (installed, large enough). Asks the
+    sparse module itself, as the Newton solver does: the module-level ``pardiso_available`` here only
+    decides the missing-PARDISO note."""
     unknowns = graph.num_poses * graph.dim * (graph.dim + 1) // 2
     return unknowns >= PARDISO_NEWTON_MIN_SIZE and sparse.pardiso_available()
 
