@@ -180,7 +180,7 @@ def test_uncoupled_edges_leave_the_matrix_not_the_objective():
     graph = PoseGraph(cube.i, cube.j, cube.R, cube.t, cube.kappa * w, cube.tau * w, num_poses=cube.num_poses)
     X = chordal_initialization(graph)
     R, t = np.asarray(X.R, np.float64), np.asarray(X.t, np.float64)
-    full, thin = _Problem(graph, None, dense=False), _Problem(graph, None, dense=False, matrix_edges=coupled)
+    full, thin = _Problem(graph, None, dense=False), _Problem(graph, None, dense=False, coupled=coupled)
     g_full, H_full = full.linearize(R, t)
     g_thin, H_thin = thin.linearize(R, t)
     assert thin.cost(R, t) == full.cost(R, t)

@@ -205,9 +205,9 @@ class _Problem:
     from this layout, a few whole-array operations each (tiny graphs pay per operation)."""
 
     def __init__(self, graph: PoseGraph, fixed: FixedPoses | None, dense: bool | None = None,
-                 matrix_edges: np.ndarray | None = None):
+                 coupled: np.ndarray | None = None):
         self.graph = host_view(graph)
-        self.coupled = None if matrix_edges is None else np.asarray(matrix_edges, dtype=bool)
+        self.coupled = None if coupled is None else np.asarray(coupled, dtype=bool)
         g = self.graph
         n, d = g.num_poses, g.R.shape[-1]
         self.n, self.d = n, d
@@ -564,7 +564,7 @@ def newton_optimum(
     config = config or NewtonConfig()
     monitor = monitor or Monitor()
     t_build = time.perf_counter()
-    problem = _Problem(graph, fixed, matrix_edges=coupled)
+    problem = _Problem(graph, fixed, coupled=coupled)
 
     def host_chunk(state, length, limit):
         def chunk(lm, limit):
