@@ -115,8 +115,8 @@ def test_cli_several_starts(tmp_path, capsys):
 def test_runs_on_their_budget_are_finished_at_their_kept_edges_optimum():
     """A candidate of the default robust solve that used its whole budget goes on from the optimum of
     the edges it keeps (centralized Newton) and is kept when that lowers the objective: the result is
-    then that optimum (compared with centralized_optimum of the kept edges run here), f is reported
-    before and after, and nothing of the kind happens with distributed=True."""
+    then that optimum (compared with centralized_optimum of the kept edges run here) and f is reported
+    before and after."""
     ds = mg.cube_dataset(0, grid=3, num_poses=80)
     bad = add_outliers(ds.graph, 0.3, reference=ds.ground_truth, seed=2)
     r = mg.solve(bad.graph, 3, loss="tls", iterations=20)
@@ -126,5 +126,46 @@ def test_runs_on_their_budget_are_finished_at_their_kept_edges_optimum():
     kept = np.asarray(r.inliers, bool)
     ref = mg.centralized_optimum(bad.graph.select_edges(kept)).poses
     assert mg.trajectory_accuracy(r.poses, ref).ate < 1e-6
-    d = mg.solve(bad.graph, 3, loss="tls", iterations=20, distributed=True)
-    assert "starts" not in d.stats and d.iterations == 20
+    assert all(row["finished_by"] == dict(by="optimum") for row in finished)
+
+
+def test_distributed_robust_runs_on_their_budget_go_on_from_their_kept_edges_chordal_start(monkeypatch):
+    """distributed=True: a robust run that used its budget goes on from the distributed chordal start
+    of the edges it keeps (the same start initialize() makes of those edges), never a centralized
+    step; the second run is kept only when it lowers the TLS objective, and its line in stats says
+    how it was made and that the first run held its start's weights. A run of 0 iterations (the
+    start alone) is not finished."""
+    import mmpgo_jax._solve.solve as solve_module
+
+    calls = []
+    original = solve_module._kept_edges_chordal
+
+    def spy(graph, run, robots, fixed=None):
+        out = original(graph, run, robots, fixed)
+        calls.append((run, out[0]))
+        return out
+
+    monkeypatch.setattr(solve_module, "_kept_edges_chordal", spy)
+    monkeypatch.setattr(solve_module, "centralized_optimum", lambda *a, **k: pytest.fail("a centralized step"))
+    ds = mg.cube_dataset(0, grid=3, num_poses=80)
+    bad = add_outliers(ds.graph, 0.3, reference=ds.ground_truth, seed=2)
+    for iterations, second_kept in ((5, True), (20, False)):  # as measured on this graph
+        calls.clear()
+        d = mg.solve(bad.graph, 3, loss="tls", iterations=iterations, distributed=True)
+        (row,) = d.stats["starts"]
+        ((first, begin),) = calls
+        assert row["held"] and row["finished_by"]["by"] == "distributed-chordal"
+        assert row["iterations"] == 2 * iterations
+        kept = np.asarray(first.inliers, bool)
+        ref = mg.initialize(bad.graph.select_edges(kept), "distributed-chordal", robots=3)
+        np.testing.assert_allclose(np.asarray(begin.t), np.asarray(ref.t), atol=1e-12)
+        f_first = robust_objective(first.loss, bad.graph, first.poses)
+        assert robust_objective(d.loss, bad.graph, d.poses) == pytest.approx(row["f"], rel=1e-12)
+        if second_kept:
+            assert row["finished"] == f_first and row["f"] < f_first
+            np.testing.assert_allclose(np.asarray(d.start.t), np.asarray(begin.t), atol=1e-12)
+        else:
+            assert row["finished"] is None and row["f"] == f_first
+            np.testing.assert_array_equal(np.asarray(d.poses.t), np.asarray(first.poses.t))
+    calls.clear()
+    assert mg.solve(bad.graph, 3, loss="tls", iterations=0, distributed=True).iterations == 0 and not calls

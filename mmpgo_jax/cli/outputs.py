@@ -191,7 +191,8 @@ def print_summary(result, fstar, data: LoadedInput | None = None) -> None:
         kept = "kept" if row["kept"] else "not kept"
         count = row["rejected"]
         rejected = "" if count is None else f", {count} edge{'' if count == 1 else 's'} rejected"
-        finished = "" if row.get("finished") is None else f" (f = {row['finished']:.6f} before its kept edges' optimum)"
+        finished = ("" if row.get("finished") is None
+                    else f" (f = {row['finished']:.6f} before it was finished from its kept edges)")
         print(f"start       {row['start']}: f = {row['f']:.6f}{finished}{rejected}, {row['iterations']} iterations, "
               f"{row['seconds']:.2f} s ({kept})")
     if result.loss is not None:

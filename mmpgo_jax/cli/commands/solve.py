@@ -177,31 +177,45 @@ def _solve(args) -> int:
         print(f"threads     {len(devices)} (the robots split over {len(devices)} CPU devices)")
     if args.distributed:
         gnc = ", GNC in the solver" if result.loss is not None and bool(result.loss.use_gnc) else ""
-        held = ", its edge weights held first" if result.stats.get("start_weights_given") else ""
+        kept = [row for row in result.stats.get("starts", ()) if row["kept"]]
+        held = result.stats.get("start_weights_given") or any(row["held"] for row in kept)
+        held = ", its edge weights held first" if held else ""
+        finished = (", finished from the distributed chordal start of its kept edges"
+                    if any(row["finished"] is not None for row in kept) else "")
         start = args.init or ("distributed-chordal" if result.loss is None else "distributed-robust")
-        print(f"distributed no centralized step: start {start}{held}{gnc}")
-        print(_exchanged_line(data.graph, result, start))
+        print(f"distributed no centralized step: start {start}{held}{gnc}{finished}")
+        print(_exchanged_line(data.graph, result, start, kept[0] if kept else None))
     t = time.perf_counter()
     finish_solve(args, data, result, fstar)
     print_timing(result, read=read, write=time.perf_counter() - t)
     return 0
 
 
-def _exchanged_line(graph, result, start: str) -> str:
+def _exchanged_line(graph, result, start: str, row: dict | None = None) -> str:
     """The bytes a robot team exchanges for this run: the distributed robust start's messages
-    (:class:`~mmpgo_jax._init.robust_distributed.StartTraffic`) and the solver's neighbour exchanges
-    (every robot's poses at its inter-robot edge ends, d^2 + d float64 numbers each, per iteration)."""
+    (:class:`~mmpgo_jax._init.robust_distributed.StartTraffic`), the solver's neighbour exchanges
+    (every robot's poses at its inter-robot edge ends, d^2 + d float64 numbers each, per iteration)
+    and, for a run finished from its kept edges (``row``: its line of ``stats["starts"]``), the
+    distributed chordal start's (each CG iteration the same boundary poses' rotations, d^2 numbers,
+    then translations, d; its scalar all-reductions not counted)."""
     from ..._baselines.rbcd import boundary_poses_sent
     from ..._init.robust_distributed import start_traffic
 
     d = graph.dim
-    per_iteration = 8 * (d * d + d) * int(boundary_poses_sent(result.partition).sum())
+    boundary = int(boundary_poses_sent(result.partition).sum())
+    per_iteration = 8 * (d * d + d) * boundary
+    iterations = result.iterations if row is None else row["iterations"]
     parts = []
     if start == "distributed-robust":
         traffic = start_traffic(graph, result.partition)
         parts.append(f"start {traffic.bytes / 1e3:.1f} kB ({traffic.closures} inter-robot closures' far ends, "
                      f"their hypotheses to all {traffic.robots} robots)")
-    parts.append(f"iterations {per_iteration * result.iterations / 1e3:.1f} kB "
+    parts.append(f"iterations {per_iteration * iterations / 1e3:.1f} kB "
                  f"({per_iteration / 1e3:.2f} kB each, boundary poses)")
+    by = None if row is None else row.get("finished_by")
+    if by is not None and by.get("by") == "distributed-chordal":
+        chordal = 8 * boundary * (d * d * by["rotation_iterations"] + d * by["translation_iterations"])
+        parts.append(f"finishing chordal start {chordal / 1e3:.1f} kB ({by['rotation_iterations']} + "
+                     f"{by['translation_iterations']} CG iterations)")
     return "exchanged   " + "; ".join(parts)
 
