@@ -304,10 +304,10 @@ def _best_of(starts: tuple, run_from: Callable, graph: PoseGraph, monitor: Monit
     budget (not 0: that asks for the start alone), a start from the edges it keeps
     (:func:`_kept_edges_finish`; or None), from which a second run goes on; kept when its
     objective is lower. ``stats["starts"]``: per start its name, f, iterations (the second run's
-    added), rejected edges, seconds, whether its run held given weights first (``held``), whether a
-    second run went on (``finished_by``: how its start was made, with the distributed chordal
-    start's CG iterations) and was kept (``finished``: the f before); the kept run's own timings
-    stay its own."""
+    added), rejected edges, seconds (and those of the start itself, ``start_seconds``), whether its
+    run held given weights first (``held``), whether a second run went on (``finished_by``: how its
+    start was made, with the distributed chordal start's CG iterations) and was kept (``finished``:
+    the f before); the kept run's own timings stay its own."""
     runs, rows = [], []
     for k, begin in enumerate(starts):
         name = begin if isinstance(begin, str) else type(begin).__name__
@@ -316,6 +316,7 @@ def _best_of(starts: tuple, run_from: Callable, graph: PoseGraph, monitor: Monit
         run = run_from(begin, _FromStart(monitor, label))
         f, before, iterations = _objective(run, graph), None, run.iterations
         held, finished_by = bool(run.stats.get("start_weights_given", False)), None
+        start_seconds = float(run.stats.get("initialize_seconds", 0.0))
         if finish is not None and run.result is RESULTS.iterations and run.iterations > 0:
             begin_again = finish(graph, run)
             if begin_again is not None:
@@ -327,7 +328,8 @@ def _best_of(starts: tuple, run_from: Callable, graph: PoseGraph, monitor: Monit
                     run, before, f = again, f, f_again
         rejected = None if run.inliers is None else int((~np.asarray(run.inliers, bool)).sum())
         rows.append(dict(start=name, f=f, iterations=iterations, rejected=rejected, finished=before,
-                         finished_by=finished_by, held=held, seconds=time.perf_counter() - t))
+                         finished_by=finished_by, held=held, start_seconds=start_seconds,
+                         seconds=time.perf_counter() - t))
         runs.append(run)
     best = int(np.argmin([row["f"] for row in rows]))  # the first of equal ones
     for k, row in enumerate(rows):
