@@ -21,7 +21,8 @@ Public API (the private modules are implementation details):
   :func:`dgs` (both of its stages, a :class:`DGSResult`); :class:`RBCD` (RBCD / RBCD++, lifted ranks with
   rounding) and :func:`rbcd_poses_sent` (its poses sent per iteration)
 * consistency pre-filter: :func:`pcm_filter` (PCM: the maximum pairwise-consistent set of inter-robot loop
-  closures per robot pair, a :class:`PCMResult`)
+  closures per robot pair, a :class:`PCMResult`); :func:`readmit_loop_closures` (rejected loop closures
+  re-admitted greedily while the robust objective falls, a :class:`Readmission`; ``solve(..., readmit=True)``)
 * solvers: :func:`solve` (one path: a :class:`Solver` — :class:`AMM`, :class:`MM` —, a start, a
   :class:`Termination`, a layout — :class:`OneDevice`, ``mmpgo_jax.sharding.Sharded``), :func:`centralized_optimum`,
   :func:`certify` (global optimality check), and the jittable core :class:`MMConfig`, :class:`MMProblem`,
@@ -133,6 +134,7 @@ if TYPE_CHECKING:  # the same names, eagerly, for type checkers and IDEs
     from ._mm.solvers import AMM, MM, Solver
     from ._mm.subproblem import SubproblemConfig
     from ._robust.pcm import PCMResult, pcm_filter
+    from ._robust.readmit import Readmission, readmit_loop_closures
     from ._solve.devices import use_cpu_cores
     from ._solve.prefilter import PCM
     from ._solve.result import SolveResult, output_frame
@@ -181,6 +183,8 @@ _LAZY = {  # public name -> the private module that defines it (imported on firs
     "CorruptedGraph": "._experiments.outliers",
     "OutlierScores": "._experiments.outliers",
     "PCMResult": "._robust.pcm",
+    "Readmission": "._robust.readmit",
+    "readmit_loop_closures": "._robust.readmit",
     "DGS": "._baselines.dgs",
     "DGSResult": "._baselines.dgs",
     "dgs": "._baselines.dgs",
@@ -307,6 +311,7 @@ __all__ = [
     "Partition",
     "PoseGraph",
     "Poses",
+    "Readmission",
     "RelativePoseError",
     "RobotTeamDataset",
     "RobustLoss",
@@ -369,6 +374,7 @@ __all__ = [
     "read_robot_folder",
     "read_robot_labels",
     "read_toro",
+    "readmit_loop_closures",
     "reference_optimum",
     "relative_pose_error",
     "riemannian_gradient",

@@ -73,6 +73,7 @@ def solve(
     prefilter: str | PCM | None = None,
     distributed: bool = False,
     start_weights=None,
+    readmit: bool = False,
 ) -> SolveResult:
     """Run ``solver`` on ``graph`` split among ``robots``, laid out by ``layout``.
 
@@ -163,6 +164,13 @@ def solve(
     rigid, so correct inter-robot closures start with residuals far above c^2 and TLS weights
     rho'(s) at the start would drop them all. Refused beside least squares.
 
+    ``readmit=True`` (a robust loss; not with ``distributed=True``): after the run, the loop closures
+    it rejected (PCM's removals included) are re-admitted one at a time while the optimum of the kept
+    edges has a lower robust objective (:func:`~mmpgo_jax.readmit_loop_closures`: one centralized
+    Newton solve per rejected closure per round; for tens to hundreds of rejected closures, e.g.
+    robot teams after ``prefilter="pcm"``), then a run from that optimum on the whole graph is
+    returned when its objective is lower; ``stats["readmission"]`` says what was re-admitted.
+
     Raises :class:`NonFiniteError` when f or its gradient stops being finite (data whose weights or
     residuals float arithmetic cannot represent). Numbers are checked (ValueError naming the
     parameter). A second call with the same shapes and configuration structure does not compile
@@ -173,6 +181,10 @@ def solve(
     start = start if init is None else init
     if distributed:
         start, gnc = _distributed_defaults(start, loss, gnc)
+        if readmit:
+            raise ValueError("distributed=True: readmit=True re-solves the kept edges with Newton of the whole "
+                             "graph in one place")
+    full_graph, full_robots = graph, robots
     pre = apply_prefilter(graph, robots, prefilter)
     if pre is not None:  # the solve runs on the kept edges; report() restores the original edge order
         graph, robots = pre.graph, pre.robot_of_pose
@@ -182,6 +194,9 @@ def solve(
         solver = solver_for(method, xi=xi, restart=restart, subproblem=subproblem)
     loss = as_loss(loss, loss_scale, gnc)
     check_loss(solver, loss)
+    if readmit and (loss is None or int(np.asarray(loss.kernel)) == L2):
+        raise ValueError("readmit=True re-admits loop closures a robust loss rejected: give a robust loss "
+                         "(e.g. loss='tls')")
     termination = as_termination(termination, iterations=iterations, chunk_size=chunk_size, grad_tol=grad_tol,
                                  f_target=f_target, rel_decrease_tol=rel_decrease_tol,
                                  stop_when_stalled=stop_when_stalled)
@@ -191,16 +206,18 @@ def solve(
     if pre is not None and start_weights is not None and np.shape(start_weights) == pre.rejected.shape:
         start_weights = np.asarray(start_weights)[~pre.rejected]  # the given weights of the kept edges
 
-    def run_from(begin, monitor: Monitor = monitor) -> SolveResult:
-        run = prepare(graph, solver, robots, layout, termination, start=begin,
+    def run_from(begin, monitor: Monitor = monitor, on=None) -> SolveResult:
+        # on: (graph, robots) of a run on the given graph after a prefilter (re-admission), from poses
+        g, rb, weights = (graph, robots, start_weights) if on is None else (*on, None)
+        run = prepare(g, solver, rb, layout, termination, start=begin,
                       initial=initial, fixed=fixed, loss=loss, monitor=monitor,
                       checkpoint=checkpoint, checkpoint_every=checkpoint_every, resume=resume,
-                      start_weights=start_weights)
+                      start_weights=weights)
         placement = run.placement
         out = drive(placement.compile_chunk(solver, run.problem), run.state, placement.start_record(run.start),
                     termination, fetch=placement.fetch, callback=callback, agree=placement.agree, monitor=monitor,
                     checkpoint=run.saver, history=None if run.snapshot is None else run.snapshot.history)
-        return finish(graph, solver, run, out, termination, fixed=fixed, frame=frame, ground_truth=ground_truth)
+        return finish(g, solver, run, out, termination, fixed=fixed, frame=frame, ground_truth=ground_truth)
 
     starts = _starts(start, loss, robots, start_weights=start_weights, checkpoint=checkpoint, resume=resume)
     finish_kept = _kept_edges_finish(loss, distributed, len(starts), robots, fixed)
@@ -208,7 +225,33 @@ def solve(
         result = run_from(starts[0])
     else:
         result = _best_of(starts, run_from, graph, monitor, finish_kept)
-    return result if pre is None else pre.report(result)
+    result = result if pre is None else pre.report(result)
+    if readmit:
+        again = functools.partial(run_from, monitor=_FromStart(monitor, "after re-admission"),
+                                  on=(full_graph, full_robots))
+        result = _readmitted(full_graph, result, again, fixed)
+    return result
+
+
+def _readmitted(graph: PoseGraph, result: SolveResult, run_from: Callable, fixed) -> SolveResult:
+    """``readmit=True``: the rejected loop closures re-admitted greedily while that lowers the robust
+    objective (:func:`~mmpgo_jax._robust.readmit.readmit_loop_closures`), then a run from the
+    optimum of the edges kept, returned when its objective is lower. ``stats["readmission"]``: the
+    edges re-admitted (graph order), f before and after the search, the Newton solves, seconds and
+    whether the second run was kept."""
+    from .._robust.readmit import readmit_loop_closures
+
+    t = time.perf_counter()
+    found = readmit_loop_closures(graph, result.inliers, result.poses, result.loss, fixed=fixed)
+    info = dict(readmitted=found.readmitted.tolist(), f_before=found.f_before, f_after=found.f,
+                solves=found.solves, seconds=time.perf_counter() - t, kept=False)
+    if found.readmitted.size:
+        again = run_from(Poses(found.poses.R, found.poses.t))
+        if _objective(again, graph) < _objective(result, graph):
+            result, info["kept"] = again, True
+    info["seconds"] = time.perf_counter() - t
+    result.stats["readmission"] = info
+    return result
 
 
 def _objective(run: SolveResult, graph: PoseGraph) -> float:

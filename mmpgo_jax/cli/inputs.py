@@ -32,6 +32,7 @@ CENTRALIZED_OPTIONS = {
     ("certify", True): "--certify checks the dual certificate of the whole graph in one place",
     ("robots_from", "metis"): "--robots-from metis partitions the whole graph in one place; use blocks or the "
                               "robots of the data (symbols, labels, files)",
+    ("readmit", True): "--readmit re-solves the kept edges with Newton of the whole graph in one place",
 }
 
 
@@ -227,6 +228,10 @@ def solve_options(args, data: LoadedInput) -> dict:
         robust["prefilter"] = prefilter
     if getattr(args, "distributed", False):
         robust["distributed"] = True
+    if getattr(args, "readmit", False):
+        if "loss" not in robust:
+            raise CLIError("--readmit re-admits loop closures a robust --loss rejected: give one (e.g. --loss tls)")
+        robust["readmit"] = True
     return dict(method=args.method, iterations=args.iterations, init=data.start(args.init, SOLVE_STARTS),
                 initial=data.initial, chunk_size=args.chunk, grad_tol=args.grad_tol,
                 stop_when_stalled=not args.all_iterations, fixed=data.fixed, frame=data.frame, **shortcuts,

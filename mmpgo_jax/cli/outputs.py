@@ -155,6 +155,19 @@ def _rejected_lines(result, data: LoadedInput | None, mask=None) -> str:
     return f"; {which} {join_items(lines[rejected].tolist(), 60)} of {data.path.name}"
 
 
+def _readmission_line(result, data: LoadedInput | None) -> str:
+    """``--readmit``'s line: the loop closures re-admitted, f before and after the search, its
+    Newton solves and seconds, and whether the run from there was kept."""
+    info = result.stats["readmission"]
+    edges = np.asarray(info["readmitted"], np.int64)
+    mask = np.zeros(len(result.inliers), bool)
+    mask[edges] = True
+    kept = "the run from there kept" if info["kept"] else "the first run kept"
+    return (f"readmit     {len(edges)} rejected loop closure{'' if len(edges) == 1 else 's'} re-admitted "
+            f"(f {info['f_before']:.6f} -> {info['f_after']:.6f} at the kept edges' optimum, {info['solves']} "
+            f"Newton solves, {info['seconds']:.1f} s; {kept}){_rejected_lines(result, data, mask)}")
+
+
 def comparable_fstar(result, fstar):
     """``fstar``, or None when a pre-filter removed edges: f is then that of a smaller graph, and a
     gap to the whole file's f* would mean nothing (it can be negative)."""
@@ -201,6 +214,8 @@ def print_summary(result, fstar, data: LoadedInput | None = None) -> None:
         gnc = f", GNC {result.stats['gnc_stages']} stages" if bool(result.loss.use_gnc) else ""
         print(f"loss        {result.loss.name} (c = {float(result.loss.scale):.4g}{gnc}): {int(robust.sum())} of "
               f"{used} edges rejected (f = sum of rho(r^2)){_rejected_lines(result, data, robust)}")
+    if "readmission" in result.stats:
+        print(_readmission_line(result, data))
     if result.accuracy is not None:
         a = result.accuracy
         print(f"ATE         {a.ate:.6g} RMSE, {a.ate_max:.6g} max (positions after rigid alignment); "

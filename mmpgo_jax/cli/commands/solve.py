@@ -104,6 +104,10 @@ def _add_robust_options(p: argparse.ArgumentParser) -> None:
     g.add_argument("--drop-outliers", action="store_true",
                    help="--out / --out-dir keep only the inlier edges (by default every edge is written)")
     add_pcm_options(g, "before the start and the solve; the count and lines are printed")
+    g.add_argument("--readmit", action="store_true",
+                   help="after a robust solve, re-admit rejected loop closures one at a time while the robust "
+                        "objective falls (centralized Newton per rejected closure; for robot teams with few "
+                        "closures per pair, e.g. with --pcm), then solve again from there")
 
 
 def preload() -> None:
