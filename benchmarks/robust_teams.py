@@ -18,6 +18,9 @@ Methods (AMM, the team's robots, ``--iterations`` at most, default stopping rule
 * ``pcm+tls``: ``prefilter="pcm"`` then ``loss="tls"`` (its default start on the filtered graph);
 * ``l2``: least squares on the corrupted graph (no defence);
 * ``dist-tls``, ``dist-pcm+tls``: ``distributed=True`` (distributed chordal start, GNC in the solver);
+* ``tls+readmit``, ``pcm+tls+readmit``: ``tls`` and ``pcm+tls`` with ``readmit=True`` (rejected loop
+  closures, PCM's removals included, re-admitted one at a time while the TLS objective falls, then a run
+  from there);
 * ``pcm-filter``: ``pcm_filter`` alone (no solve), with the robot pairs holding one or two closures.
 
 Reported: precision / recall of the rejected edges (``result.inliers``, the PCM-removed edges
@@ -51,6 +54,8 @@ METHODS = {
     "pcm+tls": dict(prefilter="pcm", loss="tls"),
     "dist-tls": dict(loss="tls", distributed=True),
     "dist-pcm+tls": dict(prefilter="pcm", loss="tls", distributed=True),
+    "tls+readmit": dict(loss="tls", readmit=True),
+    "pcm+tls+readmit": dict(prefilter="pcm", loss="tls", readmit=True),
     "pcm-filter": None,  # pcm_filter alone, no solve: its precision / recall and seconds
 }
 

@@ -238,7 +238,7 @@ def _readmitted(graph: PoseGraph, result: SolveResult, run_from: Callable, fixed
     objective (:func:`~mmpgo_jax._robust.readmit.readmit_loop_closures`), then a run from the
     optimum of the edges kept, returned when its objective is lower. ``stats["readmission"]``: the
     edges re-admitted (graph order), f before and after the search, the Newton solves, seconds and
-    whether the second run was kept."""
+    whether the second run was kept (it then carries the first run's ``pcm_*`` stats)."""
     from .._robust.readmit import readmit_loop_closures
 
     t = time.perf_counter()
@@ -248,6 +248,8 @@ def _readmitted(graph: PoseGraph, result: SolveResult, run_from: Callable, fixed
     if found.readmitted.size:
         again = run_from(Poses(found.poses.R, found.poses.t))
         if _objective(again, graph) < _objective(result, graph):
+            # what a prefilter removed stays reported (its removals may have been re-admitted since)
+            again.stats.update({k: v for k, v in result.stats.items() if k.startswith("pcm_")})
             result, info["kept"] = again, True
     info["seconds"] = time.perf_counter() - t
     result.stats["readmission"] = info
