@@ -22,7 +22,9 @@ Public API (the private modules are implementation details):
   rounding) and :func:`rbcd_poses_sent` (its poses sent per iteration)
 * consistency pre-filter: :func:`pcm_filter` (PCM: the maximum pairwise-consistent set of inter-robot loop
   closures per robot pair, a :class:`PCMResult`); :func:`readmit_loop_closures` (rejected loop closures
-  re-admitted greedily while the robust objective falls, a :class:`Readmission`; ``solve(..., readmit=True)``)
+  re-admitted greedily while the robust objective falls, a :class:`Readmission`; ``solve(..., readmit=True)``),
+  :func:`noise_level` (the a-posteriori variance factor: the data's noise against their information, a
+  :class:`NoiseLevel`)
 * solvers: :func:`solve` (one path: a :class:`Solver` — :class:`AMM`, :class:`MM` —, a start, a
   :class:`Termination`, a layout — :class:`OneDevice`, ``mmpgo_jax.sharding.Sharded``), :func:`centralized_optimum`,
   :func:`certify` (global optimality check), and the jittable core :class:`MMConfig`, :class:`MMProblem`,
@@ -57,6 +59,7 @@ if TYPE_CHECKING:  # the same names, eagerly, for type checkers and IDEs
         rigid_alignment,
         trajectory_accuracy,
     )
+    from ._core.noise import NoiseLevel, noise_level
     from ._core.partition import (
         Partition,
         contiguous_robots,
@@ -144,6 +147,8 @@ _LAZY = {  # public name -> the private module that defines it (imported on firs
     "enable_compilation_cache": "._core.compilation_cache",
     "set_compile_mode": "._core.compile_mode",
     "FixedPoses": "._core.gauge",
+    "NoiseLevel": "._core.noise",
+    "noise_level": "._core.noise",
     "express_in_frame": "._core.gauge",
     "project_to_so": "._core.geometry",
     "quaternion_to_rotation": "._core.geometry",
@@ -303,6 +308,7 @@ __all__ = [
     "MMProblem",
     "MMState",
     "Monitor",
+    "NoiseLevel",
     "NonFiniteError",
     "OneDevice",
     "OptimalityCertificate",
@@ -357,6 +363,7 @@ __all__ = [
     "loss_weight",
     "matrix_to_poses",
     "metis_robots",
+    "noise_level",
     "objective",
     "odometry_initialization",
     "outlier_scores",

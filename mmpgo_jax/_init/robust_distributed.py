@@ -86,7 +86,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from .._core.geometry import project_to_so
-from .._core.pose_graph import HostPoses, PoseGraph, component_labels, edge_costs, host_graph
+from .._core.noise import noise_level
+from .._core.pose_graph import HostPoses, PoseGraph, component_labels, host_graph
 from .._mm.robust import TLS, chi2_scale, gnc_initial_mu, gnc_weight
 from .chordal import chordal_initialization
 from .robust_start import gnc_chordal_initialization
@@ -369,25 +370,15 @@ def closure_variances(graph, t, map_of_pose, keep=None, *, probes: int = 64, see
 
 
 def variance_factor(local_graph: PoseGraph, poses: HostPoses, num_maps: int) -> float:
-    """The a-posteriori variance factor of the local maps, kept at 1 unless the data says otherwise:
-    the estimate is sum s over their kept edges / the redundancy r = p (m - n + K) (p = d(d+1)/2
-    numbers per edge and per pose, K maps each fixing one pose's gauge); s of an edge is about
-    chi^2_p when the information matrices are right, so sum s ~ chi^2_r and the estimate is about 1
-    then. The factor is the value of its 99 % confidence interval [sum s / chi^2_r(0.995),
-    sum s / chi^2_r(0.005)] nearest to 1: 1 when the interval holds 1 (few closures say little),
-    otherwise its nearer end (files whose information matrices overstate the noise, e.g. M3500: about
-    0.03). Every variance of the frame tests is multiplied by it. 1 without redundancy (chains). A sum
-    over the robots (one number each), like GNC's shared schedule."""
-    from scipy import stats
-
-    d = local_graph.dim
-    p = d * (d + 1) // 2
-    redundancy = p * (local_graph.num_edges - local_graph.num_poses + num_maps)
-    if redundancy <= 0:
-        return 1.0
-    total = float(np.sum(edge_costs(local_graph, poses)))
-    low, high = total / stats.chi2.ppf(0.995, redundancy), total / stats.chi2.ppf(0.005, redundancy)
-    return float(np.clip(1.0, max(low, VARIANCE_FACTOR_FLOOR), max(high, VARIANCE_FACTOR_FLOOR)))
+    """The a-posteriori variance factor of the local maps, kept at 1 unless the data says otherwise
+    (:func:`~mmpgo_jax._core.noise.noise_level` of their kept edges with K = ``num_maps`` gauges, at
+    99 %: sum s over the redundancy p (m - n + K), about 1 when the information matrices are right):
+    the value of its interval nearest to 1, so 1 when the interval holds 1 (few closures say
+    little), otherwise its nearer end (files whose information matrices overstate the noise, e.g.
+    M3500: about 0.03). Every variance of the frame tests is multiplied by it. 1 without redundancy
+    (chains). A sum over the robots (one number each), like GNC's shared schedule."""
+    level = noise_level(local_graph, poses, num_maps)
+    return max(level.nearest_one(), VARIANCE_FACTOR_FLOOR)
 
 
 def _frame_graph(a, b, R, t, kappa, tau, K) -> PoseGraph:

@@ -155,6 +155,30 @@ def _rejected_lines(result, data: LoadedInput | None, mask=None) -> str:
     return f"; {which} {join_items(lines[rejected].tolist(), 60)} of {data.path.name}"
 
 
+def _noise_line(result, graph) -> str:
+    """A robust run's line on the data's noise against their information matrices: the
+    a-posteriori variance factor of the kept edges at the final poses (:func:`~mmpgo_jax.noise_level`)
+    and what it means for the loss's scale c."""
+    from .._core.noise import noise_level
+
+    level = noise_level(graph.select_edges(np.asarray(result.inliers, bool)), result.poses)
+    if level.redundancy <= 0:
+        return "noise       the kept edges have no redundancy: nothing to compare their information matrices with"
+    c = float(result.loss.scale)
+    if level.high < 1.0:
+        meaning = ("the information matrices overstate the noise, so the scale c is loose for these data "
+                   "(an outlier that bends the map slightly can cost less than c^2)")
+    elif level.low > 1.0:
+        meaning = ("the information matrices understate the noise, so the scale c is tight for these data "
+                   f"(correct edges may be rejected; c for the kept edges' noise: --loss-scale "
+                   f"{c * np.sqrt(level.low):.4g} or more)")
+    else:
+        meaning = "consistent with the information matrices"
+    return (f"noise       kept edges' residuals {level.factor:.3g}x what their information matrices predict "
+            f"({100 * level.confidence:g} % interval {level.low:.3g}-{level.high:.3g}, a-posteriori variance "
+            f"factor): {meaning}")
+
+
 def _readmission_line(result, data: LoadedInput | None) -> str:
     """``--readmit``'s line: the loop closures re-admitted, f before and after the search, its
     Newton solves and seconds, and whether the run from there was kept."""
@@ -214,6 +238,8 @@ def print_summary(result, fstar, data: LoadedInput | None = None) -> None:
         gnc = f", GNC {result.stats['gnc_stages']} stages" if bool(result.loss.use_gnc) else ""
         print(f"loss        {result.loss.name} (c = {float(result.loss.scale):.4g}{gnc}): {int(robust.sum())} of "
               f"{used} edges rejected (f = sum of rho(r^2)){_rejected_lines(result, data, robust)}")
+    if result.loss is not None and data is not None:
+        print(_noise_line(result, data.graph))
     if "readmission" in result.stats:
         print(_readmission_line(result, data))
     if result.accuracy is not None:
