@@ -16,6 +16,8 @@ loop-closure information) so that ``rate`` percent of the inter-robot closures a
   their inter-robot closures' frame hypotheses), its classification of the edges held as the first
   stage, then TLS; a run that used its budget goes on from the distributed chordal start of the
   edges it keeps (since 2026-12-05; kept when the TLS objective is lower: "finished");
+* ``distributed-gnc``: the same with ``gnc=GNCConfig()``: after the held classification, GNC's
+  stages (mu's schedule, weights per stage) in the distributed solver instead of TLS's own weights;
 * ``central``: ``solve(graph, robots, loss="tls", start="gnc-chordal")``: the centralized GNC-chordal
   start, then TLS (the default until 2026-12-05);
 * ``default``: ``solve(graph, robots, loss="tls")``: the default since 2026-12-05, a run from each of
@@ -55,8 +57,8 @@ from mmpgo_jax._io.atomic import atomic_write  # noqa: E402
 from mmpgo_jax.cli.bench import machine_info  # noqa: E402
 
 HERE = Path(__file__).parent
-PIPELINES = {"distributed": dict(distributed=True), "central": dict(start="gnc-chordal"), "default": {},
-             "gtsam": None}
+PIPELINES = {"distributed": dict(distributed=True), "distributed-gnc": dict(distributed=True, gnc=mm.GNCConfig()),
+             "central": dict(start="gnc-chordal"), "default": {}, "gtsam": None}
 
 
 def _gtsam(graph):
