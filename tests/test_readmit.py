@@ -65,6 +65,8 @@ def test_solve_readmit_runs_from_the_readmitted_optimum_and_refuses_what_it_cann
         mm.solve(graph, 3, readmit=True, iterations=0)
     with pytest.raises(ValueError, match="distributed=True: readmit=True"):
         mm.solve(graph, 3, loss="tls", distributed=True, readmit=True, iterations=0)
+    with pytest.raises(ValueError, match="readmit=True may run a second solve: not with checkpoint"):
+        mm.solve(graph, 3, loss="tls", readmit=True, iterations=0, checkpoint="never-written.npz")
 
 
 def test_cli_readmit(tmp_path, capsys):

@@ -197,6 +197,8 @@ def solve(
     if readmit and (loss is None or int(np.asarray(loss.kernel)) == L2):
         raise ValueError("readmit=True re-admits loop closures a robust loss rejected: give a robust loss "
                          "(e.g. loss='tls')")
+    if readmit and (checkpoint is not None or resume is not None):
+        raise ValueError("readmit=True may run a second solve: not with checkpoint= / resume=")
     termination = as_termination(termination, iterations=iterations, chunk_size=chunk_size, grad_tol=grad_tol,
                                  f_target=f_target, rel_decrease_tol=rel_decrease_tol,
                                  stop_when_stalled=stop_when_stalled)
