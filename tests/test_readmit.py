@@ -87,3 +87,22 @@ def test_cli_readmit(tmp_path, capsys):
         rc = main(["solve", str(path), "-A", "3", "-n", "5", "--no-progress", *argv])
         err = capsys.readouterr().err
         assert rc != 0 and named in err and len(err.strip().splitlines()) == 1, err
+
+
+def test_readmission_warns_where_the_information_overstates_the_noise():
+    """The kept edges' residuals 1/9 of what their information predicts (noise 3x below the claimed):
+    a warning that the scale is loose; none where the information matches the noise."""
+    import warnings
+
+    from test_noise import _team
+
+    for noise, claimed, warns in ((0.01, 0.03, True), (0.03, 0.03, False)):
+        g, X = _team(noise, claimed)
+        kept = np.ones(g.num_edges, bool)
+        kept[np.flatnonzero(np.abs(np.asarray(g.i) - np.asarray(g.j)) != 1)[0]] = False
+        loss = mm.RobustLoss("tls").with_defaults(g.dim)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            mm.readmit_loop_closures(g, kept, X, loss)
+        loose = [w for w in caught if "scale is loose for these data" in str(w.message)]
+        assert bool(loose) == warns, [str(w.message) for w in caught]

@@ -14,16 +14,20 @@ robust run already rejected what it found too costly), so f never rises and the 
 Cost: one Newton solve of the kept edges per rejected closure per round (a 5000-pose 2D team with
 16 rejected closures: 58 solves, about 40 s on a 2-core AMD EPYC). It is meant for graphs with tens
 to a few hundred rejected closures, e.g. after PCM (:func:`~mmpgo_jax.pcm_filter`) and TLS on robot
-teams; it gathers the whole graph in one place (not for ``distributed=True`` runs).
+teams; it gathers the whole graph in one place (not for ``distributed=True`` runs). It follows the
+objective: where the information matrices overstate the noise the objective may prefer an outlier
+that bends the map slightly, and it warns when the kept edges' residuals say so.
 """
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
 
 from .._core.gauge import FixedPoses
+from .._core.noise import noise_level
 from .._core.pose_graph import HostPoses, PoseGraph, Poses, connected_components, host_graph
 from .._mm.centralized import newton_optimum
 from .._mm.driver import Termination
@@ -64,6 +68,7 @@ def readmit_loop_closures(graph: PoseGraph, inliers, poses: Poses, loss: RobustL
     hg = host_graph(graph)
     candidates = robust_edges(loss, hg.i, hg.j) & ~inliers
     X = HostPoses(np.asarray(poses.R, np.float64), np.asarray(poses.t, np.float64))
+    _warn_if_loose(graph.select_edges(inliers), X)
     f_before = f = robust_objective(loss, graph, X)
     kept, readmitted, solves = inliers.copy(), [], 0
     while True:
@@ -84,6 +89,19 @@ def readmit_loop_closures(graph: PoseGraph, inliers, poses: Poses, loss: RobustL
         kept[e] = True
         readmitted.append(int(e))
     return Readmission(kept, X, float(f), float(f_before), np.asarray(readmitted, np.int64), solves)
+
+
+def _warn_if_loose(kept: PoseGraph, X: HostPoses) -> None:
+    """A warning when the kept edges' residuals are significantly below what their information
+    matrices predict (:func:`~mmpgo_jax.noise_level`, 99 % interval below 1): the scale c is then loose
+    for these data, and the objective may prefer an outlier that bends the map slightly (M3500 at 10 %
+    wrong inter-robot closures: one was re-admitted, benchmarks/robust_teams.md)."""
+    level = noise_level(kept, X)
+    if level.redundancy > 0 and level.high < 1.0:
+        warnings.warn(f"readmit_loop_closures: the kept edges' residuals are {level.factor:.3g}x what their "
+                      "information matrices predict, so the loss's scale is loose for these data and "
+                      "re-admission, which follows the robust objective, may take outliers that bend the map "
+                      "slightly", stacklevel=3)
 
 
 def _kept_optimum(graph: PoseGraph, kept: np.ndarray, X: HostPoses, fixed) -> HostPoses | None:
