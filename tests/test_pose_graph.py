@@ -431,3 +431,15 @@ def test_anchor_set_holds_one_pose_per_unheld_component(n, m, seed):
     np.testing.assert_array_equal(anchors.t[[at[p] for p in fixed_idx.tolist()]], fixed.t)  # held at their values
     free = [at[p] for p in expected - set(fixed_idx.tolist())]
     np.testing.assert_array_equal(anchors.t[free], 0.0)
+
+
+def test_connected_subgraph_is_the_selection_or_none_when_it_disconnects():
+    import mmpgo_jax as mm
+
+    g = pg.host_graph(mm.cube_dataset(0, grid=3, num_poses=30).graph)
+    loop = np.abs(np.asarray(g.i) - np.asarray(g.j)) != 1
+    sub = pg.connected_subgraph(g, ~loop)  # the odometry chain alone: connected
+    assert sub is not None and sub.num_edges == int((~loop).sum())
+    np.testing.assert_array_equal(np.asarray(sub.i), np.asarray(g.i)[~loop])
+    cut = ~loop & (np.asarray(g.i) != 10)  # the chain cut after pose 10
+    assert pg.connected_subgraph(g, cut) is None

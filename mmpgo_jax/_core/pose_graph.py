@@ -358,6 +358,15 @@ def _odometry_connects(num_poses: int, i: np.ndarray, j: np.ndarray) -> bool:
     return low.size >= num_poses - 1 and bool(np.bincount(low, minlength=num_poses).astype(bool)[:-1].all())
 
 
+def connected_subgraph(graph: PoseGraph, keep) -> PoseGraph | None:
+    """``graph.select_edges(keep)``, or None when the kept edges leave the poses in more than one
+    connected component (no relative placement of the parts to optimize)."""
+    keep = np.asarray(keep, bool)
+    if len(connected_components(graph.num_poses, np.asarray(graph.i)[keep], np.asarray(graph.j)[keep])) > 1:
+        return None
+    return graph.select_edges(keep)
+
+
 def connected_components(num_poses: int, i, j) -> list[np.ndarray]:
     """Connected components of the measurement graph, largest first (host-side): each the
     ascending array of its poses."""

@@ -28,7 +28,7 @@ import numpy as np
 
 from .._core.gauge import FixedPoses
 from .._core.noise import noise_level
-from .._core.pose_graph import HostPoses, PoseGraph, Poses, connected_components, host_graph
+from .._core.pose_graph import HostPoses, PoseGraph, Poses, connected_subgraph, host_graph
 from .._mm.centralized import newton_optimum
 from .._mm.driver import Termination
 from .._mm.robust import RobustLoss, robust_edges, robust_objective
@@ -65,22 +65,22 @@ def readmit_loop_closures(graph: PoseGraph, inliers, poses: Poses, loss: RobustL
     inliers = np.asarray(inliers, bool)
     if inliers.shape != (graph.num_edges,):
         raise ValueError(f"inliers: expected ({graph.num_edges},) booleans (one per edge), got shape {inliers.shape}")
-    hg = host_graph(graph)
+    hg = host_graph(graph)  # every trial selects, solves and scores on the host
     candidates = robust_edges(loss, hg.i, hg.j) & ~inliers
     X = HostPoses(np.asarray(poses.R, np.float64), np.asarray(poses.t, np.float64))
-    _warn_if_loose(graph.select_edges(inliers), X)
-    f_before = f = robust_objective(loss, graph, X)
+    _warn_if_loose(hg.select_edges(inliers), X)
+    f_before = f = robust_objective(loss, hg, X)
     kept, readmitted, solves = inliers.copy(), [], 0
     while True:
         best = None
         for e in np.flatnonzero(candidates & ~kept):
             trial = kept.copy()
             trial[e] = True
-            Y = _kept_optimum(graph, trial, X, fixed)
+            Y = _kept_optimum(hg, trial, X, fixed)
             if Y is None:
                 continue
             solves += 1
-            f_trial = robust_objective(loss, graph, Y)
+            f_trial = robust_objective(loss, hg, Y)
             if f_trial < f and (best is None or f_trial < best[0]):
                 best = (f_trial, e, Y)
         if best is None:
@@ -106,9 +106,9 @@ def _warn_if_loose(kept: PoseGraph, X: HostPoses) -> None:
 
 def _kept_optimum(graph: PoseGraph, kept: np.ndarray, X: HostPoses, fixed) -> HostPoses | None:
     """The optimum of the ``kept`` edges by Newton from X; None when they leave the graph disconnected."""
-    i, j = np.asarray(graph.i)[kept], np.asarray(graph.j)[kept]
-    if len(connected_components(graph.num_poses, i, j)) > 1:
+    sub = connected_subgraph(graph, kept)
+    if sub is None:
         return None
     termination = Termination(MAX_NEWTON_ITERATIONS, 1, GRAD_TOL, stop_when_stalled=False)
-    R, t, *_ = newton_optimum(graph.select_edges(kept), X.R, X.t, termination, fixed=fixed)
+    R, t, *_ = newton_optimum(sub, X.R, X.t, termination, fixed=fixed)
     return HostPoses(np.asarray(R), np.asarray(t))

@@ -20,7 +20,7 @@ import numpy as np
 
 from .._core.gauge import FixedPoses
 from .._core.partition import Partition, partition
-from .._core.pose_graph import HostPoses, PoseGraph, Poses, connected_components
+from .._core.pose_graph import HostPoses, PoseGraph, Poses, connected_subgraph
 from .._core.precision import float64_enabled
 from .._init.start import initialize
 from .._mm.centralized import NewtonConfig, newton_optimum
@@ -246,7 +246,7 @@ def _readmitted(graph: PoseGraph, result: SolveResult, run_from: Callable, fixed
     t = time.perf_counter()
     found = readmit_loop_closures(graph, result.inliers, result.poses, result.loss, fixed=fixed)
     info = dict(readmitted=found.readmitted.tolist(), f_before=found.f_before, f_after=found.f,
-                solves=found.solves, seconds=time.perf_counter() - t, kept=False)
+                solves=found.solves, kept=False)
     if found.readmitted.size:
         again = run_from(Poses(found.poses.R, found.poses.t))
         if _objective(again, graph) < _objective(result, graph):
@@ -273,20 +273,11 @@ def _kept_edges_finish(loss, distributed: bool, start_count: int, robots, fixed)
     return functools.partial(_kept_edges_optimum, fixed=fixed) if start_count > 1 else None
 
 
-def _kept_edges(graph: PoseGraph, run: SolveResult) -> PoseGraph | None:
-    """The graph of the edges a robust run keeps (its inliers); None when they leave it disconnected
-    (no relative placement of its parts to optimize)."""
-    kept = np.asarray(run.inliers, bool)
-    if len(connected_components(graph.num_poses, np.asarray(graph.i)[kept], np.asarray(graph.j)[kept])) > 1:
-        return None
-    return graph.select_edges(kept)
-
-
 def _kept_edges_optimum(graph: PoseGraph, run: SolveResult, fixed=None) -> tuple[Poses, dict] | None:
     """The optimum of the edges a robust run keeps, by centralized Newton from its poses: what the
     GNC-chordal start ends with, for a run whose iterations had not converged (a distributed robust
     start's rigid maps take thousands of iterations to bend into the optimum)."""
-    kept = _kept_edges(graph, run)
+    kept = connected_subgraph(graph, run.inliers)
     if kept is None:
         return None
     return centralized_optimum(kept, init=run.poses, fixed=fixed, frame="raw").poses, dict(by="optimum")
@@ -301,7 +292,7 @@ def _kept_edges_chordal(graph: PoseGraph, run: SolveResult, robots, fixed=None) 
     this start; least squares without the outliers from the chordal start: 0.45 %)."""
     from .._init.distributed_chordal import distributed_chordal_initialization
 
-    kept = _kept_edges(graph, run)
+    kept = connected_subgraph(graph, run.inliers)
     if kept is None:
         return None
     poses, info = distributed_chordal_initialization(kept, robots, fixed=fixed)
