@@ -17,7 +17,9 @@ Methods (AMM, the team's robots, ``--iterations`` at most, default stopping rule
 * ``pcm``: ``prefilter="pcm"`` then least squares (chordal start);
 * ``pcm+tls``: ``prefilter="pcm"`` then ``loss="tls"`` (its default start on the filtered graph);
 * ``l2``: least squares on the corrupted graph (no defence);
-* ``dist-tls``, ``dist-pcm+tls``: ``distributed=True`` (distributed chordal start, GNC in the solver);
+* ``dist-tls``, ``dist-pcm+tls``: ``distributed=True`` (since 2026-12-04 the distributed robust start,
+  its classification held, then TLS, finished and revisited as ``solve`` does; the tables of
+  2026-12-03 ran the distributed chordal start with GNC in the solver);
 * ``tls+readmit``, ``pcm+tls+readmit``: ``tls`` and ``pcm+tls`` with ``readmit=True`` (rejected loop
   closures, PCM's removals included, re-admitted one at a time while the TLS objective falls, then a run
   from there);

@@ -147,7 +147,8 @@ def test_distributed_robust_runs_on_their_budget_go_on_from_their_kept_edges_cho
 
     monkeypatch.setattr(solve_module, "_kept_edges_chordal", spy)
     monkeypatch.setattr(solve_module, "centralized_optimum", lambda *a, **k: pytest.fail("a centralized step"))
-    ds = mg.cube_dataset(0, grid=3, num_poses=80)
+    monkeypatch.setattr(solve_module, "_revisited", lambda weights, run, f, *a: (run, f, []))  # tested below
+    ds = mg.cube_dataset(1, grid=3, num_poses=80)
     bad = add_outliers(ds.graph, 0.3, reference=ds.ground_truth, seed=2)
     for iterations, second_kept in ((5, True), (20, False)):  # as measured on this graph
         calls.clear()
@@ -169,3 +170,54 @@ def test_distributed_robust_runs_on_their_budget_go_on_from_their_kept_edges_cho
             np.testing.assert_array_equal(np.asarray(d.poses.t), np.asarray(first.poses.t))
     calls.clear()
     assert mg.solve(bad.graph, 3, loss="tls", iterations=0, distributed=True).iterations == 0 and not calls
+
+
+def test_a_run_that_overrules_its_distributed_start_goes_on_from_that_start_without_the_overruled_edge(monkeypatch,
+                                                                                                    capsys):
+    """A start that accepted an outlier (planted here: the distributed robust start made to accept one
+    that it rejects) is overruled by the run, which rejects it: the start is made again without it
+    (its ``excluded``), a run goes on from there and is kept for its lower TLS objective; each further
+    round leaves out one more overruled edge while the objective decreases. Nothing is revisited
+    when the run keeps what its start accepted."""
+    import dataclasses
+
+    import mmpgo_jax._init.robust_distributed as rd
+
+    ds = mg.cube_dataset(1, grid=3, num_poses=80)
+    bad = add_outliers(ds.graph, 0.3, reference=ds.ground_truth, seed=2)
+    planted = int(np.flatnonzero(bad.outlier)[0])
+    original = rd.distributed_robust_initialization
+    calls = []
+
+    def accepting(graph, robots, *, excluded=None, **options):
+        start = original(graph, robots, excluded=excluded, **options)
+        calls.append([] if excluded is None else np.flatnonzero(excluded).tolist())
+        assert start.weights[planted] == 0.0  # the start's own choice: rejected
+        if excluded is not None and excluded[planted]:
+            return start
+        return dataclasses.replace(start, weights=np.where(np.arange(len(start.weights)) == planted, 1.0,
+                                                           start.weights))
+
+    monkeypatch.setattr(rd, "distributed_robust_initialization", accepting)
+    d = mg.solve(bad.graph, 3, loss="tls", iterations=200, distributed=True)
+    (row,) = d.stats["starts"]
+    rounds = row["revisits"]
+    assert calls[:2] == [[], [planted]] and len(calls) == 1 + len(rounds)
+    assert [r["excluded"] for r in rounds] == [c[-1] for c in calls[1:]]  # one more edge per round
+    assert rounds[0]["excluded"] == planted and rounds[0]["kept"]
+    kept = [r["f"] for r in rounds if r["kept"]]
+    assert kept == sorted(kept, reverse=True) and all(not r["kept"] for r in rounds[len(kept):])
+    assert row["f"] == kept[-1] == pytest.approx(float(robust_objective(d.loss, bad.graph, d.poses)), rel=1e-12)
+    assert d.start_weights[planted] == 0.0 and not d.inliers[planted]
+    from mmpgo_jax.cli.outputs import print_summary
+
+    print_summary(d, None)
+    (line,) = [x for x in capsys.readouterr().out.splitlines() if x.startswith("start")]
+    n, k = len(rounds), sum(r["kept"] for r in rounds)
+    assert f"it overruled its start: made again without {n} overruled edge" in line
+    assert f"{k} of those runs kept (lower f)" in line
+    # the start unchanged: on the outlier-free graph the run keeps what its start accepted
+    monkeypatch.setattr(rd, "distributed_robust_initialization", original)
+    plain = mg.solve(ds.graph, 3, loss="tls", iterations=200, distributed=True)
+    assert not (plain.start_weights.astype(bool) & ~plain.inliers).any()
+    assert plain.stats["starts"][0]["revisits"] == []

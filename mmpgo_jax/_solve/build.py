@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import os
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import jax
 import jax.numpy as jnp
@@ -29,8 +29,8 @@ from .._mm.robust import L2, RobustLoss, incident_edge_index
 from .._mm.solvers import Solver, start_run
 from .result import SolveResult, output_frame
 
-__all__ = ["ROBUST_START", "ROBUST_STARTS", "Clock", "Prepared", "as_termination", "check_start_weights", "finish",
-           "prepare", "slot_weights", "start_for"]
+__all__ = ["ROBUST_START", "ROBUST_STARTS", "Clock", "NamedStart", "Prepared", "as_termination", "check_start_weights",
+           "finish", "prepare", "slot_weights", "start_for"]
 
 ROBUST_START = "gnc-chordal"  # the start of a robust run from one start (benchmarks/robust.md)
 #: the default starts of a robust run: the run from each, the lower robust objective kept
@@ -38,11 +38,23 @@ ROBUST_START = "gnc-chordal"  # the start of a robust run from one start (benchm
 ROBUST_STARTS = ("gnc-chordal", "distributed-robust")
 
 
+@dataclass(frozen=True)
+class NamedStart:
+    """A start by name with options of its own, added to those :func:`start_for` gives the name (the
+    distributed robust start without the closures a run overruled: ``options=dict(excluded=...)``)."""
+
+    name: str
+    options: dict = field(default_factory=dict)
+
+
 def start_for(init, loss: RobustLoss | None) -> tuple:
     """(start, options) of a run: ``init`` as given, or by default the chordal start for least
     squares and for GNC run by the distributed solver, and :data:`ROBUST_START` (with the loss's
     scale) for a robust loss otherwise (measured in benchmarks/robust.md). The robust starts by name
     ("gnc-chordal", "distributed-robust") take the loss's scale and ``trust_odometry``."""
+    if isinstance(init, NamedStart):
+        method, options = start_for(init.name, loss)
+        return method, {**options, **init.options}
     robust = loss is not None and int(np.asarray(loss.kernel)) != L2
     if init is None:
         if not robust or bool(np.asarray(loss.use_gnc)):
@@ -101,6 +113,7 @@ class Prepared:
     snapshot: object
     saver: Checkpointer | None
     clock: Clock
+    start_weights: np.ndarray | None = None  # (m,) held as the robust run's first stage, graph order
 
 
 def prepare(graph: PoseGraph, solver: Solver, robots, layout, termination: Termination, *, start=None, initial=None,
@@ -164,7 +177,8 @@ def prepare(graph: PoseGraph, solver: Solver, robots, layout, termination: Termi
             state = jax.tree.map(lambda a, b: jax.device_put(a, b.sharding), restore_state(snapshot, state), state)
     problem, state = placement.place(problem, state)
     clock.lap("build")
-    return Prepared(placement, start_poses, problem, state, record, snapshot, saver, clock)
+    held = None if weights is None else np.asarray(weights, np.float64)
+    return Prepared(placement, start_poses, problem, state, record, snapshot, saver, clock, held)
 
 
 def check_start_weights(graph: PoseGraph, weights, loss: RobustLoss | None):
@@ -206,5 +220,6 @@ def finish(graph: PoseGraph, solver: Solver, run: Prepared, driven, termination:
         termination=termination,
         start=output_frame(run.start_poses, fixed, frame),
         solver=solver,
+        start_weights=run.start_weights,
         **outcome,
     )

@@ -73,12 +73,15 @@ class Prefiltered:
         inliers = keep.copy()
         if result.inliers is not None:
             inliers[keep] = np.asarray(result.inliers, bool)
-        weights = None
-        if result.weights is not None:
-            w = np.asarray(result.weights)
-            weights = np.zeros(keep.shape, w.dtype)
-            weights[keep] = w
-        return dataclasses.replace(result, inliers=inliers, weights=weights, prefiltered=self.rejected.copy(),
+        def widened(w):  # removed edges: weight 0
+            if w is None:
+                return None
+            out = np.zeros(keep.shape, np.asarray(w).dtype)
+            out[keep] = np.asarray(w)
+            return out
+
+        return dataclasses.replace(result, inliers=inliers, weights=widened(result.weights),
+                                   start_weights=widened(result.start_weights), prefiltered=self.rejected.copy(),
                                    stats={**result.stats, **self.stats})
 
 

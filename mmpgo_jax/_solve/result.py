@@ -45,6 +45,9 @@ class SolveResult:
     start: Poses | None = None  # the start X^0 in the frame of ``poses`` (None for the centralized solver)
     solver: Solver | None = None  # the solver that ran (None for the centralized Newton solver)
     prefiltered: np.ndarray | None = None  # (m,) bool: edges a pre-filter (PCM) removed before the solve
+    # (m,) the weights a robust run held as its first stage (given, or its start's classification of the
+    # edges: the distributed robust start), graph edge order; None when it held none
+    start_weights: np.ndarray | None = None
 
     @property
     def partition(self) -> Partition:

@@ -155,6 +155,16 @@ def _rejected_lines(result, data: LoadedInput | None, mask=None) -> str:
     return f"; {which} {join_items(lines[rejected].tolist(), 60)} of {data.path.name}"
 
 
+def _revisits_text(rounds) -> str:
+    """How often a run overruled its distributed robust start and the start was made again without
+    the overruled edge (``stats["starts"][k]["revisits"]``)."""
+    if not rounds:
+        return ""
+    kept = sum(r["kept"] for r in rounds)
+    return (f"; it overruled its start: made again without {len(rounds)} overruled edge"
+            f"{'' if len(rounds) == 1 else 's'} in turn, {kept} of those runs kept (lower f)")
+
+
 def _noise_line(result, graph) -> str:
     """A robust run's line on the data's noise against their information matrices: the
     a-posteriori variance factor of the kept edges at the final poses (:func:`~mmpgo_jax.noise_level`)
@@ -231,7 +241,7 @@ def print_summary(result, fstar, data: LoadedInput | None = None) -> None:
         finished = ("" if row.get("finished") is None
                     else f" (f = {row['finished']:.6f} before it was finished from its kept edges)")
         print(f"start       {row['start']}: f = {row['f']:.6f}{finished}{rejected}, {row['iterations']} iterations, "
-              f"{row['seconds']:.2f} s ({kept})")
+              f"{row['seconds']:.2f} s ({kept}){_revisits_text(row.get('revisits', ()))}")
     if result.loss is not None:
         robust = ~result.inliers if prefiltered is None else ~result.inliers & ~prefiltered
         used = len(result.inliers) - (0 if prefiltered is None else int(prefiltered.sum()))
