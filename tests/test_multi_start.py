@@ -221,3 +221,35 @@ def test_a_run_that_overrules_its_distributed_start_goes_on_from_that_start_with
     plain = mg.solve(ds.graph, 3, loss="tls", iterations=200, distributed=True)
     assert not (plain.start_weights.astype(bool) & ~plain.inliers).any()
     assert plain.stats["starts"][0]["revisits"] == []
+
+
+def test_overruled_edges_are_the_start_s_accepted_edges_any_run_rejected():
+    from types import SimpleNamespace
+
+    from mmpgo_jax._solve.solve import _overruled
+
+    start = np.array([1.0, 1.0, 1.0, 0.0, 1.0])
+    run = SimpleNamespace(inliers=np.array([True, False, True, False, True]))
+    np.testing.assert_array_equal(_overruled(start, run), [False, True, False, False, False])
+    other = np.array([True, True, False, False, True])
+    np.testing.assert_array_equal(_overruled(start, run, [other, None]), [False, True, True, False, False])
+    assert not _overruled(None, run).any()
+
+
+@pytest.mark.slow  # two 5000-pose robust solves with revisits, about a minute
+def test_the_default_revisits_its_distributed_start_with_the_gnc_run_s_rejections():
+    """A long-chain team (10 x 500 poses, low noise, 30 wrong inter-robot closures, half of them; the
+    graph of benchmarks/robust_teams.md, seed 2): the distributed start's run keeps an outlier its
+    start accepted, the GNC start's run rejects it; the default leaves it out of the distributed start
+    and reaches the right classification, with a TLS objective below the GNC run's."""
+    ds = mg.robot_team_dataset(10, 500, intra_closures=5, inter_closures=30, dim=2, seed=2, sigma_R=0.005 * np.pi)
+    rop = ds.robot_of_pose
+    n_inter, n_intra = int(ds.inter_robot.sum()), int((ds.edge_kind == 1).sum())
+    c = mg.add_outlier_loop_closures(ds.graph, n_inter / (n_inter + n_intra + n_inter), reference=ds.ground_truth,
+                                     seed=2, robot_of_pose=rop, inter_robot_only=True)
+    res = mg.solve(c.graph, rop, loss="tls")
+    gnc, dist = res.stats["starts"]
+    assert dist["kept"] and dist["revisits"][0]["kept"]
+    assert c.outlier[dist["revisits"][0]["excluded"]]
+    np.testing.assert_array_equal(res.inliers, ~c.outlier)
+    assert dist["f"] < gnc["f"]
