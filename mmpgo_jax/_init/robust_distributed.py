@@ -417,8 +417,8 @@ def _tree_frames(pairs, counts, Rp, tp, K, d):
     return np.asarray(X.R, np.float64), np.asarray(X.t, np.float64), tree
 
 
-def _sampled_tree_costs(a, b, Rh, th, kap, tau, trusted, K, d, samples: int, rng, c2: float = np.inf,
-                        max_refits: int = 0) -> np.ndarray:
+def _sampled_tree_costs(a, b, Rh, th, kap, tau, trusted, K, d, samples: int, rng, c2: float,
+                        max_refits: int) -> np.ndarray:
     """(S, H) costs of every hypothesis at the frames of S random spanning trees of the frame graph
     (a consensus search, RANSAC-like: each tree takes one random hypothesis per map pair, the trusted
     ones first, and composes the frames along it exactly). All S trees are one disconnected graph:
@@ -649,4 +649,3 @@ def _solve_frames(fg: PoseGraph, keep, K, d):
     sub = fg.select_edges(keep)
     res = gnc_chordal_initialization(sub, scale=np.inf, trust_odometry=False)
     return np.asarray(res.poses.R, np.float64).copy(), np.asarray(res.poses.t, np.float64).copy()
-

@@ -367,11 +367,11 @@ def _best_of(starts: tuple, run_from: Callable, graph: PoseGraph, monitor: Monit
         rows.append(dict(start=name, f=f, iterations=iterations, rejected=rejected, finished=before,
                          finished_by=finished_by, held=bool(first.stats.get("start_weights_given", False)),
                          start_seconds=float(first.stats.get("initialize_seconds", 0.0)), revisits=[],
-                         seconds=time.perf_counter() - t, label=label))
+                         seconds=time.perf_counter() - t))
         runs.append(run)
         firsts.append(first)
     for k, row in enumerate(rows):  # after every start ran: the other starts' runs are evidence too
-        label = row.pop("label")
+        label = f"start {k + 1} of {len(starts)}, {row['start']}"
         if revisit and row["start"] == "distributed-robust" and firsts[k].iterations > 0:  # 0: the start alone
             t = time.perf_counter()
             others = [run.inliers for j, run in enumerate(runs) if j != k]
@@ -415,13 +415,14 @@ def _run_finished(begin, label: str, run_from: Callable, graph: PoseGraph, monit
 def _overruled(start_weights, run: SolveResult, others=()) -> np.ndarray:
     """(m,) bool: edges the start accepted (``start_weights``, held at 1) and the run rejected, or
     any of ``others`` (the inliers of the runs from the other starts) did."""
-    if start_weights is None or run.inliers is None:
-        return np.zeros(np.shape(start_weights if run.inliers is None else run.inliers), bool)
-    rejected = ~np.asarray(run.inliers, bool)
-    for inliers in others:
+    if start_weights is None:
+        return np.zeros(0 if run.inliers is None else len(run.inliers), bool)
+    accepted = np.asarray(start_weights) > 0.5
+    rejected = np.zeros_like(accepted)
+    for inliers in (run.inliers, *others):
         if inliers is not None:
             rejected |= ~np.asarray(inliers, bool)
-    return (np.asarray(start_weights) > 0.5) & rejected
+    return accepted & rejected
 
 
 def _revisited(start_weights, run: SolveResult, f: float, others: list, label: str, run_from: Callable,
