@@ -1,10 +1,10 @@
 """Wall and CPU time per AMM iteration against the authors' single-threaded C++ figure.
 
 The authors' code runs on one thread, so its ms per iteration is also its CPU time per iteration.
-``mmpgo solve`` splits the robots over both cores from 1000 poses on, and XLA itself runs large
+``mmpgo solve`` splits the robots over both cores from ``AUTO_THREAD_POSES`` poses on, and XLA itself runs large
 fused loops on several threads, so a wall-clock ratio alone does not say how much work an
 iteration costs. This benchmark measures both, the way ``mmpgo solve`` runs (10 robots, the
-centralized chordal start, float64; from 1000 poses the robots over two CPU devices): in a fresh
+centralized chordal start, float64; from ``AUTO_THREAD_POSES`` poses the robots over two CPU devices): in a fresh
 process per file, a warm-up call compiles the programs, then ``--short`` and ``--long`` AMM
 iterations are run and the difference of their wall time and of the process's CPU time (user +
 system, all threads) is divided by the difference of iterations, so that reading, initialization,

@@ -29,6 +29,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from mmpgo_jax._solve.devices import AUTO_THREAD_POSES
+
 # The authors' whole run, AMM, 1000 iterations (s): MurpheyLab/DPGO @ da0157f, Release, one thread.
 AUTHORS_SECONDS = {"MITb": 1.09, "intel": 2.36, "M3500": 5.56, "city10000": 25.1, "sphere2500": 8.1,
                    "torus3D": 16.2, "garage": 9.1}
@@ -129,8 +131,8 @@ def main() -> None:
             f"{f', median of {args.repeats} runs' if args.repeats > 1 else ''}. Phases (s) are the CLI's own `time` "
             "line of that warm run; fixed s is the rest of its wall time (interpreter start, imports, JAX's set-up, "
             "the interpreter's exit).\n\n"
-            "Threads: the CPU devices `mmpgo solve` split the robots over (one per core from 1000 poses on; "
-            "then initialize and build are one figure, under initialize).\n\n"
+            "Threads: the CPU devices `mmpgo solve` split the robots over (one per core from "
+            f"{AUTO_THREAD_POSES} poses on; then initialize and build are one figure, under initialize).\n\n"
             "| file | threads | cold wall s | cold compile s | warm wall s | fixed s | warm compile s | read | "
             "initialize | build | iterations | write | authors' whole run s | warm / authors' |" + base_head + "\n"
             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|" + ("---|---|---|" if args.baseline else "")

@@ -10,7 +10,7 @@ gather -- then one whole MM subproblem solve with its trust-region steps and CG 
 max over robots: under ``vmap`` every robot waits for the slowest, so the maximum is what the
 iteration pays) with the two-level preconditioner and with its block-Jacobi level alone; then ms per
 AMM iteration of ``solve`` (one CPU device) and of ``solve_sharded`` over two CPU devices (what
-``mmpgo solve`` runs from 1000 poses on, one device per core), next to the authors' C++ figure.
+``mmpgo solve`` runs from ``AUTO_THREAD_POSES`` poses on, one device per core), next to the authors' C++ figure.
 
     python benchmarks/profile_step.py --out benchmarks/profile_step.md
 """
@@ -36,6 +36,7 @@ from mmpgo_jax._mm.majorization import soa_bmm, soa_T, sym0, tangent_soa, to_soa
 from mmpgo_jax._mm.outer import start_state  # noqa: E402
 from mmpgo_jax._mm.subproblem import _retract_soa, subproblem_steps  # noqa: E402
 from mmpgo_jax._mm.weighting import gradients  # noqa: E402
+from mmpgo_jax._solve.devices import AUTO_THREAD_POSES  # noqa: E402
 from mmpgo_jax.sharding import solve_sharded  # noqa: E402
 
 FILES = ["MITb", "intel", "M3500", "city10000", "sphere2500", "torus3D", "garage"]
@@ -140,7 +141,8 @@ def main() -> None:
             f"start, {os.getloadavg()[0]:.2f} at the end. Pieces: microseconds per call inside a compiled loop, all "
             "robots at once (best of 3), at the chordal start. TR steps / CG iterations: mean / max over robots of "
             "one MM subproblem solve there. AMM ms/it: best of two 300-iteration runs of `solve` (one CPU device) "
-            "and of `solve_sharded` over two CPU devices (what `mmpgo solve` runs from 1000 poses on).\n\n"
+            "and of `solve_sharded` over two CPU devices (what `mmpgo solve` runs from "
+            f"{AUTO_THREAD_POSES} poses on).\n\n"
             "| file | poses/robot | slots/aggregate | Γ µs | Hessian µs | block-Jacobi µs | two-level µs | "
             "retraction µs | gradient+gather µs | "
             "two-level: MM subproblem µs | TR steps mean/max | CG its mean/max | AMM ms/it | "

@@ -16,7 +16,7 @@ _CHILD = textwrap.dedent("""
     import jax
     jax.config.update("jax_enable_x64", True)
     big = mm.cube_dataset(0, num_poses=1200, grid=6).graph
-    small = mm.cube_dataset(0, num_poses=300, grid=4).graph
+    small = mm.cube_dataset(0, num_poses=120, grid=3).graph
     a = mm.solve(big, 4, iterations=6, chunk_size=3)
     b = mm.solve(big, 4, iterations=6, chunk_size=3, layout=mm.OneDevice())
     c = mm.solve(small, 4, iterations=3, chunk_size=3)
@@ -46,7 +46,7 @@ def child():
 
 def test_default_layout_uses_every_cpu_device_for_large_graphs(child):
     assert child["n"] == 2 and child["devices"] == 2  # 1200 poses: split over both CPU devices
-    assert child["one"] is None and child["small"] is None  # asked for one device; below 1000 poses
+    assert child["one"] is None and child["small"] is None  # asked for one device; below AUTO_THREAD_POSES (200)
     assert child["fa"] == pytest.approx(child["fb"], rel=1e-12)  # the same iterates, laid out differently
 
 

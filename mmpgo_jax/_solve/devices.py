@@ -3,11 +3,12 @@
 XLA runs one CPU device's program on one core for the solver's small operations, so a solve on the
 default single CPU device uses one core however many the machine has. With several CPU devices the
 robots shard over them (``mmpgo_jax.sharding.Sharded``) and each core runs its
-own robots: measured on a 2-core machine (benchmarks/profile_step.md), MIT (808 poses) ran at the
-same speed on 1 and 2 devices, intel (1728 poses) 1.7x faster on 2. JAX fixes its CPU device count
-when its backend starts, so the library never changes it on import: a program asks for the cores
-with :func:`use_cpu_cores` before its first JAX computation (the ``mmpgo`` command does so when it
-starts), and :func:`auto_layout` — ``solve``'s default layout — then uses them.
+own robots: on a 2-core Intel Xeon (benchmarks/thread_threshold.md) two devices ran 0.58-0.82x the
+time per iteration of one from 50 to 1045 poses; on a 2-core AMD EPYC MIT (808 poses) ran at the same
+speed on 1 and 2 (benchmarks/profile_step.md, older code) and intel (1728 poses) 1.7x faster on 2.
+JAX fixes its CPU device count when its backend starts, so the library never changes it on import:
+a program asks for the cores with :func:`use_cpu_cores` before its first JAX computation (the
+``mmpgo`` command does so when it starts), and :func:`auto_layout` — ``solve``'s default layout — then uses them.
 """
 
 from __future__ import annotations
@@ -16,9 +17,11 @@ import os
 
 __all__ = ["AUTO_THREAD_POSES", "auto_layout", "cpu_cores", "use_cpu_cores"]
 
-# A solve splits its robots over the CPU devices from this many poses on: below it the exchange
-# between devices costs about what the second core saves (MIT, 808 poses: the same speed on 1 and 2).
-AUTO_THREAD_POSES = 1000
+# A solve splits its robots over the CPU devices from this many poses on. Below it a run's 1000
+# iterations take about 0.2 s either way, and the exchange between devices, a fixed cost per
+# iteration, weighs most: on the AMD EPYC it ate the second core's gain at 808 poses (MIT), on the
+# Intel Xeon two devices still won at 50 (benchmarks/thread_threshold.md).
+AUTO_THREAD_POSES = 200
 
 
 def cpu_cores() -> int:

@@ -1,0 +1,114 @@
+"""From how many poses two CPU devices beat one: ``mmpgo solve FILE --robots 10 --threads 1`` against
+``--threads 2`` (the robots split over two CPU devices, one per core), the sizes around
+``AUTO_THREAD_POSES`` (``mmpgo_jax/_solve/devices.py``: the default splits from that many poses on).
+
+Graphs: Cube graphs (Fig. 1's kind, ``cube_dataset(0, num_poses=n, grid=6)``, written to a temporary
+folder) of ``--sizes`` poses and the small benchmark files ``--files``. AMM, 1000 iterations without
+early stop, float64, a warm compilation cache (one untimed run of each first). Every run is a fresh
+process; the two thread counts run interleaved, so both see the same machine load; medians of
+``--repeats``. Reported: ms per iteration (the CLI's compiled iterations), the whole process's wall
+seconds and its processor seconds (user + sys), and f at the end (the same iterates either way, up to
+rounding).
+
+    python benchmarks/thread_threshold.py --repeats 3 --out benchmarks/thread_threshold.md
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import os
+import re
+import resource
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(HERE))
+
+from mmpgo_jax._io.atomic import atomic_write  # noqa: E402
+from mmpgo_jax.cli.bench import machine_info  # noqa: E402
+
+_TIME = re.compile(r"iterations [0-9.]+ s \(([0-9.]+) ms/iteration\)")
+_F = re.compile(r"f = 2F\s+\S+ -> (\S+)")
+_THREADS = re.compile(r"threads\s+(\d+)")
+
+
+def one_run(path: str, threads: int) -> dict:
+    cmd = [sys.executable, "-m", "mmpgo_jax.cli", "solve", path, "--robots", "10", "--iterations", "1000",
+           "--all-iterations", "--threads", str(threads)]
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t = time.perf_counter()
+    out = subprocess.run(cmd, capture_output=True, text=True, check=True, cwd=HERE).stdout
+    wall = time.perf_counter() - t
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    return dict(ms=float(_TIME.search(out).group(1)), wall=wall, cpu=cpu, f=float(_F.search(out).group(1)),
+                devices=int(m.group(1)) if (m := _THREADS.search(out)) else 1)
+
+
+def graphs(sizes, files, folder: Path) -> list[tuple[str, str, int]]:
+    """(label, path or benchmark name, poses)."""
+    import mmpgo_jax as mm
+
+    out = []
+    for n in sizes:
+        g = mm.cube_dataset(0, num_poses=n, grid=6).graph
+        path = folder / f"cube{n}.g2o"
+        mm.write_g2o(path, g, None)
+        out.append((f"Cube {n}", str(path), n))
+    for name in files:
+        out.append((name, name, mm.read_g2o(mm.find_benchmark(name)).graph.num_poses))
+    return out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--sizes", nargs="+", type=int, default=[100, 200, 400, 800])
+    ap.add_argument("--files", nargs="+", default=["smallGrid3D", "MIT", "CSAIL"])
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--out", type=Path)
+    args = ap.parse_args(argv)
+    info = machine_info()
+    start = f"{datetime.datetime.now(datetime.UTC):%Y-%m-%d %H:%M} UTC"
+    load0 = os.getloadavg()[0]
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for label, path, n in sorted(graphs(args.sizes, args.files, Path(tmp)), key=lambda r: r[2]):
+            for threads in (1, 2):
+                one_run(path, threads)  # fills the compilation cache
+            runs = {1: [], 2: []}
+            for _ in range(args.repeats):
+                for threads in (1, 2):
+                    runs[threads].append(one_run(path, threads))
+            med = {t: {k: statistics.median(r[k] for r in rs) for k in ("ms", "wall", "cpu")} for t, rs in runs.items()}
+            rows.append((label, n, med, runs[1][-1]["f"], runs[2][-1]["f"], runs[2][-1]["devices"]))
+            m1, m2 = med[1], med[2]
+            print(label, n, m1, m2, flush=True)
+    lines = ["# Two CPU devices against one, by graph size", "",
+             f"Command: `python benchmarks/thread_threshold.py --repeats {args.repeats}`; started {start}, "
+             f"{info['cpu']}, {info['usable_cores']} logical CPUs, load average {load0:.2f} at the start, "
+             f"{os.getloadavg()[0]:.2f} at the end. `mmpgo solve FILE --robots 10 --iterations 1000 --all-iterations "
+             "--threads 1` against `--threads 2`, fresh process per run, warm compilation cache, interleaved; "
+             "medians.", "",
+             "| graph | poses | devices used | ms/it, 1 device | ms/it, 2 devices | 2 / 1 | wall s, 1 / 2 "
+             "| processor s, 1 / 2 | f, 1 device | f, 2 devices |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for label, n, med, f1, f2, devices in rows:
+        m1, m2 = med[1], med[2]
+        lines.append(f"| {label} | {n} | 1 / {devices} | {m1['ms']:.2f} | {m2['ms']:.2f} | {m2['ms'] / m1['ms']:.2f} | "
+                     f"{m1['wall']:.2f} / {m2['wall']:.2f} | {m1['cpu']:.2f} / {m2['cpu']:.2f} | {f1:.6f} | {f2:.6f} |")
+    text = "\n".join(lines) + "\n"
+    print(text)
+    if args.out:
+        with atomic_write(args.out) as fh:
+            fh.write(text)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
