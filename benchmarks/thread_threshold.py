@@ -4,11 +4,12 @@
 
 Graphs: Cube graphs (Fig. 1's kind, ``cube_dataset(0, num_poses=n, grid=6)``, written to a temporary
 folder) of ``--sizes`` poses and the small benchmark files ``--files``. AMM, 1000 iterations without
-early stop, float64, a warm compilation cache (one untimed run of each first). Every run is a fresh
+early stop, float64, a warm compilation cache (one untimed run of each first; ``--cold``: an empty
+cache for every run, the compile phase then compiles). Every run is a fresh
 process; the two thread counts run interleaved, so both see the same machine load; medians of
 ``--repeats``. Reported: ms per iteration (the CLI's compiled iterations), the whole process's wall
-seconds and its processor seconds (user + sys), and f at the end (the same iterates either way, up to
-rounding).
+seconds and its processor seconds (user + sys), the CLI's compile phase, and f at the end (the same
+iterates either way, up to rounding).
 
     python benchmarks/thread_threshold.py --repeats 3 --out benchmarks/thread_threshold.md
 """
@@ -20,6 +21,7 @@ import datetime
 import os
 import re
 import resource
+import shutil
 import statistics
 import subprocess
 import sys
@@ -34,20 +36,27 @@ from mmpgo_jax._io.atomic import atomic_write  # noqa: E402
 from mmpgo_jax.cli.bench import machine_info  # noqa: E402
 
 _TIME = re.compile(r"iterations [0-9.]+ s \(([0-9.]+) ms/iteration\)")
+_COMPILE = re.compile(r"compile ([0-9.]+) s")
 _F = re.compile(r"f = 2F\s+\S+ -> (\S+)")
 _THREADS = re.compile(r"threads\s+(\d+)")
 
 
-def one_run(path: str, threads: int) -> dict:
+def one_run(path: str, threads: int, cold: bool = False) -> dict:
     cmd = [sys.executable, "-m", "mmpgo_jax.cli", "solve", path, "--robots", "10", "--iterations", "1000",
            "--all-iterations", "--threads", str(threads)]
+    if cold:  # an empty compilation cache of its own
+        cache = tempfile.mkdtemp()
+        cmd += ["--compilation-cache", cache]
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t = time.perf_counter()
     out = subprocess.run(cmd, capture_output=True, text=True, check=True, cwd=HERE).stdout
     wall = time.perf_counter() - t
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    if cold:
+        shutil.rmtree(cache)
     return dict(ms=float(_TIME.search(out).group(1)), wall=wall, cpu=cpu, f=float(_F.search(out).group(1)),
+                compile=float(_COMPILE.search(out).group(1)),
                 devices=int(m.group(1)) if (m := _THREADS.search(out)) else 1)
 
 
@@ -71,6 +80,7 @@ def main(argv=None) -> int:
     ap.add_argument("--sizes", nargs="+", type=int, default=[100, 200, 400, 800])
     ap.add_argument("--files", nargs="+", default=["smallGrid3D", "MIT", "CSAIL"])
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--cold", action="store_true", help="every run with an empty compilation cache")
     ap.add_argument("--out", type=Path)
     args = ap.parse_args(argv)
     info = machine_info()
@@ -80,28 +90,33 @@ def main(argv=None) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         for label, path, n in sorted(graphs(args.sizes, args.files, Path(tmp)), key=lambda r: r[2]):
             for threads in (1, 2):
-                one_run(path, threads)  # fills the compilation cache
+                if not args.cold:
+                    one_run(path, threads)  # fills the compilation cache
             runs = {1: [], 2: []}
             for _ in range(args.repeats):
                 for threads in (1, 2):
-                    runs[threads].append(one_run(path, threads))
-            med = {t: {k: statistics.median(r[k] for r in rs) for k in ("ms", "wall", "cpu")} for t, rs in runs.items()}
+                    runs[threads].append(one_run(path, threads, args.cold))
+            keys = ("ms", "wall", "cpu", "compile")
+            med = {t: {k: statistics.median(r[k] for r in rs) for k in keys} for t, rs in runs.items()}
             rows.append((label, n, med, runs[1][-1]["f"], runs[2][-1]["f"], runs[2][-1]["devices"]))
             m1, m2 = med[1], med[2]
             print(label, n, m1, m2, flush=True)
     lines = ["# Two CPU devices against one, by graph size", "",
-             f"Command: `python benchmarks/thread_threshold.py --repeats {args.repeats}`; started {start}, "
+             f"Command: `python benchmarks/thread_threshold.py --repeats {args.repeats}{' --cold' * args.cold}`; "
+             f"started {start}, "
              f"{info['cpu']}, {info['usable_cores']} logical CPUs, load average {load0:.2f} at the start, "
              f"{os.getloadavg()[0]:.2f} at the end. `mmpgo solve FILE --robots 10 --iterations 1000 --all-iterations "
-             "--threads 1` against `--threads 2`, fresh process per run, warm compilation cache, interleaved; "
+             "--threads 1` against `--threads 2`, fresh process per run, "
+             f"{'an empty' if args.cold else 'a warm'} compilation cache, interleaved; "
              "medians.", "",
              "| graph | poses | devices used | ms/it, 1 device | ms/it, 2 devices | 2 / 1 | wall s, 1 / 2 "
-             "| processor s, 1 / 2 | f, 1 device | f, 2 devices |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             "| processor s, 1 / 2 | compile s, 1 / 2 | f, 1 device | f, 2 devices |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for label, n, med, f1, f2, devices in rows:
         m1, m2 = med[1], med[2]
         lines.append(f"| {label} | {n} | 1 / {devices} | {m1['ms']:.2f} | {m2['ms']:.2f} | {m2['ms'] / m1['ms']:.2f} | "
-                     f"{m1['wall']:.2f} / {m2['wall']:.2f} | {m1['cpu']:.2f} / {m2['cpu']:.2f} | {f1:.6f} | {f2:.6f} |")
+                     f"{m1['wall']:.2f} / {m2['wall']:.2f} | {m1['cpu']:.2f} / {m2['cpu']:.2f} | "
+                     f"{m1['compile']:.2f} / {m2['compile']:.2f} | {f1:.6f} | {f2:.6f} |")
     text = "\n".join(lines) + "\n"
     print(text)
     if args.out:
