@@ -20,17 +20,16 @@ import argparse
 import datetime
 import os
 import re
-import resource
 import shutil
 import statistics
-import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(HERE))
+
+from vs_authors import timed_process  # noqa: E402  (this folder is on sys.path when run as a script)
 
 from mmpgo_jax._io.atomic import atomic_write  # noqa: E402
 from mmpgo_jax.cli.bench import machine_info  # noqa: E402
@@ -47,17 +46,19 @@ def one_run(path: str, threads: int, cold: bool = False) -> dict:
     if cold:  # an empty compilation cache of its own
         cache = tempfile.mkdtemp()
         cmd += ["--compilation-cache", cache]
-    before = resource.getrusage(resource.RUSAGE_CHILDREN)
-    t = time.perf_counter()
-    out = subprocess.run(cmd, capture_output=True, text=True, check=True, cwd=HERE).stdout
-    wall = time.perf_counter() - t
-    after = resource.getrusage(resource.RUSAGE_CHILDREN)
-    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    out, wall, cpu = timed_process(cmd, env=dict(os.environ, PYTHONPATH=str(HERE)))
     if cold:
         shutil.rmtree(cache)
     return dict(ms=float(_TIME.search(out).group(1)), wall=wall, cpu=cpu, f=float(_F.search(out).group(1)),
                 compile=float(_COMPILE.search(out).group(1)),
                 devices=int(m.group(1)) if (m := _THREADS.search(out)) else 1)
+
+
+def _row(label, n, med, f1, f2, devices) -> str:
+    one, two = med[1], med[2]
+    pairs = " | ".join(f"{one[k]:.2f} / {two[k]:.2f}" for k in ("wall", "cpu", "compile"))
+    return (f"| {label} | {n} | 1 / {devices} | {one['ms']:.2f} | {two['ms']:.2f} | {two['ms'] / one['ms']:.2f} | "
+            f"{pairs} | {f1:.6f} | {f2:.6f} |")
 
 
 def graphs(sizes, files, folder: Path) -> list[tuple[str, str, int]]:
@@ -112,11 +113,7 @@ def main(argv=None) -> int:
              "| graph | poses | devices used | ms/it, 1 device | ms/it, 2 devices | 2 / 1 | wall s, 1 / 2 "
              "| processor s, 1 / 2 | compile s, 1 / 2 | f, 1 device | f, 2 devices |",
              "|---|---|---|---|---|---|---|---|---|---|---|"]
-    for label, n, med, f1, f2, devices in rows:
-        m1, m2 = med[1], med[2]
-        lines.append(f"| {label} | {n} | 1 / {devices} | {m1['ms']:.2f} | {m2['ms']:.2f} | {m2['ms'] / m1['ms']:.2f} | "
-                     f"{m1['wall']:.2f} / {m2['wall']:.2f} | {m1['cpu']:.2f} / {m2['cpu']:.2f} | "
-                     f"{m1['compile']:.2f} / {m2['compile']:.2f} | {f1:.6f} | {f2:.6f} |")
+    lines += [_row(*row) for row in rows]
     text = "\n".join(lines) + "\n"
     print(text)
     if args.out:

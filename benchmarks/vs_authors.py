@@ -36,7 +36,7 @@ FILES = {"MITb": "MIT.g2o", "intel": "intel.g2o", "M3500": "M3500.g2o", "city100
          "sphere2500": "sphere2500.g2o", "torus3D": "torus3D.g2o", "garage": "parking-garage.g2o"}
 
 
-def _timed(cmd: list[str], env: dict | None = None) -> tuple[str, float, float]:
+def timed_process(cmd: list[str], env: dict | None = None) -> tuple[str, float, float]:
     """(stdout, wall seconds, processor seconds of the child) of one process."""
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t = time.perf_counter()
@@ -48,7 +48,7 @@ def _timed(cmd: list[str], env: dict | None = None) -> tuple[str, float, float]:
 
 
 def authors(file: str) -> dict:
-    out, wall, cpu = _timed(["bash", str(ANCHORS / "run_dpgo.sh"), file, "10", "1000", "amm"])
+    out, wall, cpu = timed_process(["bash", str(ANCHORS / "run_dpgo.sh"), file, "10", "1000", "amm"])
     last = out.strip().splitlines()[-1]
     ms = float(re.search(r"ms_per_iter=([0-9.eE+-]+)", last).group(1))
     f1000 = float(re.search(r"f1000=([0-9.eE+-]+)", last).group(1))
@@ -57,7 +57,7 @@ def authors(file: str) -> dict:
 
 def ours(file: str) -> dict:
     env = dict(os.environ, PYTHONPATH=str(HERE))
-    out, wall, cpu = _timed([sys.executable, "-m", "mmpgo_jax.cli", "solve", file, "--robots", "10",
+    out, wall, cpu = timed_process([sys.executable, "-m", "mmpgo_jax.cli", "solve", file, "--robots", "10",
                              "--iterations", "1000", "--all-iterations"], env)
     ms = float(re.search(r"\(([0-9.]+) ms/iteration\)", out).group(1))
     f = float(re.search(r"f = 2F\s+\S+ -> (\S+)", out).group(1))
@@ -67,7 +67,7 @@ def ours(file: str) -> dict:
 def authors_start(file: str) -> dict:
     root = Path(os.environ.get("DPGO_ROOT", Path.home() / ".cache" / "dpgo-build"))
     env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
-    out, wall, cpu = _timed([str(root / "build" / "bin" / "dist_pgo"), "--dataset", file, "--num_nodes", "10",
+    out, wall, cpu = timed_process([str(root / "build" / "bin" / "dist_pgo"), "--dataset", file, "--num_nodes", "10",
                              "--iters", "1", "--dist_init", "true", "--save", "false"], env)
     # after "Distributed PGO": "0: f |grad|" is the objective at the start (its 2F convention)
     f = re.findall(r"^0: ([0-9.eE+-]+) [0-9.eE+-]+$", out, re.M)
@@ -76,7 +76,7 @@ def authors_start(file: str) -> dict:
 
 def ours_start(file: str, init: str = "distributed-chordal") -> dict:
     env = dict(os.environ, PYTHONPATH=str(HERE))
-    out, wall, cpu = _timed([sys.executable, "-m", "mmpgo_jax.cli", "solve", file, "--robots", "10",
+    out, wall, cpu = timed_process([sys.executable, "-m", "mmpgo_jax.cli", "solve", file, "--robots", "10",
                              "--init", init, "--iterations", "0"], env)
     f = float(re.search(r"f = 2F\s+(\S+)", out).group(1))
     inside = float(re.search(r"initialize ([0-9.]+) s", out).group(1))  # the start itself, in the process
