@@ -3,9 +3,10 @@
 XLA runs one CPU device's program on one core for the solver's small operations, so a solve on the
 default single CPU device uses one core however many the machine has. With several CPU devices the
 robots shard over them (``mmpgo_jax.sharding.Sharded``) and each core runs its
-own robots: on a 2-core Intel Xeon (benchmarks/thread_threshold.md) two devices ran 0.58-0.82x the
-time per iteration of one from 50 to 1045 poses; on a 2-core AMD EPYC MIT (808 poses) ran at the same
-speed on 1 and 2 (benchmarks/profile_step.md, older code) and intel (1728 poses) 1.7x faster on 2.
+own robots: on a 2-core Intel Xeon (benchmarks/thread_threshold.md) two devices ran 0.57-0.90x the
+time per iteration of one from 50 to 1045 poses, their program taking 0.1-1.4 s longer to compile
+cold; on a 2-core AMD EPYC MIT (808 poses) ran at the same speed on 1 and 2
+(benchmarks/profile_step.md, older code) and intel (1728 poses) 1.7x faster on 2.
 JAX fixes its CPU device count when its backend starts, so the library never changes it on import:
 a program asks for the cores with :func:`use_cpu_cores` before its first JAX computation (the
 ``mmpgo`` command does so when it starts), and :func:`auto_layout` — ``solve``'s default layout — then uses them.
