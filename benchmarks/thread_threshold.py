@@ -20,7 +20,6 @@ import argparse
 import datetime
 import os
 import re
-import shutil
 import statistics
 import sys
 import tempfile
@@ -43,12 +42,9 @@ _THREADS = re.compile(r"threads\s+(\d+)")
 def one_run(path: str, threads: int, cold: bool = False) -> dict:
     cmd = [sys.executable, "-m", "mmpgo_jax.cli", "solve", path, "--robots", "10", "--iterations", "1000",
            "--all-iterations", "--threads", str(threads)]
-    if cold:  # an empty compilation cache of its own
-        cache = tempfile.mkdtemp()
-        cmd += ["--compilation-cache", cache]
-    out, wall, cpu = timed_process(cmd, env=dict(os.environ, PYTHONPATH=str(HERE)))
-    if cold:
-        shutil.rmtree(cache)
+    with tempfile.TemporaryDirectory() as cache:  # cold: an empty compilation cache of its own
+        cmd += ["--compilation-cache", cache] if cold else []
+        out, wall, cpu = timed_process(cmd, env=dict(os.environ, PYTHONPATH=str(HERE)))
     return dict(ms=float(_TIME.search(out).group(1)), wall=wall, cpu=cpu, f=float(_F.search(out).group(1)),
                 compile=float(_COMPILE.search(out).group(1)),
                 devices=int(m.group(1)) if (m := _THREADS.search(out)) else 1)
