@@ -99,9 +99,13 @@ from .._mm.robust import TLS, chi2_scale, gnc_initial_mu, gnc_weight
 from .chordal import chordal_initialization
 from .robust_start import gnc_chordal_initialization
 
-__all__ = ["FRAME_METHODS", "DistributedRobustStart", "PairAverages", "chain_variances",
+__all__ = ["FRAME_METHODS", "READMIT_QUANTILE", "DistributedRobustStart", "PairAverages", "chain_variances",
            "distributed_robust_initialization", "pair_average"]
 
+#: the gross-error bound of a rejected frame hypothesis that a robust run may try again (chi-square
+#: quantile of the frame test's p = d(d+1)/2 degrees of freedom): a correct closure exceeds it once in
+#: a million under the maps' error model
+READMIT_QUANTILE = 1.0 - 1e-6
 TREE_SAMPLES = 256  # random spanning trees of the frame graph's consensus search
 MAX_REFITS = 20  # refits of a sampled tree until its inliers stop changing (2-4 on the teams measured)
 # hypotheses x refitted samples per refit (one chordal solve of that many edges): all 256 samples below
@@ -134,7 +138,12 @@ class DistributedRobustStart:
     map's frame), ``map_of_pose``; per edge: ``weights`` (m,) in {0, 1}, ``inter`` (inter-robot);
     per map: ``robot_of_map``, ``frames`` (HostPoses (K,)), ``placed``; ``pairs`` the pair averages
     (:class:`PairAverages`); per inter-robot closure (in edge order): ``unverified`` (accepted but
-    checked by nothing); ``unplaced_robots``; ``local_stages`` and ``frame_stages`` (GNC stages)."""
+    checked by nothing); ``unplaced_robots``; ``local_stages`` and ``frame_stages`` (GNC stages);
+    ``hypothesis_cost`` (m,): each inter-robot closure's frame-hypothesis cost at the final frames under
+    the test's variance model (NaN on the other edges and on excluded ones), ``frame_scale`` the test's
+    c (a hypothesis is accepted within c^2 unless the frame search found it cheaper to reject);
+    ``variance_factor``: the local maps' a-posteriori variance factor (:func:`variance_factor`; 1 with
+    ``map_sigma`` given as numbers)."""
 
     poses: HostPoses
     local: HostPoses
@@ -149,11 +158,29 @@ class DistributedRobustStart:
     unplaced_robots: np.ndarray
     local_stages: int
     frame_stages: int
+    hypothesis_cost: np.ndarray | None = None
+    frame_scale: float = float("nan")
+    variance_factor: float = 1.0
 
     @property
     def accepted(self) -> np.ndarray:
         """(m,) bool: the inter-robot closures accepted (False on the other edges)."""
         return self.inter & (self.weights > 0.5)
+
+    @property
+    def readmissible(self) -> np.ndarray:
+        """(m,) the frame-hypothesis cost of each *rejected* inter-robot closure within the gross-error
+        bound chi^2_p(:data:`READMIT_QUANTILE`), NaN elsewhere: closures the frame test doubted but
+        that are not grossly inconsistent with the maps, which a robust run may try to admit again
+        (MIT without outliers: one correct closure, 0.8 rad off at the maps' frames, rejected at
+        3.8 c^2 where the bound is 4.9 c^2; the wrong closures of kitti_00's tests lay beyond
+        200 c^2, M3500's from 1.2 c^2, whose information matrices overstate the noise)."""
+        if self.hypothesis_cost is None:
+            return np.full(len(self.weights), np.nan)
+        d = self.poses.t.shape[-1]
+        bound = chi2_scale(d, READMIT_QUANTILE) ** 2
+        doubted = self.inter & (self.weights < 0.5) & (self.hypothesis_cost <= bound)
+        return np.where(doubted, self.hypothesis_cost, np.nan)
 
     @property
     def maps_of_robot(self) -> np.ndarray:
@@ -393,6 +420,29 @@ def variance_factor(local_graph: PoseGraph, poses: HostPoses, num_maps: int) -> 
     return max(level.nearest_one(), VARIANCE_FACTOR_FLOOR)
 
 
+_LOCAL_MAPS: dict = {}  # the last few local-map solves, by their graphs' bytes (see _local_maps)
+LOCAL_MAPS_KEPT = 2
+
+
+def _local_maps(local_g: PoseGraph, scale, trust_odometry: bool):
+    """The robots' own GNC-chordal maps (step 1), solved once per process for the same robots'
+    graphs: a robust solve that remakes the start (revisits, re-admissions) changes only inter-robot
+    closures, so the maps are the same (a deterministic function of these inputs) and their solve,
+    most of the start's time, is not repeated. Keyed by a digest of the graph's arrays and the
+    options; the last :data:`LOCAL_MAPS_KEPT` are kept."""
+    import hashlib
+
+    digest = hashlib.sha256()
+    for x in (local_g.i, local_g.j, local_g.R, local_g.t, local_g.kappa, local_g.tau):
+        digest.update(np.ascontiguousarray(x).tobytes())
+    key = (digest.hexdigest(), local_g.num_poses, None if scale is None else float(scale), bool(trust_odometry))
+    if key not in _LOCAL_MAPS:
+        while len(_LOCAL_MAPS) >= LOCAL_MAPS_KEPT:
+            _LOCAL_MAPS.pop(next(iter(_LOCAL_MAPS)))
+        _LOCAL_MAPS[key] = gnc_chordal_initialization(local_g, scale=scale, trust_odometry=trust_odometry)
+    return _LOCAL_MAPS[key]
+
+
 def _frame_graph(a, b, R, t, kappa, tau, K) -> PoseGraph:
     return PoseGraph(a, b, R, t, kappa, tau, num_poses=K)
 
@@ -511,6 +561,7 @@ def distributed_robust_initialization(
     trust_odometry: bool = True,
     seed: int = 0,
     excluded=None,
+    admitted=None,
 ) -> DistributedRobustStart:
     """The distributed robust start (module docstring). ``robots``: a count (contiguous blocks), an
     (n,) robot-of-pose array or a Partition. ``scale``: the local GNC's c (default
@@ -538,11 +589,14 @@ def distributed_robust_initialization(
     use = np.ones(m, bool) if excluded is None else ~np.asarray(excluded, bool).reshape(-1)
     if use.shape != (m,):
         raise ValueError(f"excluded: need one bool per edge, shape ({m},), got {use.shape}")
+    forced = np.zeros(m, bool) if admitted is None else np.asarray(admitted, bool).reshape(-1)
+    if forced.shape != (m,):
+        raise ValueError(f"admitted: need one bool per edge, shape ({m},), got {forced.shape}")
 
     # 1. local maps: every robot's own graph, one GNC-chordal call over their union
     local_g = g.select_edges(~inter & use)
-    local = gnc_chordal_initialization(local_g, scale=scale, trust_odometry=trust_odometry)
-    TR, Tt = np.asarray(local.poses.R, np.float64), np.asarray(local.poses.t, np.float64)
+    local = _local_maps(local_g, scale, trust_odometry)
+    TR, Tt = np.array(local.poses.R, np.float64), np.array(local.poses.t, np.float64)  # the cached maps stay intact
     labels, _, firsts = component_labels(n, local_g.i, local_g.j)
     order = np.argsort(firsts)  # maps numbered by their first pose: map 0 holds pose 0
     renumber = np.empty_like(order)
@@ -585,6 +639,7 @@ def distributed_robust_initialization(
     # an inter-robot odometry edge (consecutive poses of two robots, e.g. a contiguous split) is trusted
     # as the robots' own odometry is: always accepted, never truncated by the frame graph's GNC
     trusted = (np.abs(i - j) == 1) if trust_odometry else np.zeros(len(e), bool)
+    trusted |= forced[e]
     pair_keys, pair = np.unique(a * K + b, return_inverse=True)
     P = len(pair_keys)
     pairs = np.stack([pair_keys // K, pair_keys % K], 1)
@@ -629,6 +684,8 @@ def distributed_robust_initialization(
     R = FR[map_of_pose] @ TR
     t = np.einsum("nab,nb->na", FR[map_of_pose], Tt) + Ft[map_of_pose]
 
+    cost = np.full(m, np.nan)
+    cost[e] = _hypothesis_costs(FR[a], Ft[a], FR[b], Ft[b], Rh, th, kap, tau)
     w = np.zeros(m)
     w[~inter & use] = np.asarray(local.weights, np.float64)
     w[e] = keep.astype(np.float64)
@@ -639,7 +696,8 @@ def distributed_robust_initialization(
     return DistributedRobustStart(
         poses=HostPoses(R, t), local=HostPoses(TR, Tt), map_of_pose=map_of_pose, robot_of_map=robot_of_map,
         frames=HostPoses(FR, Ft), placed=placed, weights=w, inter=inter, unverified=unverified, pairs=averages,
-        unplaced_robots=np.unique(robot_of_map[~placed]), local_stages=local.stages, frame_stages=frame_stages)
+        unplaced_robots=np.unique(robot_of_map[~placed]), local_stages=local.stages, frame_stages=frame_stages,
+        hypothesis_cost=cost, frame_scale=c_frame, variance_factor=float(factor))
 
 
 def _solve_frames(fg: PoseGraph, keep, K, d):

@@ -20,7 +20,7 @@ import numpy as np
 from .._core.compile_mode import code_generation, program_slots
 from .._core.metrics import trajectory_accuracy
 from .._core.pose_graph import PoseGraph, Poses
-from .._init.start import initialize_with_weights
+from .._init.start import initial_classified
 from .._mm.checkpoint import Checkpointer, identity, restore_state
 from .._mm.checkpoint import load as load_checkpoint
 from .._mm.driver import Monitor, Termination, compile_once
@@ -114,6 +114,7 @@ class Prepared:
     saver: Checkpointer | None
     clock: Clock
     start_weights: np.ndarray | None = None  # (m,) held as the robust run's first stage, graph order
+    doubts: dict | None = None  # the distributed robust start's doubted closures and variance factor
 
 
 def prepare(graph: PoseGraph, solver: Solver, robots, layout, termination: Termination, *, start=None, initial=None,
@@ -133,7 +134,7 @@ def prepare(graph: PoseGraph, solver: Solver, robots, layout, termination: Termi
     start_method, start_options = start_for(start, loss)
     weights = check_start_weights(graph, start_weights, loss)
     with placement.building():
-        key = snapshot = saver = None
+        key = snapshot = saver = doubts = None
         if checkpoint is not None or resume is not None:
             key = identity(graph=graph, robot_of_pose=placement.user_part.robot_of_pose,
                            num_robots=placement.user_part.num_robots,
@@ -149,11 +150,13 @@ def prepare(graph: PoseGraph, solver: Solver, robots, layout, termination: Termi
         else:
             if isinstance(start_method, str) and start_method == "gnc-chordal":  # minutes on some graphs: its stages
                 start_options = dict(start_options, progress=monitor.note)
-            X0, from_start = initialize_with_weights(graph, start_method, initial=initial, robots=placement.user_part,
-                                                     fixed=fixed, **start_options)
+            X0, from_start, doubts = initial_classified(graph, start_method, initial=initial,
+                                                        robots=placement.user_part, fixed=fixed, **start_options)
             X0 = placement.share_start(X0)
             if weights is None and loss is not None:
                 weights = from_start
+            else:
+                doubts = None  # given weights: the start's doubts are not the run's
         if checkpoint is not None:
             saver = Checkpointer(checkpoint, checkpoint_every, key, jax.device_get(X0),
                                  chunk_size=termination.chunk_size, **placement.checkpoint_options())
@@ -178,7 +181,7 @@ def prepare(graph: PoseGraph, solver: Solver, robots, layout, termination: Termi
     problem, state = placement.place(problem, state)
     clock.lap("build")
     held = None if weights is None else np.asarray(weights, np.float64)
-    return Prepared(placement, start_poses, problem, state, record, snapshot, saver, clock, held)
+    return Prepared(placement, start_poses, problem, state, record, snapshot, saver, clock, held, doubts)
 
 
 def check_start_weights(graph: PoseGraph, weights, loss: RobustLoss | None):
@@ -215,7 +218,7 @@ def finish(graph: PoseGraph, solver: Solver, run: Prepared, driven, termination:
         config=getattr(solver, "config", None),
         result=driven.result,
         stats={**run.clock.stats(driven.compile_seconds, driven.solve_seconds), **placement.stats(), **robust_stats,
-               "compile_mode": code_generation(program_slots((run.problem,)))},
+               "compile_mode": code_generation(program_slots((run.problem,))), **_readmissible_stats(run)},
         accuracy=None if ground_truth is None else trajectory_accuracy(poses, ground_truth),
         termination=termination,
         start=output_frame(run.start_poses, fixed, frame),
@@ -223,3 +226,16 @@ def finish(graph: PoseGraph, solver: Solver, run: Prepared, driven, termination:
         start_weights=run.start_weights,
         **outcome,
     )
+
+
+def _readmissible_stats(run: Prepared) -> dict:
+    """``stats["start_readmissible"]``: [edge, frame-hypothesis cost] of each inter-robot closure the
+    distributed robust start rejected but did not find grossly inconsistent, cheapest first, and
+    ``stats["start_variance_factor"]``: its maps' variance factor (no entries for other starts)."""
+    if run.doubts is None:
+        return {}
+    cost = run.doubts["readmissible"]
+    edges = np.flatnonzero(np.isfinite(cost))
+    edges = edges[np.argsort(cost[edges], kind="stable")]
+    return {"start_readmissible": [[int(e), float(cost[e])] for e in edges],
+            "start_variance_factor": float(run.doubts["variance_factor"])}

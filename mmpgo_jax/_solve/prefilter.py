@@ -80,9 +80,16 @@ class Prefiltered:
             out[keep] = np.asarray(w)
             return out
 
+        stats = {**result.stats, **self.stats}
+        if "starts" in stats:  # the edges the revisits left out and the re-admissions admitted: original order
+            original = np.flatnonzero(keep)
+            stats["starts"] = [dict(row, **{key: [dict(r, **{edge: int(original[r[edge]])}) for r in row[key]]
+                                            for key, edge in (("revisits", "excluded"), ("readmissions", "admitted"))
+                                            if row.get(key)})
+                               for row in stats["starts"]]
         return dataclasses.replace(result, inliers=inliers, weights=widened(result.weights),
                                    start_weights=widened(result.start_weights), prefiltered=self.rejected.copy(),
-                                   stats={**result.stats, **self.stats})
+                                   stats=stats)
 
 
 def robot_of_pose(graph: PoseGraph, robots) -> np.ndarray:

@@ -367,7 +367,7 @@ def _best_of(starts: tuple, run_from: Callable, graph: PoseGraph, monitor: Monit
         rows.append(dict(start=name, f=f, iterations=iterations, rejected=rejected, finished=before,
                          finished_by=finished_by, held=bool(first.stats.get("start_weights_given", False)),
                          start_seconds=float(first.stats.get("initialize_seconds", 0.0)), revisits=[],
-                         seconds=time.perf_counter() - t))
+                         readmissions=[], seconds=time.perf_counter() - t))
         runs.append(run)
         firsts.append(first)
     for k, row in enumerate(rows):  # after every start ran: the other starts' runs are evidence too
@@ -375,9 +375,11 @@ def _best_of(starts: tuple, run_from: Callable, graph: PoseGraph, monitor: Monit
         if revisit and row["start"] == "distributed-robust" and firsts[k].iterations > 0:  # 0: the start alone
             t = time.perf_counter()
             others = [run.inliers for j, run in enumerate(runs) if j != k]
-            runs[k], row["f"], row["revisits"] = _revisited(firsts[k].start_weights, runs[k], row["f"], others, label,
-                                                            run_from, graph, monitor, finish)
-            row["iterations"] += sum(r["iterations"] for r in row["revisits"])
+            runs[k], row["f"], row["revisits"], options, first = _revisited(
+                firsts[k], runs[k], row["f"], others, label, run_from, graph, monitor, finish)
+            runs[k], row["f"], row["readmissions"] = _readmitted_to_start(
+                first, options, runs[k], row["f"], others, label, run_from, graph, monitor, finish)
+            row["iterations"] += sum(r["iterations"] for r in (*row["revisits"], *row["readmissions"]))
             row["rejected"] = int((~np.asarray(runs[k].inliers, bool)).sum())
             row["seconds"] += time.perf_counter() - t
     best = int(np.argmin([row["f"] for row in rows]))  # the first of equal ones
@@ -394,13 +396,15 @@ def _start_name(begin) -> str:
 
 
 def _run_finished(begin, label: str, run_from: Callable, graph: PoseGraph, monitor: Monitor,
-                  finish: Callable | None) -> tuple:
+                  finish: Callable | None, keeps: int | None = None) -> tuple:
     """(first run, kept run, f, iterations, f before the finish or None, how it was finished or None):
     a run from ``begin`` and, when it used its budget, the second run from its kept edges (kept when
-    lower, :func:`_best_of`)."""
+    lower, :func:`_best_of`). ``keeps``: an edge the run is made to try (a re-admission); a run
+    that rejected it again is not finished (the kept edges are those the trial was to change)."""
     first = run = run_from(begin, _FromStart(monitor, label))
     f, before, iterations, finished_by = _objective(run, graph), None, run.iterations, None
-    if finish is not None and run.result is RESULTS.iterations and run.iterations > 0:
+    tried = keeps is None or run.inliers is None or bool(run.inliers[keeps])
+    if finish is not None and tried and run.result is RESULTS.iterations and run.iterations > 0:
         begin_again = finish(graph, run)
         if begin_again is not None:
             begin_again, finished_by = begin_again
@@ -425,8 +429,8 @@ def _overruled(start_weights, run: SolveResult, others=()) -> np.ndarray:
     return accepted & rejected
 
 
-def _revisited(start_weights, run: SolveResult, f: float, others: list, label: str, run_from: Callable,
-               graph: PoseGraph, monitor: Monitor, finish: Callable | None) -> tuple[SolveResult, float, list]:
+def _revisited(first: SolveResult, run: SolveResult, f: float, others: list, label: str, run_from: Callable,
+               graph: PoseGraph, monitor: Monitor, finish: Callable | None) -> tuple:
     """A robust run that rejected edges its distributed robust start had accepted says the start was
     wrong: an outlier its frame search accepted holds the maps bent while it is held, and the run
     then rejects it *and* correct closures near it. So the start is made again without the overruled
@@ -440,10 +444,11 @@ def _revisited(start_weights, run: SolveResult, f: float, others: list, label: s
     Even one overruled edge is worth it: the map it bent while held converges more slowly (M3500, 50 %
     wrong inter-robot closures, seed 2: ATE 0.46 % -> 0.21 % of the extent, same classification).
     Measured on 10 x 500-pose teams (benchmarks/robust_teams.md) and files
-    (benchmarks/robust_distributed_files.md). ``start_weights``: the first start's classification.
-    Returns (run, f, rounds)."""
+    (benchmarks/robust_distributed_files.md). ``first``: the first run from the start (its
+    ``start_weights``: the start's classification). Returns (run, f, rounds, the kept run's start
+    options, the first run from that start)."""
     excluded = np.zeros(graph.num_edges, bool)
-    rounds = []
+    rounds, options, start_weights = [], {}, first.start_weights
     while True:
         over = _overruled(start_weights, run, others) & ~excluded
         if not over.any():
@@ -453,12 +458,61 @@ def _revisited(start_weights, run: SolveResult, f: float, others: list, label: s
         excluded[edge] = True
         begin = NamedStart("distributed-robust", dict(excluded=excluded.copy()))
         again_label = f"{label}, without {int(excluded.sum())} overruled"
-        first, again, f_again, iterations, _, _ = _run_finished(begin, again_label, run_from, graph, monitor, finish)
+        first_again, again, f_again, iterations, _, _ = _run_finished(begin, again_label, run_from, graph, monitor,
+                                                                      finish)
         kept = f_again < f
         rounds.append(dict(excluded=edge, f=f_again, iterations=iterations, kept=kept))
         if not kept:
             break
-        run, f, start_weights = again, f_again, first.start_weights
+        run, f, first, options = again, f_again, first_again, begin.options
+        start_weights = first.start_weights
+    return run, f, rounds, options, first
+
+
+def _readmitted_to_start(first: SolveResult, options: dict, run: SolveResult, f: float, others: list, label: str,
+                         run_from: Callable, graph: PoseGraph, monitor: Monitor,
+                         finish: Callable | None) -> tuple[SolveResult, float, list]:
+    """The converse of :func:`_revisited`: an inter-robot loop closure the distributed robust start
+    rejected and the run did not take back may be correct. The frame test sees the robots' maps as
+    rigid, with their drift only as a variance, and a correct closure far along two long chains can
+    fail it (MIT without outliers: robots 0 and 3's only closure, 0.8 rad off at the maps' frames,
+    cost 0.10 at the optimum; the run without it ends 11 % above the optimum with its residual at
+    52 c^2, where no weight update of TLS takes it back). So the start is made again with such a
+    closure accepted (``admitted=``: trusted by the frame step), a run goes on from it, kept when its
+    robust objective (every edge: the number the runs are compared by) is lower by more than
+    (1 - v) c^2, v the maps' variance factor (``first.stats["start_variance_factor"]``, at most 1):
+    the closure's cost judged at the noise level the robots' own edges show, not the one their
+    information matrices claim (M3500's overstate it ~30x, v = 0.036: wrong closures lowered f by
+    less than 0.1 % of c^2 and were admitted without the margin; MIT's v = 1). Candidates: the
+    closures the start doubted without finding them grossly inconsistent (``first.stats[
+    "start_readmissible"]``: ``DistributedRobustStart.readmissible``) that the run rejected too,
+    cheapest first, one per round (its run finished as the first, unless it rejected the closure
+    again), until a round is not kept; with several starts, only those
+    another start's run accepted (the evidence :func:`_revisited` uses too). Returns (run, f,
+    rounds: per round the edge admitted, f before and after, iterations, kept, seconds)."""
+    evidence = [np.asarray(inliers, bool) for inliers in others if inliers is not None]
+    factor = min(float(first.stats.get("start_variance_factor", 1.0)), 1.0)
+    margin = 0.0 if factor == 1.0 else (1.0 - factor) * float(np.asarray(run.loss.scale)) ** 2
+    admitted = np.zeros(graph.num_edges, bool)
+    rounds = []
+    while run.inliers is not None:
+        doubted = [e for e, _ in first.stats.get("start_readmissible", ()) if not admitted[e]]
+        open_ = [e for e in doubted if not run.inliers[e] and (not evidence or any(inl[e] for inl in evidence))]
+        if not open_:
+            break
+        edge = int(open_[0])
+        admitted[edge] = True
+        begin = NamedStart("distributed-robust", dict(options, admitted=admitted.copy()))
+        again_label = f"{label}, {int(admitted.sum())} rejected closure(s) admitted"
+        t = time.perf_counter()
+        first_again, again, f_again, iterations, _, _ = _run_finished(begin, again_label, run_from, graph, monitor,
+                                                                      finish, keeps=edge)
+        kept = f_again < f - margin
+        rounds.append(dict(admitted=edge, f_before=f, f=f_again, iterations=iterations, kept=kept,
+                           seconds=time.perf_counter() - t))
+        if not kept:
+            break
+        run, f, first = again, f_again, first_again
     return run, f, rounds
 
 

@@ -165,6 +165,18 @@ def _revisits_text(rounds) -> str:
             f"{'' if len(rounds) == 1 else 's'} in turn, {kept} of those runs kept (lower f)")
 
 
+def _readmissions_text(result, rounds, data) -> str:
+    """How often the distributed robust start was made again with an inter-robot closure it had
+    rejected admitted (``stats["starts"][k]["readmissions"]``), and the lines of those kept."""
+    if not rounds:
+        return ""
+    kept = np.zeros(len(result.inliers), bool)
+    kept[[r["admitted"] for r in rounds if r["kept"]]] = True
+    where = _rejected_lines(result, data, kept).replace("; ", ": ", 1) if kept.any() else ""
+    return (f"; made again with {len(rounds)} closure{'' if len(rounds) == 1 else 's'} it had rejected admitted in "
+            f"turn, {int(kept.sum())} of those runs kept (lower f){where}")
+
+
 def _noise_line(result, graph) -> str:
     """A robust run's line on the data's noise against their information matrices: the
     a-posteriori variance factor of the kept edges at the final poses (:func:`~mmpgo_jax.noise_level`)
@@ -241,7 +253,8 @@ def print_summary(result, fstar, data: LoadedInput | None = None) -> None:
         finished = ("" if row.get("finished") is None
                     else f" (f = {row['finished']:.6f} before it was finished from its kept edges)")
         print(f"start       {row['start']}: f = {row['f']:.6f}{finished}{rejected}, {row['iterations']} iterations, "
-              f"{row['seconds']:.2f} s ({kept}){_revisits_text(row.get('revisits', ()))}")
+              f"{row['seconds']:.2f} s ({kept}){_revisits_text(row.get('revisits', ()))}"
+              f"{_readmissions_text(result, row.get('readmissions', ()), data)}")
     if result.loss is not None:
         robust = ~result.inliers if prefiltered is None else ~result.inliers & ~prefiltered
         used = len(result.inliers) - (0 if prefiltered is None else int(prefiltered.sum()))
