@@ -131,9 +131,9 @@ def solve(
     objective: each start wins on other graphs (benchmarks/robust_distributed_files_findings.md);
     a run from the distributed robust start that overrules it is revisited, and closures it doubted
     are re-admitted while the objective falls (docs/conventions.md §10; ``stats["starts"][k]``'s
-    ``revisits`` and ``readmissions``); one start when given, with one robot, with ``start_weights``, ``checkpoint`` or ``resume``
-    (then ``"gnc-chordal"``). ``gnc``: a :class:`~mmpgo_jax.GNCConfig` (tls, geman-mcclure) runs GNC
-    stages in the distributed solver instead, from the chordal start.
+    ``revisits`` and ``readmissions``); one start when given, with one robot, with ``start_weights``,
+    ``checkpoint`` or ``resume`` (then ``"gnc-chordal"``). ``gnc``: a :class:`~mmpgo_jax.GNCConfig`
+    (tls, geman-mcclure) runs GNC stages in the distributed solver instead, from the chordal start.
     f and the history are then f = 2 F_rho, and the result holds the final edge ``weights`` and the
     ``inliers`` (edges whose final residual is within the scale).
 
