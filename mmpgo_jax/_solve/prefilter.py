@@ -83,9 +83,12 @@ class Prefiltered:
         stats = {**result.stats, **self.stats}
         if "starts" in stats:  # the edges the revisits left out and the re-admissions admitted: original order
             original = np.flatnonzero(keep)
-            stats["starts"] = [dict(row, **{key: [dict(r, **{edge: int(original[r[edge]])}) for r in row[key]]
-                                            for key, edge in (("revisits", "excluded"), ("readmissions", "admitted"))
-                                            if row.get(key)})
+
+            def renumbered(rounds, edge):
+                return [dict(r, **{edge: int(original[r[edge]])}) for r in rounds]
+
+            stats["starts"] = [dict(row, revisits=renumbered(row.get("revisits", []), "excluded"),
+                                    readmissions=renumbered(row.get("readmissions", []), "admitted"))
                                for row in stats["starts"]]
         return dataclasses.replace(result, inliers=inliers, weights=widened(result.weights),
                                    start_weights=widened(result.start_weights), prefiltered=self.rejected.copy(),

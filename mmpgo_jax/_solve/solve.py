@@ -450,9 +450,9 @@ def _revisited(first: SolveResult, run: SolveResult, f: float, others: list, lab
     ``start_weights``: the start's classification). Returns (run, f, rounds, the kept run's start
     options, the first run from that start)."""
     excluded = np.zeros(graph.num_edges, bool)
-    rounds, options, start_weights = [], {}, first.start_weights
+    rounds, options = [], {}
     while True:
-        over = _overruled(start_weights, run, others) & ~excluded
+        over = _overruled(first.start_weights, run, others) & ~excluded
         if not over.any():
             break
         residual = np.asarray(edge_costs(graph, run.poses))
@@ -467,7 +467,6 @@ def _revisited(first: SolveResult, run: SolveResult, f: float, others: list, lab
         if not kept:
             break
         run, f, first, options = again, f_again, first_again, begin.options
-        start_weights = first.start_weights
     return run, f, rounds, options, first
 
 

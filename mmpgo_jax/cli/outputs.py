@@ -143,16 +143,16 @@ def finish_solve(args, data: LoadedInput, result, fstar) -> None:
         print(f"wrote {path}")
 
 
-def _rejected_lines(result, data: LoadedInput | None, mask=None) -> str:
+def _rejected_lines(result, data: LoadedInput | None, mask=None, lead: str = "; ") -> str:
     """"; lines 12, 40 and 3 more of FILE" for the rejected edges (``mask``, default ``~inliers``),
-    when they come from one file as read."""
+    when they come from one file as read (``lead``: what goes before "lines")."""
     lines = None if data is None or data.keep is not None else getattr(data.g2o, "edge_line", None)
     mask = ~np.asarray(result.inliers) if mask is None else np.asarray(mask)
     rejected = np.flatnonzero(mask)
     if lines is None or len(rejected) == 0 or len(lines) != len(mask):
         return ""
     which = "line" if len(rejected) == 1 else "lines"
-    return f"; {which} {join_items(lines[rejected].tolist(), 60)} of {data.path.name}"
+    return f"{lead}{which} {join_items(lines[rejected].tolist(), 60)} of {data.path.name}"
 
 
 def _revisits_text(rounds) -> str:
@@ -172,9 +172,8 @@ def _readmissions_text(result, rounds, data) -> str:
         return ""
     kept = np.zeros(len(result.inliers), bool)
     kept[[r["admitted"] for r in rounds if r["kept"]]] = True
-    where = _rejected_lines(result, data, kept).replace("; ", ": ", 1) if kept.any() else ""
     return (f"; made again with {len(rounds)} closure{'' if len(rounds) == 1 else 's'} it had rejected admitted in "
-            f"turn, {int(kept.sum())} of those runs kept (lower f){where}")
+            f"turn, {int(kept.sum())} of those runs kept (lower f){_rejected_lines(result, data, kept, lead=': ')}")
 
 
 def _noise_line(result, graph) -> str:
