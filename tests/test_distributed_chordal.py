@@ -404,3 +404,27 @@ def test_planar_inverse_is_the_real_inverse_as_complex_numbers():
     reflected = PoseGraph(g.i, g.j, g.R.at[0].set(jnp.diag(jnp.array([1.0, -1.0]))), g.t, g.kappa, g.tau,
                           num_poses=g.num_poses)
     assert dc._gamma_inverses(dc._setup(reflected, ROBOTS).part, anchor, 0.3, 2, True).ndim == 3
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64, np.complex64, np.complex128])
+def test_inverse_of_a_decaying_matrix_is_accurate_and_has_no_subnormals(dtype):
+    """A chain with a strong diagonal (as a robot's Gamma with many inter-robot edge ends) has an
+    inverse whose entries decay along the chain far below the smallest normal number: the inverse
+    (tiny entries flushed between the LAPACK steps) matches the float64 dense inverse normwise to the
+    precision's rounding, and holds no subnormal number (they slow every later product)."""
+    n, A = 400, 2
+    off = -np.ones(n - 1)
+    if np.issubdtype(dtype, np.complexfloating):
+        off = off * np.exp(0.3j)  # a Hermitian "connection" chain
+    M = np.diag(np.full(n, 40.0)) + np.diag(off, -1) + np.diag(off.conj(), 1)  # decay 1/40 per step
+    G = np.stack([M, 2.0 * M]).astype(dtype)
+    reference = np.linalg.inv(np.stack([M, 2.0 * M]))
+    assert abs(reference[0, -1, 0]) < np.finfo(np.float64).tiny  # the decay reaches float64's subnormals
+    out = np.empty((A, 2, n, n), np.finfo(dtype).dtype) if np.iscomplexobj(G) else None
+    assert dc._invert_in_place(G, out) is None
+    inverse = G if out is None else out[:, 0] + 1j * out[:, 1]
+    eps = np.finfo(dtype).eps
+    for a in range(A):
+        assert np.linalg.norm(inverse[a] - reference[a], 2) <= 10 * n * eps * np.linalg.norm(reference[a], 2)
+    real_parts = inverse.view(np.finfo(dtype).dtype) if np.iscomplexobj(inverse) else inverse
+    assert not np.any((real_parts != 0) & (np.abs(real_parts) < np.finfo(dtype).tiny))
