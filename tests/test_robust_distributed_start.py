@@ -393,3 +393,24 @@ def test_cli_init_distributed_robust(tmp_path, capsys):
                  "--no-progress", "--out", str(out)]) == 0
     assert "AMM-PGO" in capsys.readouterr().out
     assert out.is_file()
+
+
+def _exact_chain(poses: int, dim: int = 2) -> PoseGraph:
+    """Poses one unit apart along x, odometry only, exact measurements (f = 0 at the truth)."""
+    m = poses - 1
+    return PoseGraph(np.arange(m), np.arange(1, m + 1), np.tile(np.eye(dim), (m, 1, 1)),
+                     np.tile(np.eye(dim)[0], (m, 1)), np.ones(m), np.ones(m), num_poses=poses)
+
+
+@pytest.mark.parametrize("poses, robots", [(2, 1), (3, 3)], ids=["one-robot", "one-pose-robots"])
+def test_robust_starts_without_edges_to_weigh(poses, robots):
+    """Graphs where a GNC stage has no edge: a team of one robot (no inter-robot closure, an empty
+    frame graph) and robots of one pose (maps without own edges). Both robust starts and the fully
+    distributed robust solve return the exact answer (f = 0) instead of failing inside NumPy."""
+    graph = _exact_chain(poses)
+    assert gnc_chordal_initialization(graph.select_edges(np.zeros(graph.num_edges, bool))).stages == 0
+    start = initialize(graph, "distributed-robust", robots=robots)
+    assert float(mm.cost(graph, start)) < 1e-20
+    result = mm.solve(graph, robots, loss="tls", distributed=True, iterations=5)
+    assert float(mm.cost(graph, result.poses)) < 1e-20
+    np.testing.assert_array_equal(result.weights, 1.0)  # nothing rejected

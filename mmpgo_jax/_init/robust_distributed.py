@@ -480,6 +480,8 @@ def _sampled_tree_costs(a, b, Rh, th, kap, tau, trusted, K, d, samples: int, rng
     from scipy.sparse.csgraph import minimum_spanning_tree
 
     H = len(a)
+    if H == 0:  # one map, no frame to choose (a connected graph without inter-robot closures)
+        return np.zeros((samples, 0))
     key = np.where(trusted, 0.5, 1.0 + rng.random((samples, H)))  # trusted: always the pair's pick
     pair_id = a * K + b
     order = np.lexsort((np.zeros(H), pair_id))

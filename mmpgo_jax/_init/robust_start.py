@@ -193,6 +193,8 @@ def gnc_chordal_initialization(
     _note_missing_pardiso(g, say)
     say(f"GNC start: chordal relaxation of all {g.num_edges} edges")
     X = _chordal(g, fixed)
+    if g.num_edges == 0:  # a robot's map of one pose, a frame graph of one robot: nothing to weigh or refine
+        return RobustStart(poses=X, weights=np.ones(0), stages=0, scale=float(np.sqrt(c2)))
     s = np.asarray(edge_costs(g, X))
     w = np.ones(g.num_edges)
     mu = float(gnc_initial_mu(TLS, np.max(s[robust], initial=0.0), c2))
