@@ -81,7 +81,7 @@ def test_cli_distributed_runs_without_a_centralized_step(tmp_path, capsys):
     # 30 + 30 iterations, then a re-admission round (30 + 30): the start rejects a correct closure of
     # this outlier-free team, and the run from the start that accepts it reaches a lower objective
     assert "start       distributed-robust: f = " in out and "120 iterations" in out
-    assert "made again with 1 closure it had rejected admitted in turn, 1 of those runs kept (lower f): line " in out
+    assert "1 closure it had rejected tried in turn from its result, 1 of those runs kept (lower f): line " in out
 
 
 def test_robust_start_traffic_counts_every_message():

@@ -147,8 +147,8 @@ def test_distributed_robust_runs_on_their_budget_go_on_from_their_kept_edges_cho
 
     monkeypatch.setattr(solve_module, "_kept_edges_chordal", spy)
     monkeypatch.setattr(solve_module, "centralized_optimum", lambda *a, **k: pytest.fail("a centralized step"))
-    monkeypatch.setattr(solve_module, "_revisited", lambda weights, run, f, *a: (run, f, [], {}, weights))  # below
-    monkeypatch.setattr(solve_module, "_readmitted_to_start", lambda weights, options, run, f, *a: (run, f, []))
+    monkeypatch.setattr(solve_module, "_revisited", lambda first, run, f, *a: (run, f, [], first))  # below
+    monkeypatch.setattr(solve_module, "_readmitted_to_start", lambda first, run, f, *a: (run, f, []))
     ds = mg.cube_dataset(1, grid=3, num_poses=80)
     bad = add_outliers(ds.graph, 0.3, reference=ds.ground_truth, seed=2)
     for iterations, second_kept in ((5, True), (20, False)):  # as measured on this graph
@@ -202,7 +202,7 @@ def test_a_run_that_overrules_its_distributed_start_goes_on_from_that_start_with
     monkeypatch.setattr(rd, "distributed_robust_initialization", accepting)
     import mmpgo_jax._solve.solve as solve_module
 
-    monkeypatch.setattr(solve_module, "_readmitted_to_start", lambda weights, options, run, f, *a: (run, f, []))
+    monkeypatch.setattr(solve_module, "_readmitted_to_start", lambda first, run, f, *a: (run, f, []))
     d = mg.solve(bad.graph, 3, loss="tls", iterations=200, distributed=True)
     (row,) = d.stats["starts"]
     rounds = row["revisits"]
@@ -230,49 +230,45 @@ def test_a_run_that_overrules_its_distributed_start_goes_on_from_that_start_with
 def test_start_rejected_inter_robot_closures_are_admitted_one_per_round_while_the_objective_falls(monkeypatch):
     """The converse of the revisits: candidates are the closures the start doubted without finding
     them grossly inconsistent (its ``start_readmissible``, cheapest first) that the run rejected too;
-    with other starts, only those another run accepted. One per round, the start made again with
-    every admitted one (``admitted=``, the kept revisit's ``excluded`` kept), a round kept when its
-    objective is lower, the search ending at the first round that is not; a kept round's start gives
-    the next candidates."""
+    with other starts, only those another run accepted. One per round, a run from the current run's
+    result holding its classification with that closure accepted (and made to try it: ``keeps``), a
+    round kept when its objective is lower, the search ending at the first round that is not."""
     from types import SimpleNamespace
 
     import mmpgo_jax._solve.solve as solve_module
 
     m = 12
-    a, b, c, x = 3, 5, 7, 9
-    excluded = np.zeros(m, bool)
-    excluded[x] = True  # left out by a kept revisit: still left out
+    a, b, c = 3, 5, 7
     outcome = {b: 9.0, c: 8.5, a: 9.5}  # f after admitting b (kept), then c (kept), then a (not kept)
-    tried = []
+    tried, current = [], []
 
     def run(rejected, f, doubted=()):
         inliers = np.ones(m, bool)
         inliers[list(rejected)] = False
-        return SimpleNamespace(inliers=inliers, f=f, stats=dict(start_readmissible=[[e, 1.0 + k] for k, e in
-                                                                                     enumerate(doubted)]))
+        out = SimpleNamespace(inliers=inliers, f=f, poses=f"poses at f = {f}",
+                              stats=dict(start_readmissible=[[e, 1.0 + k] for k, e in enumerate(doubted)]))
+        current.append(out)
+        return out
 
-    def run_finished(begin, label, run_from, graph, monitor, finish, keeps=None):
-        admitted = begin.options["admitted"]
-        np.testing.assert_array_equal(begin.options["excluded"], excluded)
-        (edge,) = set(np.flatnonzero(admitted).tolist()) - set(tried)
-        assert keeps == edge
-        tried.append(edge)
-        assert admitted.sum() == len(tried)  # every admitted closure stays admitted
-        left = [e for e in (a, b, c) if e not in tried]
-        # the start made again: its doubts without the admitted ones, in a new order
-        again = run(left, outcome[edge], doubted=sorted(left, reverse=True))
-        return again, again, outcome[edge], 7, None, None
+    def run_finished(begin, label, run_from, graph, monitor, finish, keeps=None, weights=None):
+        here = current[-1]  # the run the trial goes on from
+        assert begin == here.poses
+        expected = here.inliers.astype(float)
+        expected[keeps] = 1.0
+        np.testing.assert_array_equal(weights, expected)  # its classification, the closure accepted
+        tried.append(keeps)
+        again = run([e for e in (a, b, c) if e not in tried], outcome[keeps])
+        return again, again, outcome[keeps], 7, None, None
 
     monkeypatch.setattr(solve_module, "_run_finished", run_finished)
     graph = SimpleNamespace(num_edges=m)
 
     def readmit(first, rejected, others):
-        return solve_module._readmitted_to_start(first, dict(excluded=excluded), run(rejected, 10.0), 10.0,
-                                                 others, "start", None, graph, None, None)
+        return solve_module._readmitted_to_start(first, run(rejected, 10.0), 10.0, others, "start", None, graph,
+                                                 None, None)
 
-    # b and c doubted (b cheaper); 11 doubted but accepted by the run: not a candidate; then the
-    # remade start doubts c before a
-    out, f, rounds = readmit(run([], 0.0, doubted=[b, 11, c]), [a, b, c], [])
+    # b, c and a doubted in that order (b cheapest); 11 doubted but accepted by the run: not a candidate
+    out, f, rounds = readmit(run([], 0.0, doubted=[b, 11, c, a]), [a, b, c], [])
     assert tried == [b, c, a]
     assert [r["admitted"] for r in rounds] == [b, c, a] and [r["kept"] for r in rounds] == [True, True, False]
     assert f == out.f == 8.5 and all(r["iterations"] == 7 for r in rounds)
@@ -281,7 +277,7 @@ def test_start_rejected_inter_robot_closures_are_admitted_one_per_round_while_th
     other = np.ones(m, bool)
     other[b] = False
     out, f, rounds = readmit(run([], 0.0, doubted=[b, c]), [a, b, c], [other, None])
-    assert tried[0] == c and rounds[0]["kept"] and f <= 8.5
+    assert tried == [c] and rounds[0]["kept"] and f == 8.5
     # maps whose residuals are 0.6 of what their information claims (variance factor 0.6): a round is
     # kept only when f falls by more than (1 - 0.6) c^2 = 0.8 (c = sqrt(2)): 10 -> 9.0 (b) is kept,
     # 9.0 -> 8.5 (c) is not
@@ -290,24 +286,44 @@ def test_start_rejected_inter_robot_closures_are_admitted_one_per_round_while_th
     first.stats["start_variance_factor"] = 0.6
     base = run([a, b, c], 10.0)
     base.loss = SimpleNamespace(scale=np.sqrt(2.0))
-    out, f, rounds = solve_module._readmitted_to_start(first, dict(excluded=excluded), base, 10.0, [], "start", None,
-                                                       graph, None, None)
+    out, f, rounds = solve_module._readmitted_to_start(first, base, 10.0, [], "start", None, graph, None, None)
     assert [(r["admitted"], r["f_before"], r["kept"]) for r in rounds] == [(b, 10.0, True), (c, 9.0, False)]
     assert f == out.f == 9.0
-    # a trial whose run rejects the admitted closure again is not finished from its kept edges
+    # a trial whose run rejects the admitted closure again is not finished from its kept edges; the
+    # weights go to the trial's first run only (its finish starts from the kept edges)
     from mmpgo_jax._mm.driver import RESULTS
 
     monkeypatch.undo()
-    finished = []
+    finished, held = [], []
     cube = mg.cube_dataset(1, grid=3, num_poses=20).graph
     on_budget = SimpleNamespace(inliers=np.ones(cube.num_edges, bool), result=RESULTS.iterations, iterations=5,
                                 f=1.0, loss=None)
     on_budget.inliers[4] = False
     for keeps, count in ((4, 0), (5, 1), (None, 2)):  # 4 rejected again: not finished; 5 kept; no trial
         runs = iter([on_budget, on_budget])
-        solve_module._run_finished("start", "", lambda begin, monitor: next(runs), cube, mg.Monitor(),
-                                   lambda g, r: finished.append(1) or ("again", dict(by="x")), keeps=keeps)
+        weights = None if keeps is None else np.ones(cube.num_edges)
+
+        def run_from(begin, monitor, weights=None):
+            held.append(weights)
+            return next(runs)
+
+        held.clear()
+        solve_module._run_finished("start", "", run_from, cube, mg.Monitor(),
+                                   lambda g, r: finished.append(1) or ("again", dict(by="x")), keeps=keeps,
+                                   weights=weights)
         assert len(finished) == count
+        assert held[0] is weights and all(w is None for w in held[1:])
+    monkeypatch.setattr(solve_module, "_run_finished", run_finished)
+    # a trial whose run rejects its closure again is not kept, even with a lower f (more iterations)
+    tried.clear()
+    def rejected_again(begin, label, run_from, graph, monitor, finish, keeps=None, weights=None):
+        tried.append(keeps)
+        again = run([a, b, c], 9.0)
+        return again, again, 9.0, 7, None, None
+
+    monkeypatch.setattr(solve_module, "_run_finished", rejected_again)
+    out, f, rounds = readmit(run([], 0.0, doubted=[b, c]), [a, b, c], [])
+    assert tried == [b] and [(r["admitted"], r["f"], r["kept"]) for r in rounds] == [(b, 9.0, False)] and f == 10.0
     monkeypatch.setattr(solve_module, "_run_finished", run_finished)
     # nothing doubted, or the run took every doubted closure back: no round
     tried.clear()
@@ -354,7 +370,7 @@ def test_distributed_tls_on_mit_admits_the_correct_closure_its_start_rejected(be
 
     assert main(["solve", str(benchmark_file("MIT.g2o")), "--loss", "tls", "--distributed", "--no-progress"]) == 0
     (line,) = [x for x in capsys.readouterr().out.splitlines() if x.startswith("start")]
-    assert "made again with 1 closure it had rejected admitted in turn, 1 of those runs kept (lower f): " \
+    assert "1 closure it had rejected tried in turn from its result, 1 of those runs kept (lower f): " \
            "line 1621 of MIT.g2o" in line
 
 

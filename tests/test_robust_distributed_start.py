@@ -163,10 +163,10 @@ def test_excluded_edges_are_left_out_of_every_step():
         distributed_robust_initialization(c.graph, rop, excluded=excluded[:-1])
 
 
-def test_admitted_closures_are_accepted_and_the_local_maps_solved_once(monkeypatch):
-    """``admitted``: a closure the start rejects (a planted wrong one) is accepted and joins the frame
-    solve; the robots' own maps are those of the plain start, taken from the cache (no second local
-    GNC) and equal to a fresh solve; excluding an intra-robot closure changes the maps (solved again)."""
+def test_the_local_maps_are_solved_once_for_starts_that_differ_in_inter_robot_closures(monkeypatch):
+    """A start made again without an inter-robot closure (a revisit) takes the robots' own maps from
+    the cache (no second local GNC), equal to a fresh solve; excluding an intra-robot closure changes
+    the maps (solved again)."""
     import mmpgo_jax._init.robust_distributed as rd
 
     ds = _team(noise=0.005, seed=1)
@@ -174,19 +174,17 @@ def test_admitted_closures_are_accepted_and_the_local_maps_solved_once(monkeypat
     c = mm.add_outlier_loop_closures(ds.graph, 5 / (ds.num_edges - ds.graph.num_poses + 4 + 5),
                                      reference=ds.ground_truth, seed=3, robot_of_pose=rop, inter_robot_only=True)
     plain = distributed_robust_initialization(c.graph, rop)
-    wrong = int(np.flatnonzero(c.outlier & (plain.weights == 0))[0])
     calls = []
     monkeypatch.setattr(rd, "gnc_chordal_initialization",
                         lambda *a, **k: calls.append(k.get("scale")) or gnc_chordal_initialization(*a, **k))
-    admitted = np.zeros(c.graph.num_edges, bool)
-    admitted[wrong] = True
-    st = distributed_robust_initialization(c.graph, rop, admitted=admitted)
-    assert st.weights[wrong] == 1.0 and np.isnan(st.readmissible[wrong])
+    without = np.zeros(c.graph.num_edges, bool)
+    without[np.flatnonzero(c.outlier)[0]] = True
+    st = distributed_robust_initialization(c.graph, rop, excluded=without)
     np.testing.assert_array_equal(st.local.t, plain.local.t)
     local_solves = functools.partial(calls.count, None)  # the local maps' call has the default scale; the frames' not
     assert calls and local_solves() == 0  # the frame graph's solves only: the local maps came from the cache
     rd._LOCAL_MAPS.clear()
-    fresh = distributed_robust_initialization(c.graph, rop, admitted=admitted)
+    fresh = distributed_robust_initialization(c.graph, rop, excluded=without)
     np.testing.assert_array_equal(fresh.local.t, st.local.t)
     np.testing.assert_array_equal(fresh.weights, st.weights)
     assert local_solves() == 1  # the local maps solved again
@@ -195,8 +193,6 @@ def test_admitted_closures_are_accepted_and_the_local_maps_solved_once(monkeypat
     excluded[np.flatnonzero((rop[g.i] == rop[g.j]) & (np.abs(g.i - g.j) > 1))[0]] = True
     distributed_robust_initialization(c.graph, rop, excluded=excluded)
     assert local_solves() == 2  # another robot graph: its maps solved
-    with pytest.raises(ValueError, match="admitted: need one bool per edge"):
-        distributed_robust_initialization(c.graph, rop, admitted=admitted[:-1])
 
 
 def test_sampled_frames_are_refitted_to_their_inliers(monkeypatch):

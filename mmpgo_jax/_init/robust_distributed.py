@@ -426,7 +426,7 @@ LOCAL_MAPS_KEPT = 2
 
 def _local_maps(local_g: PoseGraph, scale, trust_odometry: bool):
     """The robots' own GNC-chordal maps (step 1), solved once per process for the same robots'
-    graphs: a robust solve that remakes the start (revisits, re-admissions) changes only inter-robot
+    graphs: a robust solve that remakes the start (its revisits) changes only inter-robot
     closures, so the maps are the same (a deterministic function of these inputs) and their solve,
     most of the start's time, is not repeated. Keyed by a digest of the graph's arrays and the
     options; the last :data:`LOCAL_MAPS_KEPT` are kept."""
@@ -563,7 +563,6 @@ def distributed_robust_initialization(
     trust_odometry: bool = True,
     seed: int = 0,
     excluded=None,
-    admitted=None,
 ) -> DistributedRobustStart:
     """The distributed robust start (module docstring). ``robots``: a count (contiguous blocks), an
     (n,) robot-of-pose array or a Partition. ``scale``: the local GNC's c (default
@@ -591,9 +590,6 @@ def distributed_robust_initialization(
     use = np.ones(m, bool) if excluded is None else ~np.asarray(excluded, bool).reshape(-1)
     if use.shape != (m,):
         raise ValueError(f"excluded: need one bool per edge, shape ({m},), got {use.shape}")
-    forced = np.zeros(m, bool) if admitted is None else np.asarray(admitted, bool).reshape(-1)
-    if forced.shape != (m,):
-        raise ValueError(f"admitted: need one bool per edge, shape ({m},), got {forced.shape}")
 
     # 1. local maps: every robot's own graph, one GNC-chordal call over their union
     local_g = g.select_edges(~inter & use)
@@ -641,7 +637,6 @@ def distributed_robust_initialization(
     # an inter-robot odometry edge (consecutive poses of two robots, e.g. a contiguous split) is trusted
     # as the robots' own odometry is: always accepted, never truncated by the frame graph's GNC
     trusted = (np.abs(i - j) == 1) if trust_odometry else np.zeros(len(e), bool)
-    trusted |= forced[e]
     pair_keys, pair = np.unique(a * K + b, return_inverse=True)
     P = len(pair_keys)
     pairs = np.stack([pair_keys // K, pair_keys % K], 1)

@@ -166,14 +166,15 @@ def _revisits_text(rounds) -> str:
 
 
 def _readmissions_text(result, rounds, data) -> str:
-    """How often the distributed robust start was made again with an inter-robot closure it had
-    rejected admitted (``stats["starts"][k]["readmissions"]``), and the lines of those kept."""
+    """How many inter-robot closures the distributed robust start had rejected were tried again by a
+    run from the result with the closure accepted (``stats["starts"][k]["readmissions"]``), and the
+    lines of those kept."""
     if not rounds:
         return ""
     kept = np.zeros(len(result.inliers), bool)
     kept[[r["admitted"] for r in rounds if r["kept"]]] = True
-    return (f"; made again with {len(rounds)} closure{'' if len(rounds) == 1 else 's'} it had rejected admitted in "
-            f"turn, {int(kept.sum())} of those runs kept (lower f){_rejected_lines(result, data, kept, lead=': ')}")
+    return (f"; {len(rounds)} closure{'' if len(rounds) == 1 else 's'} it had rejected tried in turn from its "
+            f"result, {int(kept.sum())} of those runs kept (lower f){_rejected_lines(result, data, kept, lead=': ')}")
 
 
 def _noise_line(result, graph) -> str:
