@@ -44,8 +44,8 @@ each is inverted from its Cholesky factor (LAPACK potrf, trtri, lauum; on this m
 than a sparse LU solved against the identity, e.g. 0.28 s vs 1.6 s for one torus3D robot,
 N = 1500), with the entries below eps^2 of the largest set to zero between the steps: these inverses
 decay along the graph, and the products of their tiny entries are subnormal numbers that the CPU
-computes slowly (city10000, 10 robots: 2.0 s -> 0.6-0.8 s; :func:`_invert_in_place`). The iteration then applies all
-robots' inverses by one batched matrix product, (A, N, N) x (A, N, d) with N = n_max d
+computes slowly (city10000, 10 robots: 2.0 s -> 0.6-0.8 s; :func:`_invert_in_place`). The iteration
+then applies all robots' inverses by one batched matrix product, (A, N, N) x (A, N, d) with N = n_max d
 (rotations) or n_max (translations). Measured on this 2-core CPU for A = 10, N = 2000, d = 2
 right-hand sides: batched product 29-34 ms per application, vmapped
 ``jax.scipy.linalg.cho_solve`` with the dense Cholesky factor 840 ms (XLA's CPU triangular solve
@@ -297,7 +297,7 @@ def _invert_in_place(G: np.ndarray, out: np.ndarray | None = None) -> tuple[int,
             c, info = lauum(_flush_tiny(c), lower=1, overwrite_c=1)  # L^-H L^-1, lower triangle
         if info != 0:
             return a, int(info)
-        np.copyto(c, c.T.conj(), where=upper)
+        np.copyto(c, c.T.conj(), where=upper)  # lauum writes the lower triangle only
         if out is None:
             G[a] = c
         else:

@@ -406,8 +406,7 @@ def _run_finished(begin, label: str, run_from: Callable, graph: PoseGraph, monit
     lower, :func:`_best_of`). ``keeps``: an edge the run is made to try (a re-admission); a run
     that rejected it again is not finished (the kept edges are those the trial was to change).
     ``weights``: start weights the first run holds (the second run's come from its own start)."""
-    first = run = (run_from(begin, _FromStart(monitor, label)) if weights is None
-                   else run_from(begin, _FromStart(monitor, label), weights=weights))
+    first = run = run_from(begin, _FromStart(monitor, label), weights=weights)
     f, before, iterations, finished_by = _objective(run, graph), None, run.iterations, None
     tried = keeps is None or run.inliers is None or bool(run.inliers[keeps])
     if finish is not None and tried and run.result is RESULTS.iterations and run.iterations > 0:
