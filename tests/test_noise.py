@@ -52,7 +52,7 @@ def test_cli_robust_run_prints_the_noise_line(tmp_path, capsys):
     g, X = _team(0.03, 0.01)  # information 9x too confident
     path = tmp_path / "team.g2o"
     mm.write_g2o(path, g, X)
-    rc = main(["solve", str(path), "-A", "2", "--loss", "tls", "-n", "50", "--no-progress"])
+    rc = main(["solve", str(path), "-A", "2", "--loss", "tls", "--init", "gnc-chordal", "-n", "50", "--no-progress"])
     out = capsys.readouterr().out
     assert rc == 0, out
     line = next(line for line in out.splitlines() if line.startswith("noise "))

@@ -77,7 +77,8 @@ def test_cli_readmit(tmp_path, capsys):
     graph, outlier, kept, dropped, X, _ = _case()
     path = tmp_path / "cube.g2o"
     mm.write_g2o(path, graph, X)
-    rc = main(["solve", str(path), "-A", "3", "--loss", "tls", "--readmit", "-n", "50", "--no-progress"])
+    rc = main(["solve", str(path), "-A", "3", "--loss", "tls", "--init", "gnc-chordal", "--readmit", "-n", "50",
+               "--no-progress"])
     out = capsys.readouterr().out
     assert rc == 0, out
     line = next(line for line in out.splitlines() if line.startswith("readmit "))

@@ -398,7 +398,8 @@ def test_cli_robust_outputs(tmp_path, capsys):
     path = tmp_path / "bad.g2o"
     write_g2o(path, graph, X0, vertex_ids=np.arange(graph.num_poses) + 100)
     csv, out, png = tmp_path / "w.csv", tmp_path / "out.g2o", tmp_path / "p.png"
-    rc = main(["solve", str(path), "-A", "2", "--loss", "tls", "-n", "300", "--edge-weights", str(csv),
+    rc = main(["solve", str(path), "-A", "2", "--loss", "tls", "--init", "gnc-chordal", "-n", "300",
+               "--edge-weights", str(csv),
                "--drop-outliers", "--out", str(out), "--plot", str(png), "--no-progress"])
     assert rc == 0, capsys.readouterr()
     assert "edges rejected" in capsys.readouterr().out
