@@ -227,12 +227,13 @@ def test_a_run_that_overrules_its_distributed_start_goes_on_from_that_start_with
     assert plain.stats["starts"][0]["revisits"] == []
 
 
-def test_start_rejected_inter_robot_closures_are_admitted_one_per_round_while_the_objective_falls(monkeypatch):
+def test_start_rejected_inter_robot_closures_are_admitted_by_residual_while_the_objective_falls(monkeypatch):
     """The converse of the revisits: candidates are the closures the start doubted without finding
-    them grossly inconsistent (its ``start_readmissible``, cheapest first) that the run rejected too;
-    with other starts, only those another run accepted. One per round, a run from the current run's
-    result holding its classification with that closure accepted (and made to try it: ``keeps``), a
-    round kept when its objective is lower, the search ending at the first round that is not."""
+    them grossly inconsistent (its ``start_readmissible``) that the run rejected too; with other
+    starts, only those another run accepted. One per round, the one of smallest residual at the
+    current run's result (not the frame test's order), a run from that result holding its
+    classification with the closure accepted (and made to try it: ``keeps``), a round kept when its
+    objective is lower, the search ending at the first round that is not."""
     from types import SimpleNamespace
 
     import mmpgo_jax._solve.solve as solve_module
@@ -240,19 +241,20 @@ def test_start_rejected_inter_robot_closures_are_admitted_one_per_round_while_th
     m = 12
     a, b, c = 3, 5, 7
     outcome = {b: 9.0, c: 8.5, a: 9.5}  # f after admitting b (kept), then c (kept), then a (not kept)
-    tried, current = [], []
+    tried, made = [], {}
+    residual = np.full(m, 50.0)
+    residual[[b, c, a]] = [1.0, 2.0, 3.0]  # at every run's result: b, then c, then a
 
     def run(rejected, f, doubted=()):
         inliers = np.ones(m, bool)
         inliers[list(rejected)] = False
         out = SimpleNamespace(inliers=inliers, f=f, poses=f"poses at f = {f}",
                               stats=dict(start_readmissible=[[e, 1.0 + k] for k, e in enumerate(doubted)]))
-        current.append(out)
+        made[out.poses] = out
         return out
 
     def run_finished(begin, label, run_from, graph, monitor, finish, keeps=None, weights=None):
-        here = current[-1]  # the run the trial goes on from
-        assert begin == here.poses
+        here = made[begin]  # the run the trial goes on from
         expected = here.inliers.astype(float)
         expected[keeps] = 1.0
         np.testing.assert_array_equal(weights, expected)  # its classification, the closure accepted
@@ -261,17 +263,28 @@ def test_start_rejected_inter_robot_closures_are_admitted_one_per_round_while_th
         return again, again, outcome[keeps], 7, None, None
 
     monkeypatch.setattr(solve_module, "_run_finished", run_finished)
+    monkeypatch.setattr(solve_module, "edge_costs", lambda graph, poses: residual.copy())
     graph = SimpleNamespace(num_edges=m)
 
     def readmit(first, rejected, others):
         return solve_module._readmitted_to_start(first, run(rejected, 10.0), 10.0, others, "start", None, graph,
                                                  None, None)
 
-    # b, c and a doubted in that order (b cheapest); 11 doubted but accepted by the run: not a candidate
-    out, f, rounds = readmit(run([], 0.0, doubted=[b, 11, c, a]), [a, b, c], [])
-    assert tried == [b, c, a]
-    assert [r["admitted"] for r in rounds] == [b, c, a] and [r["kept"] for r in rounds] == [True, True, False]
-    assert f == out.f == 8.5 and all(r["iterations"] == 7 for r in rounds)
+    # 11 doubted but accepted by the run: not a candidate; b, c, a by residual whatever the frame
+    # test's order (a cheapest there)
+    for doubted in ([b, 11, c, a], [a, c, b]):
+        tried.clear()
+        out, f, rounds = readmit(run([], 0.0, doubted=doubted), [a, b, c], [])
+        assert tried == [b, c, a]
+        assert [r["admitted"] for r in rounds] == [b, c, a] and [r["kept"] for r in rounds] == [True, True, False]
+        assert [r["f_before"] for r in rounds] == [10.0, 9.0, 8.5]
+        assert f == out.f == 8.5 and all(r["iterations"] == 7 for r in rounds)
+    # the first round not kept ends the search (a first by residual, its f above the run's)
+    tried.clear()
+    residual[a], outcome[a] = 0.5, 10.5
+    out, f, rounds = readmit(run([], 0.0, doubted=[b, c, a]), [a, b, c], [])
+    assert tried == [a] and [(r["admitted"], r["kept"]) for r in rounds] == [(a, False)] and f == out.f == 10.0
+    residual[a], outcome[a] = 3.0, 9.5
     # with another start's run: only the closures it accepted are candidates
     tried.clear()
     other = np.ones(m, bool)
@@ -288,7 +301,7 @@ def test_start_rejected_inter_robot_closures_are_admitted_one_per_round_while_th
     base.loss = SimpleNamespace(scale=np.sqrt(2.0))
     out, f, rounds = solve_module._readmitted_to_start(first, base, 10.0, [], "start", None, graph, None, None)
     assert [(r["admitted"], r["f_before"], r["kept"]) for r in rounds] == [(b, 10.0, True), (c, 9.0, False)]
-    assert f == out.f == 9.0
+    assert f == out.f == 9.0 and tried == [b, c]
     # a trial whose run rejects the admitted closure again is not finished from its kept edges; the
     # weights go to the trial's first run only (its finish starts from the kept edges)
     from mmpgo_jax._mm.driver import RESULTS
@@ -313,7 +326,7 @@ def test_start_rejected_inter_robot_closures_are_admitted_one_per_round_while_th
                                    weights=weights)
         assert len(finished) == count
         assert held[0] is weights and all(w is None for w in held[1:])
-    monkeypatch.setattr(solve_module, "_run_finished", run_finished)
+    monkeypatch.setattr(solve_module, "edge_costs", lambda graph, poses: residual.copy())
     # a trial whose run rejects its closure again is not kept, even with a lower f (more iterations)
     tried.clear()
     def rejected_again(begin, label, run_from, graph, monitor, finish, keeps=None, weights=None):

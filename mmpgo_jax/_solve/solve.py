@@ -494,10 +494,16 @@ def _readmitted_to_start(first: SolveResult, run: SolveResult, f: float, others:
     result with the closure held to 564.8, in 11 s against 25 s; MIT: 4.4 s, the same optimum).
     Candidates: the closures the start doubted without finding them grossly inconsistent
     (``first.stats["start_readmissible"]``: ``DistributedRobustStart.readmissible``) that the run
-    rejected too, cheapest first, one per round (its run finished as the first, unless it rejected
-    the closure again: then the round is not kept), until a round is not kept; with several starts,
-    only those another start's run accepted (the evidence :func:`_revisited` uses too). Returns (run,
-    f, rounds: per round the edge admitted, f before and after, iterations, kept, seconds)."""
+    rejected too; with several starts, only those another start's run accepted (the evidence
+    :func:`_revisited` uses too). One per round, the one of smallest residual at the current run's
+    result first (its run finished as the first, unless it rejected the closure again: then the round
+    is not kept), until a round is not kept. The run's result, which every edge shaped, ranks them
+    better than the frame test's rigid maps: MIT with 10 % wrong loop closures (seed 1) has a wrong
+    closure at 3.7 c^2 of the frame test and the correct one at 3.8 c^2, at the result 2905 c^2
+    against 52 c^2; on MIT at 50 % the correct one is again first by residual (52 against 217-8359 c^2)
+    and third by frame cost. Stopping at the first round not kept bounds the cost where many wrong
+    closures pass the bound (city10000 at 10 %: 23 candidates, none kept, 6 s each). Returns (run, f,
+    rounds: per round the edge admitted, f before and after, iterations, kept, seconds)."""
     evidence = [np.asarray(inliers, bool) for inliers in others if inliers is not None]
     factor = min(float(first.stats.get("start_variance_factor", 1.0)), 1.0)
     margin = 0.0 if factor == 1.0 else (1.0 - factor) * float(np.asarray(run.loss.scale)) ** 2
@@ -508,7 +514,8 @@ def _readmitted_to_start(first: SolveResult, run: SolveResult, f: float, others:
         open_ = [e for e in doubted if not run.inliers[e] and (not evidence or any(inl[e] for inl in evidence))]
         if not open_:
             break
-        edge = int(open_[0])
+        residual = np.asarray(edge_costs(graph, run.poses))
+        edge = int(open_[int(np.argmin(residual[open_]))])
         tried[edge] = True
         weights = np.asarray(run.inliers, np.float64)
         weights[edge] = 1.0
