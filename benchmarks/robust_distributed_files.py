@@ -18,6 +18,14 @@ loop-closure information) so that ``rate`` percent of the inter-robot closures a
   edges it keeps (since 2026-12-05; kept when the TLS objective is lower: "finished");
 * ``distributed-gnc``: the same with ``gnc=GNCConfig()``: after the held classification, GNC's
   stages (mu's schedule, weights per stage) in the distributed solver instead of TLS's own weights;
+* ``distributed-gnc-blocks``: the same with Kimera-Multi's block schedule (mit-acl/dpgo's
+  ``robust_opt_inner_iters_per_robot = 10``, ``GNC_mu_step = 1.4``): mu multiplied by 1.4 after every
+  10 iterations whatever the objective did (``GNCConfig(factor=1.4, stage_iterations=10,
+  stage_tolerance=0)``); dpgo's iterations update one robot each, so 10 per robot is 10 of ours,
+  where every robot updates at once; the held stage (the start's classification) ends after 10
+  iterations too. Not dpgo's: mu's first value (``gnc_initial_mu`` of the residuals at the held
+  stage's end, where dpgo starts at 1e-4) and GNC's end (binary weights at ``final_mu``, where dpgo
+  stops after a number of updates with 80 % of the weights decided);
 * ``central``: ``solve(graph, robots, loss="tls", start="gnc-chordal")``: the centralized GNC-chordal
   start, then TLS (the default until 2026-12-05);
 * ``default``: ``solve(graph, robots, loss="tls")``: the default since 2026-12-05, a run from each of
@@ -58,6 +66,8 @@ from mmpgo_jax.cli.bench import machine_info  # noqa: E402
 
 HERE = Path(__file__).parent
 PIPELINES = {"distributed": dict(distributed=True), "distributed-gnc": dict(distributed=True, gnc=mm.GNCConfig()),
+             "distributed-gnc-blocks": dict(distributed=True, gnc=mm.GNCConfig(factor=1.4, stage_iterations=10,
+                                                                              stage_tolerance=0.0)),
              "central": dict(start="gnc-chordal"), "default": {}, "gtsam": None}
 
 
