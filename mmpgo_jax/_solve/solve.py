@@ -507,19 +507,17 @@ def _readmitted_to_start(first: SolveResult, run: SolveResult, f: float, others:
     evidence = [np.asarray(inliers, bool) for inliers in others if inliers is not None]
     factor = min(float(first.stats.get("start_variance_factor", 1.0)), 1.0)
     margin = 0.0 if factor == 1.0 else (1.0 - factor) * float(np.asarray(run.loss.scale)) ** 2
-    tried = np.zeros(graph.num_edges, bool)
+    doubted = [e for e, _ in first.stats.get("start_readmissible", ())]
     rounds = []
-    while run.inliers is not None:
-        doubted = [e for e, _ in first.stats.get("start_readmissible", ()) if not tried[e]]
+    while run.inliers is not None:  # a kept round accepted its closure, so it is not open again
         open_ = [e for e in doubted if not run.inliers[e] and (not evidence or any(inl[e] for inl in evidence))]
         if not open_:
             break
         residual = np.asarray(edge_costs(graph, run.poses))
         edge = int(open_[int(np.argmin(residual[open_]))])
-        tried[edge] = True
         weights = np.asarray(run.inliers, np.float64)
         weights[edge] = 1.0
-        again_label = f"{label}, {int(tried.sum())} rejected closure(s) admitted"
+        again_label = f"{label}, {len(rounds) + 1} rejected closure(s) admitted"
         t = time.perf_counter()
         _, again, f_again, iterations, _, _ = _run_finished(run.poses, again_label, run_from, graph, monitor,
                                                             finish, keeps=edge, weights=weights)
