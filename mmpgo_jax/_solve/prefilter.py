@@ -81,14 +81,15 @@ class Prefiltered:
             return out
 
         stats = {**result.stats, **self.stats}
-        if "starts" in stats:  # the edges the revisits left out and the re-admissions admitted: original order
+        if "starts" in stats:  # the edges of the revisits, re-admissions and removals: original order
             original = np.flatnonzero(keep)
 
             def renumbered(rounds, edge):
                 return [dict(r, **{edge: int(original[r[edge]])}) for r in rounds]
 
             stats["starts"] = [dict(row, revisits=renumbered(row.get("revisits", []), "excluded"),
-                                    readmissions=renumbered(row.get("readmissions", []), "admitted"))
+                                    readmissions=renumbered(row.get("readmissions", []), "admitted"),
+                                    removals=renumbered(row.get("removals", []), "removed"))
                                for row in stats["starts"]]
         return dataclasses.replace(result, inliers=inliers, weights=widened(result.weights),
                                    start_weights=widened(result.start_weights), prefiltered=self.rejected.copy(),

@@ -165,15 +165,15 @@ def _revisits_text(rounds) -> str:
             f"{'' if len(rounds) == 1 else 's'} in turn, {kept} of those runs kept (lower f)")
 
 
-def _readmissions_text(result, rounds, data) -> str:
-    """How many inter-robot closures the distributed robust start had rejected were tried again by a
-    run from the result with the closure accepted (``stats["starts"][k]["readmissions"]``), and the
-    lines of those kept."""
+def _trials_text(result, rounds, data, edge: str, what: str) -> str:
+    """How many inter-robot closures were tried in turn by a run from the result (``rounds``:
+    ``stats["starts"][k]["readmissions"]``, ``edge`` "admitted", or ``["removals"]``, "removed"), and
+    the lines of those kept; ``what``: the closures tried, in words."""
     if not rounds:
         return ""
     kept = np.zeros(len(result.inliers), bool)
-    kept[[r["admitted"] for r in rounds if r["kept"]]] = True
-    return (f"; {len(rounds)} closure{'' if len(rounds) == 1 else 's'} it had rejected tried in turn from its "
+    kept[[r[edge] for r in rounds if r["kept"]]] = True
+    return (f"; {len(rounds)} closure{'' if len(rounds) == 1 else 's'} {what} in turn from its "
             f"result, {int(kept.sum())} of those runs kept (lower f){_rejected_lines(result, data, kept, lead=': ')}")
 
 
@@ -254,7 +254,8 @@ def print_summary(result, fstar, data: LoadedInput | None = None) -> None:
                     else f" (f = {row['finished']:.6f} before it was finished from its kept edges)")
         print(f"start       {row['start']}: f = {row['f']:.6f}{finished}{rejected}, {row['iterations']} iterations, "
               f"{row['seconds']:.2f} s ({kept}){_revisits_text(row.get('revisits', ()))}"
-              f"{_readmissions_text(result, row.get('readmissions', ()), data)}")
+              f"{_trials_text(result, row.get('readmissions', ()), data, 'admitted', 'it had rejected tried')}"
+              f"{_trials_text(result, row.get('removals', ()), data, 'removed', 'it had accepted left out')}")
     if result.loss is not None:
         robust = ~result.inliers if prefiltered is None else ~result.inliers & ~prefiltered
         used = len(result.inliers) - (0 if prefiltered is None else int(prefiltered.sum()))
