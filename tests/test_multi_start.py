@@ -230,12 +230,12 @@ def test_a_run_that_overrules_its_distributed_start_goes_on_from_that_start_with
 
 
 def test_start_rejected_inter_robot_closures_are_admitted_by_residual_while_the_objective_falls(monkeypatch):
-    """The converse of the revisits: candidates are the closures the start doubted without finding
-    them grossly inconsistent (its ``start_readmissible``) that the run rejected too; with other
+    """The converse of the revisits: candidates are the inter-robot closures the start rejected (not
+    the consecutive-pose edges between robots, which it trusts) that the run rejected too; with other
     starts, only those another run accepted. One per round, the one of smallest residual at the
-    current run's result (not the frame test's order), a run from that result holding its
-    classification with the closure accepted (and made to try it: ``keeps``), a round kept when its
-    objective is lower, the search ending at the first round that is not."""
+    current run's result, a run from that result holding its classification with the closure
+    accepted (and made to try it: ``keeps``), a round kept when its objective is lower, the search
+    ending at the first round that is not."""
     from types import SimpleNamespace
 
     import mmpgo_jax._solve.solve as solve_module
@@ -246,12 +246,18 @@ def test_start_rejected_inter_robot_closures_are_admitted_by_residual_while_the_
     tried, made = [], {}
     residual = np.full(m, 50.0)
     residual[[b, c, a]] = [1.0, 2.0, 3.0]  # at every run's result: b, then c, then a
+    robot = np.array([0, 0, 1, 1])  # edges 0-2 (inter-robot), but 0: 1-2 (consecutive) and 1: 0-1 (robot 0's own)
+    i, j = np.full(m, 0), np.full(m, 2)
+    i[:2], j[:2] = [1, 0], [2, 1]
+    partition = SimpleNamespace(robot_of_pose=robot)
 
     def run(rejected, f, doubted=()):
         inliers = np.ones(m, bool)
         inliers[list(rejected)] = False
-        out = SimpleNamespace(inliers=inliers, f=f, poses=f"poses at f = {f}",
-                              stats=dict(start_readmissible=[[e, 1.0 + k] for k, e in enumerate(doubted)]))
+        start_weights = np.ones(m)
+        start_weights[list(doubted)] = 0.0
+        out = SimpleNamespace(inliers=inliers, f=f, poses=f"poses at f = {f}", stats={}, start_weights=start_weights,
+                              partition=partition)
         made[out.poses] = out
         return out
 
@@ -266,21 +272,21 @@ def test_start_rejected_inter_robot_closures_are_admitted_by_residual_while_the_
 
     monkeypatch.setattr(solve_module, "_run_finished", run_finished)
     monkeypatch.setattr(solve_module, "edge_costs", lambda graph, poses: residual.copy())
-    graph = SimpleNamespace(num_edges=m)
+    graph = SimpleNamespace(num_edges=m, i=i, j=j)
 
     def readmit(first, rejected, others):
         return solve_module._readmitted_to_start(first, run(rejected, 10.0), 10.0, others, "start", None, graph,
                                                  None, None)
 
-    # 11 doubted but accepted by the run: not a candidate; b, c, a by residual whatever the frame
-    # test's order (a cheapest there)
-    for doubted in ([b, 11, c, a], [a, c, b]):
-        tried.clear()
-        out, f, rounds = readmit(run([], 0.0, doubted=doubted), [a, b, c], [])
-        assert tried == [b, c, a]
-        assert [r["admitted"] for r in rounds] == [b, c, a] and [r["kept"] for r in rounds] == [True, True, False]
-        assert [r["f_before"] for r in rounds] == [10.0, 9.0, 8.5]
-        assert f == out.f == 8.5 and all(r["iterations"] == 7 for r in rounds)
+    # 11 rejected by the start but accepted by the run, 0 (consecutive poses) and 1 (one robot's own)
+    # rejected by both but no inter-robot closures, cheapest of all: not candidates; b, c, a by residual
+    residual[[0, 1]] = 0.1
+    tried.clear()
+    out, f, rounds = readmit(run([], 0.0, doubted=[b, 11, c, a, 0, 1]), [a, b, c, 0, 1], [])
+    assert tried == [b, c, a]
+    assert [r["admitted"] for r in rounds] == [b, c, a] and [r["kept"] for r in rounds] == [True, True, False]
+    assert [r["f_before"] for r in rounds] == [10.0, 9.0, 8.5]
+    assert f == out.f == 8.5 and all(r["iterations"] == 7 for r in rounds)
     # the first round not kept ends the search (a first by residual, its f above the run's)
     tried.clear()
     residual[a], outcome[a] = 0.5, 10.5
@@ -487,28 +493,6 @@ def test_distributed_tls_on_mit_leaves_out_the_wrong_closure_its_start_accepted(
         removal = [r for r in row["removals"] if r["kept"]]
         assert len(removal) == 1 and c.outlier[removal[0]["removed"]]
         assert removal[0]["f"] < removal[0]["f_before"] - 20.0
-
-
-def test_the_start_doubts_rejected_closures_within_the_gross_error_bound_only():
-    """``DistributedRobustStart.readmissible``: the frame cost of the rejected inter-robot closures
-    within chi^2_p(1 - 1e-6), NaN on accepted, intra-robot and grossly wrong ones."""
-    import dataclasses
-
-    from mmpgo_jax._init.robust_distributed import READMIT_QUANTILE, distributed_robust_initialization
-    from mmpgo_jax._mm.robust import chi2_scale
-
-    ds = mg.cube_dataset(1, grid=3, num_poses=60)
-    start = distributed_robust_initialization(ds.graph, 3)
-    bound = chi2_scale(3, READMIT_QUANTILE) ** 2
-    assert np.isnan(start.hypothesis_cost[~start.inter]).all() and np.isfinite(start.hypothesis_cost[start.inter]).all()
-    assert 0.0 < start.frame_scale < np.sqrt(bound)
-    closures = np.flatnonzero(start.inter)
-    cost = start.hypothesis_cost.copy()
-    weights = start.weights.copy()
-    cost[closures[:3]] = [0.5 * bound, 2.0 * bound, 0.1 * bound]
-    weights[closures[:2]] = 0.0  # rejected: the first within the bound, the second beyond; the third accepted
-    doubted = dataclasses.replace(start, hypothesis_cost=cost, weights=weights).readmissible
-    assert np.flatnonzero(np.isfinite(doubted)).tolist() == [closures[0]] and doubted[closures[0]] == 0.5 * bound
 
 
 @pytest.mark.slow  # MIT, twice three distributed robust runs, about a minute

@@ -99,13 +99,9 @@ from .._mm.robust import TLS, chi2_scale, gnc_initial_mu, gnc_weight
 from .chordal import chordal_initialization
 from .robust_start import gnc_chordal_initialization
 
-__all__ = ["FRAME_METHODS", "READMIT_QUANTILE", "DistributedRobustStart", "PairAverages", "chain_variances",
+__all__ = ["FRAME_METHODS", "DistributedRobustStart", "PairAverages", "chain_variances",
            "distributed_robust_initialization", "pair_average"]
 
-#: the gross-error bound of a rejected frame hypothesis that a robust run may try again (chi-square
-#: quantile of the frame test's p = d(d+1)/2 degrees of freedom): a correct closure exceeds it once in
-#: a million under the maps' error model
-READMIT_QUANTILE = 1.0 - 1e-6
 TREE_SAMPLES = 256  # random spanning trees of the frame graph's consensus search
 MAX_REFITS = 20  # refits of a sampled tree until its inliers stop changing (2-4 on the teams measured)
 # hypotheses x refitted samples per refit (one chordal solve of that many edges): all 256 samples below
@@ -166,21 +162,6 @@ class DistributedRobustStart:
     def accepted(self) -> np.ndarray:
         """(m,) bool: the inter-robot closures accepted (False on the other edges)."""
         return self.inter & (self.weights > 0.5)
-
-    @property
-    def readmissible(self) -> np.ndarray:
-        """(m,) the frame-hypothesis cost of each *rejected* inter-robot closure within the gross-error
-        bound chi^2_p(:data:`READMIT_QUANTILE`), NaN elsewhere: closures the frame test doubted but
-        that are not grossly inconsistent with the maps, which a robust run may try to admit again
-        (MIT without outliers: one correct closure, 0.8 rad off at the maps' frames, rejected at
-        3.8 c^2 where the bound is 4.9 c^2; the wrong closures of kitti_00's tests lay beyond
-        200 c^2, M3500's from 1.2 c^2, whose information matrices overstate the noise)."""
-        if self.hypothesis_cost is None:
-            return np.full(len(self.weights), np.nan)
-        d = self.poses.t.shape[-1]
-        bound = chi2_scale(d, READMIT_QUANTILE) ** 2
-        doubted = self.inter & (self.weights < 0.5) & (self.hypothesis_cost <= bound)
-        return np.where(doubted, self.hypothesis_cost, np.nan)
 
     @property
     def maps_of_robot(self) -> np.ndarray:

@@ -82,21 +82,18 @@ def initialize_with_weights(graph: PoseGraph, method="chordal", *, initial: Pose
 
 def initial_classified(graph: PoseGraph, method="chordal", *, initial: Poses | None = None, robots=None,
                        fixed: FixedPoses | None = None, host: bool = False, **options):
-    """(poses, weights, doubts) of :func:`initialize_with_weights`: for the distributed robust start
-    ``doubts`` = dict(readmissible=(m,) the frame-hypothesis cost of each rejected inter-robot
-    closure that a robust run may try to admit again, NaN elsewhere
-    (:attr:`~mmpgo_jax._init.robust_distributed.DistributedRobustStart.readmissible`),
-    variance_factor=the local maps' variance factor); None for the other starts."""
+    """(poses, weights, info) of :func:`initialize_with_weights`: for the distributed robust start
+    ``info`` = dict(variance_factor=the local maps' variance factor); None for the other starts."""
     if fixed is not None:
         fixed.check(graph.num_poses, graph.dim)
-    poses, weights, doubts = _initial_poses(graph, method, initial, robots, fixed, options, host)
+    poses, weights, info = _initial_poses(graph, method, initial, robots, fixed, options, host)
     if host and not isinstance(poses, HostPoses):
         poses = HostPoses(np.asarray(poses.R), np.asarray(poses.t))
-    return (poses if fixed is None else fixed.apply(poses)), weights, doubts
+    return (poses if fixed is None else fixed.apply(poses)), weights, info
 
 
 def _initial_poses(graph, method, initial, robots, fixed, options, host=False):
-    """(poses, weights or None, doubts or None): only the distributed robust start classifies the
+    """(poses, weights or None, info or None): only the distributed robust start classifies the
     edges."""
     if isinstance(method, str) and method == "distributed-robust":
         from .robust_distributed import distributed_robust_initialization
@@ -108,8 +105,8 @@ def _initial_poses(graph, method, initial, robots, fixed, options, host=False):
                           "inter-robot loop closure with robot 0's map; they stay in their own frames",
                           stacklevel=5)
         poses = start.poses if fixed is None else express_in_frame(start.poses, fixed)  # gauge: 1st fixed pose
-        doubts = dict(readmissible=start.readmissible, variance_factor=start.variance_factor)
-        return poses_from_arrays(graph, poses.R, poses.t, host=host), start.weights, doubts
+        info = dict(variance_factor=start.variance_factor)
+        return poses_from_arrays(graph, poses.R, poses.t, host=host), start.weights, info
     return _start_poses(graph, method, initial, robots, fixed, options, host), None, None
 
 

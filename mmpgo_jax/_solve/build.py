@@ -114,7 +114,7 @@ class Prepared:
     saver: Checkpointer | None
     clock: Clock
     start_weights: np.ndarray | None = None  # (m,) held as the robust run's first stage, graph order
-    doubts: dict | None = None  # the distributed robust start's doubted closures and variance factor
+    start_info: dict | None = None  # the distributed robust start's maps' variance factor
 
 
 def prepare(graph: PoseGraph, solver: Solver, robots, layout, termination: Termination, *, start=None, initial=None,
@@ -134,7 +134,7 @@ def prepare(graph: PoseGraph, solver: Solver, robots, layout, termination: Termi
     start_method, start_options = start_for(start, loss)
     weights = check_start_weights(graph, start_weights, loss)
     with placement.building():
-        key = snapshot = saver = doubts = None
+        key = snapshot = saver = start_info = None
         if checkpoint is not None or resume is not None:
             key = identity(graph=graph, robot_of_pose=placement.user_part.robot_of_pose,
                            num_robots=placement.user_part.num_robots,
@@ -150,13 +150,13 @@ def prepare(graph: PoseGraph, solver: Solver, robots, layout, termination: Termi
         else:
             if isinstance(start_method, str) and start_method == "gnc-chordal":  # minutes on some graphs: its stages
                 start_options = dict(start_options, progress=monitor.note)
-            X0, from_start, doubts = initial_classified(graph, start_method, initial=initial,
-                                                        robots=placement.user_part, fixed=fixed, **start_options)
+            X0, from_start, start_info = initial_classified(graph, start_method, initial=initial,
+                                                            robots=placement.user_part, fixed=fixed, **start_options)
             X0 = placement.share_start(X0)
             if weights is None and loss is not None:
                 weights = from_start
             else:
-                doubts = None  # given weights: the start's doubts are not the run's
+                start_info = None  # given weights: the start's maps are not the run's classification's
         if checkpoint is not None:
             saver = Checkpointer(checkpoint, checkpoint_every, key, jax.device_get(X0),
                                  chunk_size=termination.chunk_size, **placement.checkpoint_options())
@@ -181,7 +181,7 @@ def prepare(graph: PoseGraph, solver: Solver, robots, layout, termination: Termi
     problem, state = placement.place(problem, state)
     clock.lap("build")
     held = None if weights is None else np.asarray(weights, np.float64)
-    return Prepared(placement, start_poses, problem, state, record, snapshot, saver, clock, held, doubts)
+    return Prepared(placement, start_poses, problem, state, record, snapshot, saver, clock, held, start_info)
 
 
 def check_start_weights(graph: PoseGraph, weights, loss: RobustLoss | None):
@@ -218,7 +218,7 @@ def finish(graph: PoseGraph, solver: Solver, run: Prepared, driven, termination:
         config=getattr(solver, "config", None),
         result=driven.result,
         stats={**run.clock.stats(driven.compile_seconds, driven.solve_seconds), **placement.stats(), **robust_stats,
-               "compile_mode": code_generation(program_slots((run.problem,))), **_readmissible_stats(run)},
+               "compile_mode": code_generation(program_slots((run.problem,))), **_start_stats(run)},
         accuracy=None if ground_truth is None else trajectory_accuracy(poses, ground_truth),
         termination=termination,
         start=output_frame(run.start_poses, fixed, frame),
@@ -228,14 +228,9 @@ def finish(graph: PoseGraph, solver: Solver, run: Prepared, driven, termination:
     )
 
 
-def _readmissible_stats(run: Prepared) -> dict:
-    """``stats["start_readmissible"]``: [edge, frame-hypothesis cost] of each inter-robot closure the
-    distributed robust start rejected but did not find grossly inconsistent, cheapest first, and
-    ``stats["start_variance_factor"]``: its maps' variance factor (no entries for other starts)."""
-    if run.doubts is None:
+def _start_stats(run: Prepared) -> dict:
+    """``stats["start_variance_factor"]``: the distributed robust start's maps' variance factor (no
+    entry for other starts)."""
+    if run.start_info is None:
         return {}
-    cost = run.doubts["readmissible"]
-    edges = np.flatnonzero(np.isfinite(cost))
-    edges = edges[np.argsort(cost[edges], kind="stable")]
-    return {"start_readmissible": [[int(e), float(cost[e])] for e in edges],
-            "start_variance_factor": float(run.doubts["variance_factor"])}
+    return {"start_variance_factor": float(run.start_info["variance_factor"])}

@@ -498,22 +498,27 @@ def _readmitted_to_start(first: SolveResult, run: SolveResult, f: float, others:
     other closure, so the trial moves only what that closure moves (10 x 500-pose team, seed 3, 50 %
     wrong inter-robot closures: a remade start led to f = 600.5 against the run's 570.7, the run's
     result with the closure held to 564.8, in 11 s against 25 s; MIT: 4.4 s, the same optimum).
-    Candidates: the closures the start doubted without finding them grossly inconsistent
-    (``first.stats["start_readmissible"]``: ``DistributedRobustStart.readmissible``) that the run
-    rejected too; with several starts, only those another start's run accepted (the evidence
-    :func:`_revisited` uses too). One per round, the one of smallest residual at the current run's
-    result first (its run finished as the first, unless it rejected the closure again: then the round
-    is not kept), until a round is not kept. The run's result, which every edge shaped, ranks them
-    better than the frame test's rigid maps: MIT with 10 % wrong loop closures (seed 1) has a wrong
-    closure at 3.7 c^2 of the frame test and the correct one at 3.8 c^2, at the result 2905 c^2
-    against 52 c^2; on MIT at 50 % the correct one is again first by residual (52 against 217-8359 c^2)
-    and third by frame cost. Stopping at the first round not kept bounds the cost where many wrong
-    closures pass the bound (city10000 at 10 %: 23 candidates, none kept, 6 s each). Returns (run, f,
+    Candidates: the inter-robot closures the start rejected (not the consecutive-pose edges between
+    robots, which it trusts) that the run rejected too; with several starts, only those another
+    start's run accepted (the evidence :func:`_revisited` uses too). One per round, the one of
+    smallest residual at the current run's result first (its run finished as the first, unless it
+    rejected the closure again: then the round is not kept), until a round is not kept. The run's
+    result, which every edge shaped, ranks them better than the frame test's rigid maps: MIT with 10 %
+    wrong loop closures (seed 1) has a wrong closure at 3.7 c^2 of the frame test and the correct one
+    at 3.8 c^2, at the result 2905 c^2 against 52 c^2; on MIT at 50 % the correct one is again first
+    by residual (52 against 217-8359 c^2) and third by frame cost. A correct closure can fail the
+    frame test by far (10 x 500-pose team, seed 3, 10 % and 30 % wrong closures: 14.3 c^2 there, 2789
+    c^2 at the result, the wrong ones from 8307 c^2), so no bound of the frame test limits the
+    candidates (until 2026-12-05 those within chi^2_p(1 - 1e-6) only: that team's correct closure
+    was never tried). Stopping at the first round not kept bounds the cost to one trial more than
+    those kept (city10000 at 10 %: 23 candidates within that bound, none kept, 6 s each). Returns (run, f,
     rounds: per round the edge admitted, f before and after, iterations, kept, seconds)."""
     evidence = [np.asarray(inliers, bool) for inliers in others if inliers is not None]
     factor = min(float(first.stats.get("start_variance_factor", 1.0)), 1.0)
     margin = 0.0 if factor == 1.0 else (1.0 - factor) * float(np.asarray(run.loss.scale)) ** 2
-    doubted = [e for e, _ in first.stats.get("start_readmissible", ())]
+    if first.start_weights is None:
+        return run, f, []
+    doubted = np.flatnonzero(_inter_robot_closures(run, graph) & (np.asarray(first.start_weights) < 0.5)).tolist()
     rounds = []
     while run.inliers is not None:  # a kept round accepted its closure, so it is not open again
         open_ = [e for e in doubted if not run.inliers[e] and (not evidence or any(inl[e] for inl in evidence))]
@@ -538,6 +543,14 @@ def _readmitted_to_start(first: SolveResult, run: SolveResult, f: float, others:
     return run, f, rounds
 
 
+def _inter_robot_closures(run: SolveResult, graph: PoseGraph) -> np.ndarray:
+    """(m,) bool: the edges between two robots of ``run``'s split that are not between consecutive
+    poses (those the distributed robust start trusts as odometry)."""
+    robot = np.asarray(run.partition.robot_of_pose)
+    i, j = np.asarray(graph.i), np.asarray(graph.j)
+    return (robot[i] != robot[j]) & (np.abs(i - j) != 1)
+
+
 def _strain_shares(first: SolveResult, run: SolveResult, graph: PoseGraph) -> tuple[np.ndarray, np.ndarray]:
     """(candidates, share): the inter-robot loop closures ``run`` accepted (not the trusted
     consecutive-pose edges), and per candidate the larger of its two robots' strain shares. A robot's
@@ -545,13 +558,12 @@ def _strain_shares(first: SolveResult, run: SolveResult, graph: PoseGraph) -> tu
     (``first.start``: the distributed robust start places each robot's map rigidly, so there they cost
     what they cost in the map); its share: the strain over the number of candidates that touch it."""
     robot = np.asarray(run.partition.robot_of_pose)
-    i, j = np.asarray(graph.i), np.asarray(graph.j)
-    a, b = robot[i], robot[j]
+    a, b = robot[np.asarray(graph.i)], robot[np.asarray(graph.j)]
     own = (a == b) & (np.asarray(first.start_weights) > 0.5)
     excess = np.asarray(edge_costs(graph, run.poses)) - np.asarray(edge_costs(graph, first.start))
     count = int(robot.max()) + 1
     strain = np.bincount(a[own], excess[own], minlength=count)
-    candidates = np.flatnonzero(np.asarray(run.inliers, bool) & (a != b) & (np.abs(i - j) != 1))
+    candidates = np.flatnonzero(np.asarray(run.inliers, bool) & _inter_robot_closures(run, graph))
     touching = np.bincount(np.concatenate([a[candidates], b[candidates]]), minlength=count)
     share = strain / np.maximum(touching, 1)
     return candidates, np.maximum(share[a[candidates]], share[b[candidates]])
