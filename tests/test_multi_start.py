@@ -516,6 +516,30 @@ def test_distributed_tls_on_mit_admits_the_correct_closure_its_start_rejected(be
            "line 1621 of MIT.g2o" in line
 
 
+@pytest.mark.slow  # a 5000-pose distributed robust solve with two trials, about a minute
+def test_distributed_tls_admits_a_correct_closure_its_frame_test_rejected_by_far():
+    """A long-chain team (10 x 500 poses, low noise, 3 wrong inter-robot closures, 10 %; the graph of
+    benchmarks/robust_teams.md, seed 3): the distributed robust start rejects a correct closure far
+    beyond its frame test's gross-error bound (14.3 c^2), but at the run's result it is the rejected
+    closure of smallest residual, so the first re-admission trial takes it and is kept: every edge
+    classified right."""
+    ds = mg.robot_team_dataset(10, 500, intra_closures=5, inter_closures=30, dim=2, seed=3, sigma_R=0.005 * np.pi)
+    rop = ds.robot_of_pose
+    n_inter, n_intra = int(ds.inter_robot.sum()), int((ds.edge_kind == 1).sum())
+    count = round(0.1 * n_inter / 0.9)
+    c = mg.add_outlier_loop_closures(ds.graph, count / (n_inter + n_intra + count), reference=ds.ground_truth,
+                                     seed=3, robot_of_pose=rop, inter_robot_only=True)
+    res = mg.solve(c.graph, rop, loss="tls", distributed=True)
+    (row,) = res.stats["starts"]
+    first = row["readmissions"][0]
+    assert first["kept"] and not c.outlier[first["admitted"]]
+    np.testing.assert_array_equal(res.inliers, ~c.outlier)
+    from mmpgo_jax._init.robust_distributed import distributed_robust_initialization
+
+    start = distributed_robust_initialization(c.graph, rop)
+    assert start.weights[first["admitted"]] == 0.0 and start.hypothesis_cost[first["admitted"]] > 10 * start.frame_scale**2
+
+
 def test_overruled_edges_are_the_start_s_accepted_edges_any_run_rejected():
     from types import SimpleNamespace
 
