@@ -526,21 +526,29 @@ def _readmitted_to_start(first: SolveResult, run: SolveResult, f: float, others:
             break
         residual = np.asarray(edge_costs(graph, run.poses))
         edge = int(open_[int(np.argmin(residual[open_]))])
-        weights = np.asarray(run.inliers, np.float64)
-        weights[edge] = 1.0
-        again_label = f"{label}, {len(rounds) + 1} rejected closure(s) admitted"
-        t = time.perf_counter()
-        _, again, f_again, iterations, _, _ = _run_finished(run.poses, again_label, run_from, graph, monitor,
-                                                            finish, keeps=edge, weights=weights)
+        again, f_again, iterations, seconds = _trial(run, edge, 1.0, f"{label}, {len(rounds) + 1} rejected closure(s) "
+                                                     "admitted", run_from, graph, monitor, finish, keeps=edge)
         # a trial that rejected the closure again is not kept even where its f is lower: the run it went
         # on from had used its budget, and more iterations lower f without admitting anything
         kept = bool(again.inliers[edge]) and f_again < f - margin
-        rounds.append(dict(admitted=edge, f_before=f, f=f_again, iterations=iterations, kept=kept,
-                           seconds=time.perf_counter() - t))
+        rounds.append(dict(admitted=edge, f_before=f, f=f_again, iterations=iterations, kept=kept, seconds=seconds))
         if not kept:
             break
         run, f = again, f_again
     return run, f, rounds
+
+
+def _trial(run: SolveResult, edge: int, weight: float, label: str, run_from: Callable, graph: PoseGraph,
+           monitor: Monitor, finish: Callable | None, keeps: int | None = None) -> tuple:
+    """One round of the re-admissions or removals: a run (finished as the first) from ``run``'s result
+    holding its classification with ``edge``'s weight set to ``weight``. Returns (the run, its
+    objective, iterations, seconds)."""
+    weights = np.asarray(run.inliers, np.float64)
+    weights[edge] = weight
+    t = time.perf_counter()
+    _, again, f_again, iterations, _, _ = _run_finished(run.poses, label, run_from, graph, monitor, finish,
+                                                        keeps=keeps, weights=weights)
+    return again, f_again, iterations, time.perf_counter() - t
 
 
 def _inter_robot_closures(run: SolveResult, graph: PoseGraph) -> np.ndarray:
@@ -597,15 +605,10 @@ def _removed_from_run(first: SolveResult, run: SolveResult, f: float, label: str
             break
         edge = int(candidates[open_][np.argmax(share[open_])])
         tried[edge] = True
-        weights = np.asarray(run.inliers, np.float64)
-        weights[edge] = 0.0
-        t = time.perf_counter()
-        _, again, f_again, iterations, _, _ = _run_finished(
-            run.poses, f"{label}, {len(rounds) + 1} accepted closure(s) left out", run_from, graph, monitor, finish,
-            weights=weights)
+        again, f_again, iterations, seconds = _trial(run, edge, 0.0, f"{label}, {len(rounds) + 1} accepted closure(s) "
+                                                     "left out", run_from, graph, monitor, finish)
         kept = f_again < f
-        rounds.append(dict(removed=edge, f_before=f, f=f_again, iterations=iterations, kept=kept,
-                           seconds=time.perf_counter() - t))
+        rounds.append(dict(removed=edge, f_before=f, f=f_again, iterations=iterations, kept=kept, seconds=seconds))
         if not kept:
             break
         run, f = again, f_again
