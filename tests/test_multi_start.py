@@ -271,7 +271,7 @@ def test_start_rejected_inter_robot_closures_are_admitted_by_residual_while_the_
         return again, again, outcome[keeps], 7, None, None
 
     monkeypatch.setattr(solve_module, "_run_finished", run_finished)
-    monkeypatch.setattr(solve_module, "edge_costs", lambda graph, poses: residual.copy())
+    monkeypatch.setattr(solve_module, "host_edge_costs", lambda graph, poses: residual.copy())
     graph = SimpleNamespace(num_edges=m, i=i, j=j)
 
     def readmit(first, rejected, others):
@@ -334,7 +334,7 @@ def test_start_rejected_inter_robot_closures_are_admitted_by_residual_while_the_
                                    weights=weights)
         assert len(finished) == count
         assert held[0] is weights and all(w is None for w in held[1:])
-    monkeypatch.setattr(solve_module, "edge_costs", lambda graph, poses: residual.copy())
+    monkeypatch.setattr(solve_module, "host_edge_costs", lambda graph, poses: residual.copy())
     # a trial whose run rejects its closure again is not kept, even with a lower f (more iterations)
     tried.clear()
     def rejected_again(begin, label, run_from, graph, monitor, finish, keeps=None, weights=None):
@@ -439,7 +439,7 @@ def test_accepted_inter_robot_closures_are_left_out_by_strain_share_while_the_ob
 
     monkeypatch.setattr(solve_module, "_strain_shares", shares)
     monkeypatch.setattr(solve_module, "_run_finished", run_finished)
-    monkeypatch.setattr(solve_module, "edge_costs", lambda graph, poses: cost.copy())
+    monkeypatch.setattr(solve_module, "host_edge_costs", lambda graph, poses: cost.copy())
     graph = SimpleNamespace(num_edges=m)
     first = SimpleNamespace(start="the start", start_weights=np.ones(m))
     out, f, rounds = solve_module._removed_from_run(first, run([], 10.0), 10.0, "start", None, graph, None, None)

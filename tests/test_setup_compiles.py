@@ -63,3 +63,39 @@ def test_stack_keeps_host_arrays_on_the_host():
     assert isinstance(Y, np.ndarray) and Y.shape == (4, 2, 3)
     np.testing.assert_array_equal(Y[..., 0], t)
     assert isinstance(stack(Poses(jax.device_put(R), jax.device_put(t))), jax.Array)
+
+
+@pytest.mark.parametrize("dim, poses", [(2, 47), (3, 39)])
+def test_a_robust_solves_host_decisions_compile_nothing(caplog, dim, poses):
+    """Edge selection, edge costs and GNC's weights between runs (the robust starts, re-admissions,
+    removals) run in NumPy: op by op they compiled about 140 small programs in a cold TLS run on MIT
+    (3.5 s of its 9.5 s). Their values are those of the jitted functions."""
+    from mmpgo_jax._core.pose_graph import edge_costs, host_edge_costs, host_graph
+    from mmpgo_jax._mm.robust import TLS, gnc_initial_mu, gnc_rho, gnc_weight
+
+    make = grid_2d_dataset if dim == 2 else cube_dataset
+    graph = make(5, num_poses=poses, grid=4).graph  # device arrays
+    X = initialize(graph, "odometry")  # device poses, away from the optimum
+    keep = np.arange(graph.num_edges) % 3 != 1
+    sub, compiled = _compiled(caplog, lambda: graph.select_edges(keep))
+    assert not compiled, compiled
+    for ours, theirs in zip(jax.tree.leaves(sub), jax.tree.leaves(graph)):
+        assert isinstance(ours, jax.Array) and ours.dtype == theirs.dtype and ours.sharding == theirs.sharding
+        np.testing.assert_array_equal(np.asarray(ours), np.asarray(theirs)[keep])
+    reference = np.asarray(jax.jit(edge_costs)(graph, X))
+    for g in (graph, host_graph(graph)):
+        s, compiled = _compiled(caplog, lambda g=g: host_edge_costs(g, X))
+        assert not compiled, compiled
+        assert isinstance(s, np.ndarray)
+        np.testing.assert_allclose(s, reference, rtol=1e-10, atol=1e-12 * reference.max())
+    s_np = np.concatenate([s, [0.0, 9.0, 1e12]])
+    c2 = 2.5 * float(np.median(s_np))
+    for mu in (0.3, 7.0, np.inf):
+        (w, r), compiled = _compiled(caplog, lambda mu=mu: (gnc_weight(TLS, s_np, c2, mu), gnc_rho(TLS, s_np, c2, mu)))
+        assert not compiled, compiled
+        assert isinstance(w, np.ndarray) and np.all(np.isfinite(w)) and np.all(np.isfinite(r))
+        w_jit, r_jit = jax.jit(lambda s, mu: (gnc_weight(TLS, s, c2, mu), gnc_rho(TLS, s, c2, mu)))(s_np, mu)
+        np.testing.assert_allclose(w, np.asarray(w_jit), rtol=1e-12, atol=1e-15)
+        np.testing.assert_allclose(r, np.asarray(r_jit), rtol=1e-12, atol=1e-12 * c2)
+    mu0, compiled = _compiled(caplog, lambda: gnc_initial_mu(TLS, np.max(s_np), c2))
+    assert not compiled and np.isclose(mu0, c2 / (2.0 * 1e12 - c2), rtol=1e-12)

@@ -69,10 +69,17 @@ class PoseGraph(eqx.Module):
         return self.i.shape[0]
 
     def select_edges(self, keep) -> PoseGraph:
-        """The graph with only the edges where ``keep`` (m,) is True (the poses unchanged)."""
+        """The graph with only the edges where ``keep`` (m,) is True (the poses unchanged). Device
+        arrays are selected on the host and put back where they were: a boolean mask on a JAX array
+        compiles a gather for every new shape (tens of ms each, a robust solve selects edges often)."""
         keep = np.asarray(keep, bool)
-        return PoseGraph(self.i[keep], self.j[keep], self.R[keep], self.t[keep], self.kappa[keep], self.tau[keep],
-                         num_poses=self.num_poses)
+
+        def select(x):
+            if isinstance(x, jax.Array) and not isinstance(x, jax.core.Tracer) and len(x.sharding.device_set) == 1:
+                return jax.device_put(np.asarray(x)[keep], x.sharding)
+            return x[keep]
+
+        return PoseGraph(*map(select, (self.i, self.j, self.R, self.t, self.kappa, self.tau)), num_poses=self.num_poses)
 
     @staticmethod
     def from_arrays(i, j, R, t, kappa, tau, num_poses: int | None = None, dtype=None) -> PoseGraph:
@@ -113,7 +120,10 @@ def edge_residuals(graph: PoseGraph, poses: Poses):
     """Rotation residuals R_i Rt - R_j (m, d, d) and translation residuals R_i tt + t_i - t_j (m, d).
 
     Like every function of this group, it runs in NumPy when the graph and poses hold NumPy arrays
-    (:func:`host_graph`) and is jittable otherwise."""
+    (:func:`host_graph`) and is jittable otherwise; a host graph with concrete device poses runs in
+    NumPy too (op-by-op JAX would compile every operation for every new shape)."""
+    if isinstance(graph.R, np.ndarray) and not isinstance(poses.R, jax.core.Tracer):
+        poses = HostPoses(np.asarray(poses.R), np.asarray(poses.t))
     xp = _xp(graph.R, poses.R)
     Ri, Rj = poses.R[graph.i], poses.R[graph.j]
     rot = Ri @ graph.R - Rj
@@ -126,6 +136,13 @@ def edge_costs(graph: PoseGraph, poses: Poses):
     rot, trans = edge_residuals(graph, poses)
     xp = _xp(rot)
     return graph.kappa * xp.sum(rot**2, axis=(-1, -2)) + graph.tau * xp.sum(trans**2, axis=-1)
+
+
+def host_edge_costs(graph: PoseGraph, poses: Poses) -> np.ndarray:
+    """:func:`edge_costs` computed on the host in NumPy (float64) whatever arrays ``graph`` and
+    ``poses`` hold: for host-side decisions between runs, where op-by-op JAX would compile every
+    operation for every new shape."""
+    return edge_costs(host_graph(graph), poses)
 
 
 def cost(graph: PoseGraph, poses: Poses):

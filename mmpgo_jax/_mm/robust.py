@@ -48,6 +48,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._core.pose_graph import host_edge_costs
 from .._core.validate import check_count, check_real, concrete_value
 
 LOSSES = ("l2", "huber", "cauchy", "geman-mcclure", "welsch", "tls")
@@ -126,35 +127,51 @@ def loss_weight(loss, s, c):
     return weight(loss_code(loss), jnp.asarray(s), jnp.asarray(c) ** 2)
 
 
-def _tls_band(mu, c2):
+def _array_module(*xs):
+    """numpy when no argument is a JAX array (host callers: GNC starts), else jax.numpy. Op-by-op JAX
+    on the host would compile every operation for every new shape (tens of ms each)."""
+    return jnp if any(isinstance(x, jax.Array) for x in xs) else np
+
+
+def _tls_band(xp, mu, c2):
     """(lo, hi): rho_mu of TLS is s below lo, c^2 above hi (lo = hi = c^2 for mu = inf)."""
-    ratio = jnp.where(jnp.isinf(mu), 1.0, mu / (mu + 1.0))
+    ratio = xp.where(xp.isinf(mu), 1.0, mu / (mu + 1.0))
     return ratio * c2, c2 / ratio
+
+
+# inf / inf and inf - inf arise in the branches xp.where discards (mu, c^2 or s = inf): no NumPy warning
+_DISCARDED = dict(invalid="ignore", divide="ignore", over="ignore")
 
 
 def gnc_rho(kernel, s, c2, mu):
     """The GNC surrogate rho_mu(s) (Yang et al. 2020): TLS for mu -> inf, GM at mu = 1."""
-    lo, hi = _tls_band(mu, c2)
-    tls = jnp.where(s <= lo, s, jnp.where(s >= hi, c2, 2.0 * jnp.sqrt(c2 * mu * (mu + 1.0) * s) - mu * (c2 + s)))
-    gm = mu * c2 * s / (mu * c2 + s)
-    return jnp.where(kernel == TLS, tls, gm)
+    xp = _array_module(kernel, s, c2, mu)
+    with np.errstate(**_DISCARDED):
+        lo, hi = _tls_band(xp, mu, c2)
+        tls = xp.where(s <= lo, s, xp.where(s >= hi, c2, 2.0 * xp.sqrt(c2 * mu * (mu + 1.0) * s) - mu * (c2 + s)))
+        gm = mu * c2 * s / (mu * c2 + s)
+    return xp.where(kernel == TLS, tls, gm)
 
 
 def gnc_weight(kernel, s, c2, mu):
     """rho_mu'(s): GNC's closed-form weight update (TLS: Yang et al. Eq. (14); GM: Eq. (12))."""
-    lo, hi = _tls_band(mu, c2)
-    mid = jnp.sqrt(c2 * mu * (mu + 1.0) / jnp.maximum(s, lo)) - mu
-    tls = jnp.where(s <= lo, 1.0, jnp.where(s >= hi, 0.0, mid))
-    gm = (mu * c2 / (s + mu * c2)) ** 2
-    return jnp.clip(jnp.where(kernel == TLS, tls, gm), 0.0, 1.0)
+    xp = _array_module(kernel, s, c2, mu)
+    with np.errstate(**_DISCARDED):
+        lo, hi = _tls_band(xp, mu, c2)
+        mid = xp.sqrt(c2 * mu * (mu + 1.0) / xp.maximum(s, lo)) - mu
+        tls = xp.where(s <= lo, 1.0, xp.where(s >= hi, 0.0, mid))
+        gm = (mu * c2 / (s + mu * c2)) ** 2
+    return xp.clip(xp.where(kernel == TLS, tls, gm), 0.0, 1.0)
 
 
 def gnc_initial_mu(kernel, s_max, c2):
     """mu_0: TLS c^2 / (2 s_max - c^2) (rho_mu convex over the residuals); GM 2 s_max / c^2.
     Residuals all within c^2 (nothing to discount): mu_0 = inf (TLS) / 1 (GM), GNC ends at once."""
-    tls = jnp.where(2.0 * s_max > c2, c2 / jnp.maximum(2.0 * s_max - c2, 1e-300 * c2), jnp.inf)
-    gm = jnp.maximum(2.0 * s_max / c2, 1.0)
-    return jnp.where(kernel == TLS, tls, gm)
+    xp = _array_module(kernel, s_max, c2)
+    with np.errstate(**_DISCARDED):
+        tls = xp.where(2.0 * s_max > c2, c2 / xp.maximum(2.0 * s_max - c2, 1e-300 * c2), xp.inf)
+        gm = xp.maximum(2.0 * s_max / c2, 1.0)
+    return xp.where(kernel == TLS, tls, gm)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -416,23 +433,15 @@ def robust_outcome(loss: RobustLoss, graph, partition, weights, poses):
     index = incident_edge_index(graph.i, graph.j, partition.robot_of_pose, partition.num_robots,
                                 partition.max_edges)
     w = edge_values(np.asarray(weights), index, graph.num_edges)
-    s = _host_edge_costs(graph, poses)
+    s = host_edge_costs(graph, poses)
     return w, (s <= float(np.asarray(loss.scale)) ** 2) | ~robust_edges(loss, graph.i, graph.j)
-
-
-def _host_edge_costs(graph, poses) -> np.ndarray:
-    """Per-edge costs s at ``poses`` (global order), with NumPy on the host: op by op on the device,
-    each operation would compile a program of its own."""
-    from .._core.pose_graph import Poses, edge_costs, host_graph
-
-    return edge_costs(host_graph(graph), Poses(np.asarray(poses.R), np.asarray(poses.t)))
 
 
 def robust_objective(loss: RobustLoss, graph, poses) -> float:
     """f = 2 F_rho = sum of rho_c(s) over the loss's edges plus s over the others, at ``poses``
     (global order, any frame), computed on the host: the number two robust runs of one graph are
     compared by."""
-    s = _host_edge_costs(graph, poses)
+    s = host_edge_costs(graph, poses)
     c2 = float(np.asarray(loss.scale)) ** 2
     costs = np.where(robust_edges(loss, graph.i, graph.j), rho(int(np.asarray(loss.kernel)), s, c2), s)
     return float(np.sum(costs))

@@ -20,7 +20,7 @@ import numpy as np
 
 from .._core.gauge import FixedPoses
 from .._core.partition import Partition, partition
-from .._core.pose_graph import HostPoses, PoseGraph, Poses, connected_subgraph, edge_costs
+from .._core.pose_graph import HostPoses, PoseGraph, Poses, connected_subgraph, host_edge_costs
 from .._core.precision import float64_enabled
 from .._init.start import initialize
 from .._mm.centralized import NewtonConfig, newton_optimum
@@ -464,7 +464,7 @@ def _revisited(first: SolveResult, run: SolveResult, f: float, others: list, lab
         over = _overruled(first.start_weights, run, others) & ~excluded
         if not over.any():
             break
-        residual = np.asarray(edge_costs(graph, run.poses))
+        residual = host_edge_costs(graph, run.poses)
         edge = int(np.flatnonzero(over)[np.argmax(residual[over])])
         excluded[edge] = True
         begin = NamedStart("distributed-robust", dict(excluded=excluded.copy()))
@@ -524,7 +524,7 @@ def _readmitted_to_start(first: SolveResult, run: SolveResult, f: float, others:
         open_ = [e for e in doubted if not run.inliers[e] and (not evidence or any(inl[e] for inl in evidence))]
         if not open_:
             break
-        residual = np.asarray(edge_costs(graph, run.poses))
+        residual = host_edge_costs(graph, run.poses)
         edge = int(open_[int(np.argmin(residual[open_]))])
         again, f_again, iterations, seconds = _trial(run, edge, 1.0, f"{label}, {len(rounds) + 1} rejected closure(s) "
                                                      "admitted", run_from, graph, monitor, finish, keeps=edge)
@@ -568,7 +568,7 @@ def _strain_shares(first: SolveResult, run: SolveResult, graph: PoseGraph) -> tu
     robot = np.asarray(run.partition.robot_of_pose)
     a, b = robot[np.asarray(graph.i)], robot[np.asarray(graph.j)]
     own = (a == b) & (np.asarray(first.start_weights) > 0.5)
-    excess = np.asarray(edge_costs(graph, run.poses)) - np.asarray(edge_costs(graph, first.start))
+    excess = host_edge_costs(graph, run.poses) - host_edge_costs(graph, first.start)
     count = int(robot.max()) + 1
     strain = np.bincount(a[own], excess[own], minlength=count)
     candidates = np.flatnonzero(np.asarray(run.inliers, bool) & _inter_robot_closures(run, graph))
@@ -599,7 +599,7 @@ def _removed_from_run(first: SolveResult, run: SolveResult, f: float, label: str
     rounds = []
     while True:
         candidates, share = _strain_shares(first, run, graph)
-        cost = np.asarray(edge_costs(graph, run.poses))[candidates]
+        cost = host_edge_costs(graph, run.poses)[candidates]
         open_ = ~tried[candidates] & (share > c2 - cost)
         if not open_.any():
             break
