@@ -79,7 +79,7 @@ def test_a_robust_solves_host_decisions_compile_nothing(caplog, dim, poses):
     keep = np.arange(graph.num_edges) % 3 != 1
     sub, compiled = _compiled(caplog, lambda: graph.select_edges(keep))
     assert not compiled, compiled
-    for ours, theirs in zip(jax.tree.leaves(sub), jax.tree.leaves(graph)):
+    for ours, theirs in zip(jax.tree.leaves(sub), jax.tree.leaves(graph), strict=True):
         assert isinstance(ours, jax.Array) and ours.dtype == theirs.dtype and ours.sharding == theirs.sharding
         np.testing.assert_array_equal(np.asarray(ours), np.asarray(theirs)[keep])
     reference = np.asarray(jax.jit(edge_costs)(graph, X))
