@@ -336,12 +336,12 @@ def test_start_rejected_inter_robot_closures_are_admitted_by_residual_while_the_
         return again, again, 9.0, 7, None, None
 
     monkeypatch.setattr(solve_module, "_run_finished", rejected_again)
-    out, f, rounds = readmit(run([], 0.0, doubted=[b, c]), [a, b, c], [])
+    out, f, rounds = readmit(run([], 0.0, doubted=[b, c]), [a, b, c])
     assert tried == [b] and [(r["admitted"], r["f"], r["kept"]) for r in rounds] == [(b, 9.0, False)] and f == 10.0
     monkeypatch.setattr(solve_module, "_run_finished", run_finished)
     # nothing doubted, or the run took every doubted closure back: no round
     tried.clear()
-    assert readmit(run([], 0.0), [a, b], [])[2] == [] and readmit(run([], 0.0, doubted=[b]), [a], [])[2] == []
+    assert readmit(run([], 0.0), [a, b])[2] == [] and readmit(run([], 0.0, doubted=[b]), [a])[2] == []
     assert tried == []
 
 
