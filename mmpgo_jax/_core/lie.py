@@ -23,17 +23,15 @@ import math
 from types import MappingProxyType
 from typing import NamedTuple
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
+from .precision import array_module
+
 __all__ = ["GROUPS", "SO2", "SO3", "inverse_sym", "newton_polar", "project_svd", "so", "stiefel_polar"]
 
 
-def _xp(*arrays):
-    """jax.numpy when any argument is a JAX array or tracer, else numpy."""
-    return jnp if any(isinstance(a, jax.Array) for a in arrays) else np
 
 
 class _Axes(NamedTuple):
@@ -65,7 +63,7 @@ class _Axes(NamedTuple):
 def project_svd(M):
     """Nearest rotation (Frobenius norm) to each d x d block of M (..., d, d), any d: Umeyama's SVD
     projection U diag(1, .., det(U V^T)) V^T, exact for any input."""
-    xp = _xp(M)
+    xp = array_module(M)
     U, _, Vt = xp.linalg.svd(M)
     det = xp.linalg.det(U @ Vt)
     d = M.shape[-1]
@@ -192,7 +190,7 @@ class SO2(_SO):
     @staticmethod
     def hat(omega, *, first=False):
         """omega (..., 1) -> omega J (..., 2, 2)."""
-        ax, xp = _Axes(first), _xp(omega)
+        ax, xp = _Axes(first), array_module(omega)
         w = ax.get(omega, 0)
         z = xp.zeros_like(w)
         return ax.matrix(xp, [[z, -w], [w, z]])
@@ -200,44 +198,44 @@ class SO2(_SO):
     @staticmethod
     def vee(Omega, *, first=False):
         """Inverse of :meth:`hat` on so(2): (..., 2, 2) -> (..., 1)."""
-        ax, xp = _Axes(first), _xp(Omega)
+        ax, xp = _Axes(first), array_module(Omega)
         return ax.vector(xp, [ax.get(Omega, 1, 0)])
 
     @staticmethod
     def dual(A, *, first=False):
         """(<E_q, A>)_q for any A (..., 2, 2): the coordinates dual to hat (= 2 vee(skew(A)))."""
-        ax, xp = _Axes(first), _xp(A)
+        ax, xp = _Axes(first), array_module(A)
         return ax.vector(xp, [ax.get(A, 1, 0) - ax.get(A, 0, 1)])
 
     @staticmethod
     def hat_apply(omega, v, *, first=False):
         """hat(omega) v for vectors v (..., 2), without forming the matrix."""
-        ax, xp = _Axes(first), _xp(omega, v)
+        ax, xp = _Axes(first), array_module(omega, v)
         w = ax.get(omega, 0)
         return ax.vector(xp, [-w * ax.get(v, 1), w * ax.get(v, 0)])
 
     @staticmethod
     def hat_apply_adjoint(v, u, *, first=False):
         """(<E_q v, u>)_q: the adjoint of omega -> hat(omega) v, applied to u (..., 2)."""
-        ax, xp = _Axes(first), _xp(v, u)
+        ax, xp = _Axes(first), array_module(v, u)
         return ax.vector(xp, [ax.get(v, 0) * ax.get(u, 1) - ax.get(v, 1) * ax.get(u, 0)])
 
     @staticmethod
     def hat_apply_matrix(v):
         """The matrix (..., 2, 1) of omega -> hat(omega) v: J v."""
-        xp = _xp(v)
+        xp = array_module(v)
         return xp.stack([-v[..., 1], v[..., 0]], -1)[..., None]
 
     @staticmethod
     def adjoint(R):
         """Ad_R on tangent coordinates, (..., 1, 1): 1 (the group is abelian)."""
-        xp = _xp(R)
+        xp = array_module(R)
         return xp.ones((*R.shape[:-2], 1, 1), R.dtype)
 
     @staticmethod
     def exp(omega):
         """Rotations by the angles omega (..., 1) -> (..., 2, 2)."""
-        xp = _xp(omega)
+        xp = array_module(omega)
         c, s = xp.cos(omega[..., 0]), xp.sin(omega[..., 0])
         return xp.stack([xp.stack([c, -s], -1), xp.stack([s, c], -1)], -2)
 
@@ -245,20 +243,20 @@ class SO2(_SO):
     def log(R):
         """Angles in (-pi, pi] (..., 1) of rotations (..., 2, 2) (from both columns: accurate for
         rotations that are off SO(2) by rounding)."""
-        xp = _xp(R)
+        xp = array_module(R)
         return xp.arctan2(R[..., 1, 0] - R[..., 0, 1], R[..., 0, 0] + R[..., 1, 1])[..., None]
 
     @staticmethod
     def angle(R):
         """Geodesic angle in [0, pi] of rotations (..., 2, 2): |log R|."""
-        xp = _xp(R)
+        xp = array_module(R)
         return xp.abs(xp.arctan2(R[..., 1, 0] - R[..., 0, 1], R[..., 0, 0] + R[..., 1, 1]))
 
     @staticmethod
     def apply_V_inverse(omega, t):
         """V(omega)^-1 t, V the left Jacobian (SE(2)'s exp moves by V rho): the translation
         coordinates rho of SE(2)'s log. V^-1 = a I - (theta/2) J, a = (theta/2) cot(theta/2)."""
-        xp = _xp(omega, t)
+        xp = array_module(omega, t)
         a = _half_cot(xp.linalg.norm(omega, axis=-1), xp)
         w = 0.5 * omega[..., 0]
         return xp.stack([a * t[..., 0] + w * t[..., 1], a * t[..., 1] - w * t[..., 0]], -1)
@@ -266,7 +264,7 @@ class SO2(_SO):
     @staticmethod
     def project(M):
         """Nearest rotations (..., 2, 2), exact for any input, in closed form."""
-        return _closed_form_2d(M, _Axes(False), _xp(M))
+        return _closed_form_2d(M, _Axes(False), array_module(M))
 
     @staticmethod
     def project_fast(M, *, first=False):
@@ -291,7 +289,7 @@ class SO2(_SO):
         ax = _Axes(first)
         s = ax.get(S, 0, 0)
         ok = s > 0
-        return ax.expand(1.0 / _xp(S).where(ok, s, 1.0)), ok
+        return ax.expand(1.0 / array_module(S).where(ok, s, 1.0)), ok
 
 
 def _closed_form_2d(M, ax: _Axes, xp):
@@ -321,7 +319,7 @@ class SO3(_SO):
     @staticmethod
     def hat(omega, *, first=False):
         """omega (..., 3) -> the cross-product matrix [[0, -z, y], [z, 0, -x], [-y, x, 0]]."""
-        ax, xp = _Axes(first), _xp(omega)
+        ax, xp = _Axes(first), array_module(omega)
         x, y, z = (ax.get(omega, k) for k in range(3))
         o = xp.zeros_like(x)
         return ax.matrix(xp, [[o, -z, y], [z, o, -x], [-y, x, o]])
@@ -329,25 +327,25 @@ class SO3(_SO):
     @staticmethod
     def vee(Omega, *, first=False):
         """Inverse of :meth:`hat` on so(3): (..., 3, 3) -> (..., 3)."""
-        ax, xp = _Axes(first), _xp(Omega)
+        ax, xp = _Axes(first), array_module(Omega)
         return ax.vector(xp, [ax.get(Omega, 2, 1), ax.get(Omega, 0, 2), ax.get(Omega, 1, 0)])
 
     @staticmethod
     def dual(A, *, first=False):
         """(<E_q, A>)_q for any A (..., 3, 3): the coordinates dual to hat (= 2 vee(skew(A)))."""
-        ax, xp = _Axes(first), _xp(A)
+        ax, xp = _Axes(first), array_module(A)
         g = ax.get
         return ax.vector(xp, [g(A, 2, 1) - g(A, 1, 2), g(A, 0, 2) - g(A, 2, 0), g(A, 1, 0) - g(A, 0, 1)])
 
     @staticmethod
     def hat_apply(omega, v, *, first=False):
         """hat(omega) v = omega x v."""
-        return _xp(omega, v).cross(omega, v, axis=0 if first else -1)
+        return array_module(omega, v).cross(omega, v, axis=0 if first else -1)
 
     @staticmethod
     def hat_apply_adjoint(v, u, *, first=False):
         """(<E_q v, u>)_q = v x u: the adjoint of omega -> omega x v, applied to u."""
-        return _xp(v, u).cross(v, u, axis=0 if first else -1)
+        return array_module(v, u).cross(v, u, axis=0 if first else -1)
 
     @staticmethod
     def hat_apply_matrix(v):
@@ -365,7 +363,7 @@ class SO3(_SO):
 
         (SciPy's compiled Rotation.from_rotvec takes half the time per call, but importing
         scipy.spatial costs ~60 ms, more than fifty host-side solves of a tiny graph.)"""
-        xp = _xp(omega)
+        xp = array_module(omega)
         theta = xp.sqrt(xp.sum(omega * omega, axis=-1))
         small = theta < 1e-8
         safe = xp.where(small, 1.0, theta)
@@ -379,7 +377,7 @@ class SO3(_SO):
         """Rotation vectors (..., 3) of rotations (..., 3, 3), |omega| in [0, pi]: atan2 of the
         axis vector and the trace term (accurate near 0 and pi, unlike arccos); near pi the axis
         comes from the symmetric part, where the skew part vanishes."""
-        xp = _xp(R)
+        xp = array_module(R)
         v = SO3.dual(R)
         s, c = 0.5 * xp.linalg.norm(v, axis=-1), 0.5 * (xp.trace(R, axis1=-2, axis2=-1) - 1.0)
         theta = xp.arctan2(s, c)
@@ -400,7 +398,7 @@ class SO3(_SO):
     @staticmethod
     def angle(R):
         """Geodesic angle in [0, pi] of rotations (..., 3, 3) (= |log R|, without the axis)."""
-        xp = _xp(R)
+        xp = array_module(R)
         v = SO3.dual(R)
         return xp.arctan2(0.5 * xp.linalg.norm(v, axis=-1), 0.5 * (xp.trace(R, axis1=-2, axis2=-1) - 1.0))
 
@@ -409,7 +407,7 @@ class SO3(_SO):
         """V(omega)^-1 t, V the left Jacobian (SE(3)'s exp moves by V rho): the translation
         coordinates rho of SE(3)'s log. V^-1 = I - W/2 + (1 - a) / theta^2 W^2, W = hat(omega),
         a = (theta/2) cot(theta/2)."""
-        xp = _xp(omega, t)
+        xp = array_module(omega, t)
         theta = xp.linalg.norm(omega, axis=-1)
         a = _half_cot(theta, xp)
         b = xp.where(theta > 1e-6, (1.0 - a) / xp.where(theta > 1e-6, theta, 1.0) ** 2, 1.0 / 12.0)
@@ -419,7 +417,7 @@ class SO3(_SO):
     @staticmethod
     def from_quaternion(q):
         """Unit quaternions (..., 4) in (x, y, z, w) order -> rotations (..., 3, 3) (not normalised)."""
-        xp = _xp(q)
+        xp = array_module(q)
         x, y, z, w = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
         return xp.stack(
             [
@@ -466,13 +464,13 @@ class SO3(_SO):
         """C(M) (p, p) with C_pq = tr(E_p^T E_q M), given tr = tr(M) (callers choose how it is
         summed): tr(M) I - M in 3D, for symmetric M."""
         ax = _Axes(first)
-        return ax.expand(tr) * ax.eye(_xp(M, tr), 3, M) - M
+        return ax.expand(tr) * ax.eye(array_module(M, tr), 3, M) - M
 
     @staticmethod
     def inverse_spd(S, *, first=False):
         """Inverse of symmetric 3 x 3 blocks S and whether each is positive definite (leading minors
         > 0), by the adjugate (no factorization)."""
-        ax, xp = _Axes(first), _xp(S)
+        ax, xp = _Axes(first), array_module(S)
         a, b, c = ax.get(S, 0, 0), ax.get(S, 0, 1), ax.get(S, 0, 2)
         e, f, i = ax.get(S, 1, 1), ax.get(S, 1, 2), ax.get(S, 2, 2)
         A00, A01, A02 = e * i - f * f, c * f - b * i, b * f - c * e

@@ -18,7 +18,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from .geometry import sym
-from .precision import default_float_dtype, to_device
+from .precision import array_module, default_float_dtype, to_device
 
 
 class Poses(eqx.Module):
@@ -100,11 +100,6 @@ class PoseGraph(eqx.Module):
         )
 
 
-def _xp(*arrays):
-    """numpy when every array is a NumPy array (host-side callers: no JAX dispatch), else jax.numpy."""
-    return np if all(isinstance(a, np.ndarray) for a in arrays) else jnp
-
-
 def _segment_sum(xp, values, index, n: int):
     """Sum of ``values`` rows into ``n`` segments (jax.ops.segment_sum, or a bincount on the host)."""
     if xp is jnp:
@@ -124,7 +119,7 @@ def edge_residuals(graph: PoseGraph, poses: Poses):
     NumPy too (op-by-op JAX would compile every operation for every new shape)."""
     if isinstance(graph.R, np.ndarray) and not isinstance(poses.R, jax.core.Tracer):
         poses = HostPoses(np.asarray(poses.R), np.asarray(poses.t))
-    xp = _xp(graph.R, poses.R)
+    xp = array_module(graph.R, poses.R)
     Ri, Rj = poses.R[graph.i], poses.R[graph.j]
     rot = Ri @ graph.R - Rj
     trans = xp.einsum("mab,mb->ma", Ri, graph.t) + poses.t[graph.i] - poses.t[graph.j]
@@ -134,7 +129,7 @@ def edge_residuals(graph: PoseGraph, poses: Poses):
 def edge_costs(graph: PoseGraph, poses: Poses):
     """Per-edge cost kappa ||rot||^2 + tau ||trans||^2 (the f = 2F convention)."""
     rot, trans = edge_residuals(graph, poses)
-    xp = _xp(rot)
+    xp = array_module(rot)
     return graph.kappa * xp.sum(rot**2, axis=(-1, -2)) + graph.tau * xp.sum(trans**2, axis=-1)
 
 
@@ -148,7 +143,7 @@ def host_edge_costs(graph: PoseGraph, poses: Poses) -> np.ndarray:
 def cost(graph: PoseGraph, poses: Poses):
     """f = 2F: the objective as reported in the paper's tables and by SE-Sync."""
     costs = edge_costs(graph, poses)
-    return _xp(costs).sum(costs)
+    return array_module(costs).sum(costs)
 
 
 def objective(graph: PoseGraph, poses: Poses):
@@ -159,7 +154,7 @@ def objective(graph: PoseGraph, poses: Poses):
 def euclidean_gradient(graph: PoseGraph, poses: Poses) -> Poses:
     """Euclidean gradient of F with respect to (R, t), as a ``Poses`` of the same shapes."""
     rot, trans = edge_residuals(graph, poses)
-    xp = _xp(rot)
+    xp = array_module(rot)
     wr = graph.kappa[:, None, None] * rot
     wt = graph.tau[:, None] * trans
     n, d = graph.num_poses, wt.shape[-1]
@@ -184,7 +179,7 @@ def riemannian_gradient(graph: PoseGraph, poses: Poses) -> Poses:
 
 def tangent_norm(v: Poses):
     """Frobenius norm of a tangent vector (or any Poses-shaped array pair)."""
-    xp = _xp(v.R, v.t)
+    xp = array_module(v.R, v.t)
     return xp.sqrt(xp.sum(v.R**2) + xp.sum(v.t**2))
 
 

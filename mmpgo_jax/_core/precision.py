@@ -33,3 +33,10 @@ def to_device(x, dtype=None) -> jax.Array:
     array compiles a small program the first time each shape is seen (1-15 ms per shape: a
     dozen of them in the set-up of every run)."""
     return jax.device_put(np.asarray(x, dtype))
+
+
+def array_module(*arrays):
+    """jax.numpy when any argument is a JAX array or tracer, else numpy: host callers (set-up,
+    decisions between runs) compute in NumPy, where op-by-op JAX would compile a small program for
+    every operation and every new shape."""
+    return jnp if any(isinstance(a, jax.Array) for a in arrays) else np

@@ -49,6 +49,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._core.pose_graph import host_edge_costs
+from .._core.precision import array_module
 from .._core.validate import check_count, check_real, concrete_value
 
 LOSSES = ("l2", "huber", "cauchy", "geman-mcclure", "welsch", "tls")
@@ -127,12 +128,6 @@ def loss_weight(loss, s, c):
     return weight(loss_code(loss), jnp.asarray(s), jnp.asarray(c) ** 2)
 
 
-def _array_module(*xs):
-    """numpy when no argument is a JAX array (host callers: GNC starts), else jax.numpy. Op-by-op JAX
-    on the host would compile every operation for every new shape (tens of ms each)."""
-    return jnp if any(isinstance(x, jax.Array) for x in xs) else np
-
-
 def _tls_band(xp, mu, c2):
     """(lo, hi): rho_mu of TLS is s below lo, c^2 above hi (lo = hi = c^2 for mu = inf)."""
     ratio = xp.where(xp.isinf(mu), 1.0, mu / (mu + 1.0))
@@ -145,7 +140,7 @@ _DISCARDED = dict(invalid="ignore", divide="ignore", over="ignore")
 
 def gnc_rho(kernel, s, c2, mu):
     """The GNC surrogate rho_mu(s) (Yang et al. 2020): TLS for mu -> inf, GM at mu = 1."""
-    xp = _array_module(kernel, s, c2, mu)
+    xp = array_module(kernel, s, c2, mu)
     with np.errstate(**_DISCARDED):
         lo, hi = _tls_band(xp, mu, c2)
         tls = xp.where(s <= lo, s, xp.where(s >= hi, c2, 2.0 * xp.sqrt(c2 * mu * (mu + 1.0) * s) - mu * (c2 + s)))
@@ -155,7 +150,7 @@ def gnc_rho(kernel, s, c2, mu):
 
 def gnc_weight(kernel, s, c2, mu):
     """rho_mu'(s): GNC's closed-form weight update (TLS: Yang et al. Eq. (14); GM: Eq. (12))."""
-    xp = _array_module(kernel, s, c2, mu)
+    xp = array_module(kernel, s, c2, mu)
     with np.errstate(**_DISCARDED):
         lo, hi = _tls_band(xp, mu, c2)
         mid = xp.sqrt(c2 * mu * (mu + 1.0) / xp.maximum(s, lo)) - mu
@@ -167,7 +162,7 @@ def gnc_weight(kernel, s, c2, mu):
 def gnc_initial_mu(kernel, s_max, c2):
     """mu_0: TLS c^2 / (2 s_max - c^2) (rho_mu convex over the residuals); GM 2 s_max / c^2.
     Residuals all within c^2 (nothing to discount): mu_0 = inf (TLS) / 1 (GM), GNC ends at once."""
-    xp = _array_module(kernel, s_max, c2)
+    xp = array_module(kernel, s_max, c2)
     with np.errstate(**_DISCARDED):
         tls = xp.where(2.0 * s_max > c2, c2 / xp.maximum(2.0 * s_max - c2, 1e-300 * c2), xp.inf)
         gm = xp.maximum(2.0 * s_max / c2, 1.0)
