@@ -509,6 +509,18 @@ def test_distributed_tls_on_mit_admits_the_correct_closure_its_start_rejected(be
            "line 1621 of MIT.g2o" in line
 
 
+def _low_noise_team(seed: int, rate: float):
+    """(corrupted graph, robot of pose): a long-chain team of benchmarks/robust_teams.md (10 x 500
+    poses, 30 inter-robot closures, sigma_R 0.005 pi) with wrong inter-robot closures added so that
+    ``rate`` of the inter-robot closures are wrong."""
+    ds = mg.robot_team_dataset(10, 500, intra_closures=5, inter_closures=30, dim=2, seed=seed, sigma_R=0.005 * np.pi)
+    rop = ds.robot_of_pose
+    n_inter, n_intra = int(ds.inter_robot.sum()), int((ds.edge_kind == 1).sum())
+    count = round(rate * n_inter / (1.0 - rate))
+    return mg.add_outlier_loop_closures(ds.graph, count / (n_inter + n_intra + count), reference=ds.ground_truth,
+                                        seed=seed, robot_of_pose=rop, inter_robot_only=True), rop
+
+
 @pytest.mark.slow  # a 5000-pose distributed robust solve with two trials, about a minute
 def test_distributed_tls_admits_a_correct_closure_its_frame_test_rejected_by_far():
     """A long-chain team (10 x 500 poses, low noise, 3 wrong inter-robot closures, 10 %; the graph of
@@ -516,12 +528,7 @@ def test_distributed_tls_admits_a_correct_closure_its_frame_test_rejected_by_far
     beyond its frame test's gross-error bound (14.3 c^2), but at the run's result it is the rejected
     closure of smallest residual, so the first re-admission trial takes it and is kept: every edge
     classified right."""
-    ds = mg.robot_team_dataset(10, 500, intra_closures=5, inter_closures=30, dim=2, seed=3, sigma_R=0.005 * np.pi)
-    rop = ds.robot_of_pose
-    n_inter, n_intra = int(ds.inter_robot.sum()), int((ds.edge_kind == 1).sum())
-    count = round(0.1 * n_inter / 0.9)
-    c = mg.add_outlier_loop_closures(ds.graph, count / (n_inter + n_intra + count), reference=ds.ground_truth,
-                                     seed=3, robot_of_pose=rop, inter_robot_only=True)
+    c, rop = _low_noise_team(3, 0.1)
     res = mg.solve(c.graph, rop, loss="tls", distributed=True)
     (row,) = res.stats["starts"]
     first = row["readmissions"][0]
@@ -539,12 +546,7 @@ def test_the_default_readmits_a_correct_closure_both_starts_runs_rejected():
     benchmarks/robust_teams.md, seed 3): both starts' runs reject one correct inter-robot closure;
     the distributed row's re-admission trial takes it back (a closure the other start's run rejected
     is a candidate too), and its run, every edge classified right, has the lower objective."""
-    ds = mg.robot_team_dataset(10, 500, intra_closures=5, inter_closures=30, dim=2, seed=3, sigma_R=0.005 * np.pi)
-    rop = ds.robot_of_pose
-    n_inter, n_intra = int(ds.inter_robot.sum()), int((ds.edge_kind == 1).sum())
-    count = round(0.3 * n_inter / 0.7)
-    c = mg.add_outlier_loop_closures(ds.graph, count / (n_inter + n_intra + count), reference=ds.ground_truth,
-                                     seed=3, robot_of_pose=rop, inter_robot_only=True)
+    c, rop = _low_noise_team(3, 0.3)
     res = mg.solve(c.graph, rop, loss="tls")
     gnc, dist = res.stats["starts"]
     assert gnc["start"] == "gnc-chordal" and dist["start"] == "distributed-robust" and dist["kept"]
@@ -573,11 +575,7 @@ def test_the_default_revisits_its_distributed_start_with_the_gnc_run_s_rejection
     graph of benchmarks/robust_teams.md, seed 2): the distributed start's run keeps an outlier its
     start accepted, the GNC start's run rejects it; the default leaves it out of the distributed start
     and reaches the right classification, with a TLS objective below the GNC run's."""
-    ds = mg.robot_team_dataset(10, 500, intra_closures=5, inter_closures=30, dim=2, seed=2, sigma_R=0.005 * np.pi)
-    rop = ds.robot_of_pose
-    n_inter, n_intra = int(ds.inter_robot.sum()), int((ds.edge_kind == 1).sum())
-    c = mg.add_outlier_loop_closures(ds.graph, n_inter / (n_inter + n_intra + n_inter), reference=ds.ground_truth,
-                                     seed=2, robot_of_pose=rop, inter_robot_only=True)
+    c, rop = _low_noise_team(2, 0.5)
     res = mg.solve(c.graph, rop, loss="tls")
     gnc, dist = res.stats["starts"]
     assert dist["kept"] and dist["revisits"][0]["kept"]
