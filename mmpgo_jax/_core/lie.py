@@ -32,8 +32,6 @@ from .precision import array_module
 __all__ = ["GROUPS", "SO2", "SO3", "inverse_sym", "newton_polar", "project_svd", "so", "stiefel_polar"]
 
 
-
-
 class _Axes(NamedTuple):
     """Where the coordinate / matrix axes are: last (``first=False``) or first. Each layout is
     indexed natively (no transposition), so both are as fast as code written for one of them."""
