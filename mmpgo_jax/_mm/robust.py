@@ -88,8 +88,9 @@ def loss_code(name) -> int:
 
 def rho(kernel, s, c2):
     """rho_c(s) for the kernel code ``kernel`` and c^2 = ``c2`` (elementwise); NumPy in, NumPy out
-    (on the host, op-by-op JAX would compile each operation)."""
-    xp = np if isinstance(s, np.ndarray) else jnp
+    (:func:`~mmpgo_jax._core.precision.array_module`: on the host, op-by-op JAX would compile each
+    operation)."""
+    xp = array_module(s)
     q = s / c2
     branches = [
         s,
