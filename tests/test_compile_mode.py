@@ -32,6 +32,41 @@ def test_auto_compiles_small_programs_fast(mode, monkeypatch):
     assert cm.compiler_options(None) is None  # size unknown: XLA's defaults
 
 
+def test_a_program_run_once_compiles_at_llvm_level_0_the_fast_way_only(mode, monkeypatch):
+    monkeypatch.delenv(cm.ENV, raising=False)
+    once = cm.compiler_options(cm.FAST_COMPILE_SLOTS, once=True)
+    assert once == {"xla_cpu_use_fusion_emitters": False, "xla_backend_optimization_level": 0}
+    assert cm.compiler_options(cm.FAST_COMPILE_SLOTS + 1, once=True) is None  # a large start: XLA's defaults
+    mm.set_compile_mode("optimized")
+    assert cm.compiler_options(10, once=True) is None
+
+
+def test_a_solves_start_program_is_compiled_as_run_once(mode, monkeypatch):
+    """The start state's program gets the run-once options, the loop's chunk does not; both compile,
+    and the run reaches the optimized build's iterates to rounding."""
+    from mmpgo_jax._core import compilation_cache
+    from mmpgo_jax._mm import driver
+
+    seen = []
+
+    def recording(lowered, options):
+        seen.append(options)
+        return cm.compile_lowered(lowered, options)
+
+    monkeypatch.setattr(driver, "compile_lowered", recording)
+    monkeypatch.setattr(compilation_cache, "compile_lowered", recording)
+    monkeypatch.setattr(driver, "_COMPILED", {})
+    monkeypatch.setenv("MMPGO_COMPILATION_CACHE", "off")
+    graph = mm.read_g2o(TINY).graph
+    mm.set_compile_mode("fast")
+    fast = mm.solve(graph, 2, iterations=20, stop_when_stalled=False)
+    levels = [(o or {}).get("xla_backend_optimization_level") for o in seen]
+    assert levels.count(0) == 1 and len(levels) == 2, seen  # the start (level 0) and the chunk
+    mm.set_compile_mode("optimized")
+    opt = mm.solve(graph, 2, iterations=20, stop_when_stalled=False)
+    np.testing.assert_allclose(fast.history.f, opt.history.f, rtol=1e-9)
+
+
 def test_modes_force_one_way(mode, monkeypatch):
     monkeypatch.setenv(cm.ENV, "optimized")
     assert cm.compiler_options(10) is None
@@ -66,6 +101,10 @@ def test_an_unknown_option_falls_back_to_xla_defaults(monkeypatch):
     compiled = cm.compile_lowered(lowered, cm.compiler_options(1))
     x = jnp.arange(4.0)
     np.testing.assert_allclose(compiled(x), jnp.sin(x) * 2.0 + jnp.sum(x), rtol=1e-6)
+    monkeypatch.setattr(cm, "_FAST", {})
+    monkeypatch.setattr(cm, "_ONCE", {"xla_backend_optimization_level_gone": 0})
+    np.testing.assert_allclose(cm.compile_lowered(lowered, cm.compiler_options(1, once=True))(x),
+                               jnp.sin(x) * 2.0 + jnp.sum(x), rtol=1e-6)
     monkeypatch.setattr(cm, "_FAST", {"no_such_xla_option": False})
     with pytest.raises(Exception, match="no_such_xla_option"):
         cm.compile_lowered(lowered, cm.compiler_options(1))

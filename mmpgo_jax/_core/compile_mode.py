@@ -13,6 +13,11 @@ benchmark files at 10 robots) the fast way, where 1000 iterations at the measure
 than the compile saves, and larger programs for the fastest iterations; ``"fast"`` and
 ``"optimized"`` force one or the other. A per-program compiler option: no global XLA flag is set.
 Only the CPU backend has the choice; on a GPU the setting has no effect.
+
+A program a run calls once (a solver's start state: f, the gradient and the weights at X^0, one
+iteration's work) compiled the fast way is also compiled at LLVM's optimization level 0: its code
+runs slower (about 5x, measured on the loop) but once, and it compiles in about a third of the time
+(MIT, 10 robots, 2-core Intel Xeon: 0.07-0.08 s against 0.20 s, `benchmarks/compile_mode.md`).
 """
 
 from __future__ import annotations
@@ -30,6 +35,7 @@ MODES = ("auto", "fast", "optimized")
 #: 0.6-0.8 s the fast compile saves.
 FAST_COMPILE_SLOTS = 20_000
 _FAST = {"xla_cpu_use_fusion_emitters": False}
+_ONCE = {"xla_backend_optimization_level": 0}  # added for a program run once (module docstring)
 _mode: str | None = None
 
 
@@ -66,13 +72,14 @@ def program_slots(args) -> int | None:
     return None
 
 
-def compiler_options(slots: int | None) -> dict | None:
-    """XLA compiler options for a program of ``slots`` padded pose slots, or None (XLA's defaults)."""
+def compiler_options(slots: int | None, once: bool = False) -> dict | None:
+    """XLA compiler options for a program of ``slots`` padded pose slots, or None (XLA's defaults).
+    ``once``: the program runs once per run (its fast way is then LLVM's level 0 too)."""
     if jax.default_backend() != "cpu":
         return None
     mode = compile_mode()
     if mode == "fast" or (mode == "auto" and slots is not None and slots <= FAST_COMPILE_SLOTS):
-        return dict(_FAST)
+        return {**_FAST, **_ONCE} if once else dict(_FAST)
     return None
 
 
@@ -93,6 +100,6 @@ def compile_lowered(lowered, options: dict | None):
     try:
         return lowered.compile(compiler_options=options)
     except Exception as err:  # an unknown option: XLA's message names it
-        if "fusion_emitters" not in str(err):
+        if not any(name in str(err) for name in ("fusion_emitters", "backend_optimization_level")):
             raise
         return lowered.compile()

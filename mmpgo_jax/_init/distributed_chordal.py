@@ -609,7 +609,7 @@ def _drive_stage(part: Partition, problem: _Stage, X0, budget: int, tol, solver:
     placement = Placement(part)
     # the start's program from the persistent cache when it is on (a warm process does not trace it)
     start_fn = compile_once(start_run, solver, problem, X0,
-                            exported=(start_run.__wrapped__, (), solver.start_structure(problem)))
+                            exported=(start_run.__wrapped__, (), solver.start_structure(problem)), once=True)
     state, start = start_fn(solver, problem, X0)
     termination = Termination(budget, _CHUNK, rel_change_tol=tol, stop_when_stalled=False)
     out = drive(placement.compile_chunk(solver, problem), state, placement.start_record(jax.device_get(start)),

@@ -202,14 +202,15 @@ def _signature(tree):
     )
 
 
-def compile_once(fn, *args, static=(), exported=None):
+def compile_once(fn, *args, static=(), exported=None, once: bool = False):
     """``fn.lower(*args).compile()`` (``fn`` jitted; ``static`` its hashable static values, also
     part of the key) with the compile mode's options, cached per argument structure, shapes, dtypes,
-    shardings and those options. ``exported``:
+    shardings and those options. ``once``: a program a run calls once, e.g. a solver's start
+    (:func:`~mmpgo_jax._core.compile_mode.compiler_options`). ``exported``:
     ``(python function, static argument positions, output structure)`` to keep the traced program
     in the persistent cache when it is on (:func:`~mmpgo_jax._core.compilation_cache.compile_exported`:
     a warm process does not trace again)."""
-    options = compiler_options(program_slots(args))
+    options = compiler_options(program_slots(args), once=once)
     key = (fn, static, _signature(args), tuple(sorted((options or {}).items())))
     compiled = _COMPILED.get(key)
     if compiled is None:

@@ -170,7 +170,7 @@ def prepare(graph: PoseGraph, solver: Solver, robots, layout, termination: Termi
         clock.lap("build")
         monitor.phase("compiling")
         structure = solver.start_structure(problem)
-        start_fn = compile_once(start_run, solver, problem, X0,
+        start_fn = compile_once(start_run, solver, problem, X0, once=True,
                                 exported=None if structure is None else (start_run.__wrapped__, (), structure))
         clock.lap("compile")
         monitor.phase("building")
