@@ -11,7 +11,10 @@ the whole process's wall seconds, its processor seconds (user + sys of the child
 (both f = 2F of the same objective). ``--start`` adds the distributed initializations: the
 authors' ``dist_pgo --dist_init true --iters 1`` against ``mmpgo solve --init distributed-chordal
 --iterations 0`` (whole process; f at the start, and our centralized chordal start's f beside it);
-``--start-only`` runs only those.
+``--start-only`` runs only those. Besides the benchmark files, ``chain15k``: the long-chain graph of
+``benchmarks/inner_solver.py`` (``grid_2d_dataset(0, grid=300, num_poses=15000,
+loop_closure_prob=0.05)``: 15 000 planar poses, mostly odometry chains, 10 robots of 1 500), written
+to a temporary g2o file that both programs read.
 
     DPGO_MIRROR=... bash ../shared/anchors/build_dpgo.sh      # once per machine
     python benchmarks/vs_authors.py --repeats 3 --start --out benchmarks/vs_authors.md
@@ -27,13 +30,27 @@ import resource
 import statistics
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parents[1]
 ANCHORS = HERE.parent / "shared" / "anchors"
 FILES = {"MITb": "MIT.g2o", "intel": "intel.g2o", "M3500": "M3500.g2o", "city10000": "city10000.g2o",
-         "sphere2500": "sphere2500.g2o", "torus3D": "torus3D.g2o", "garage": "parking-garage.g2o"}
+         "sphere2500": "sphere2500.g2o", "torus3D": "torus3D.g2o", "garage": "parking-garage.g2o",
+         "chain15k": None}  # None: generated (module docstring)
+
+
+def dataset_file(name: str, data: Path, tmp: Path) -> str:
+    """The g2o path of ``name``: a benchmark file in ``data``, or the generated ``chain15k`` in ``tmp``."""
+    if FILES[name] is not None:
+        return str(data / FILES[name])
+    import mmpgo_jax as mm  # only to write the graph; this process runs no solve
+
+    ds = mm.grid_2d_dataset(0, grid=300, num_poses=15000, loop_closure_prob=0.05)
+    path = tmp / f"{name}.g2o"
+    mm.write_g2o(path, ds.graph, ds.ground_truth)
+    return str(path)
 
 
 def timed_process(cmd: list[str], env: dict | None = None) -> tuple[str, float, float]:
@@ -100,8 +117,10 @@ def main() -> None:
     load0 = os.getloadavg()
     lines = []
     solve_rows, start_rows = [], []
+    tmp_dir = tempfile.TemporaryDirectory(prefix="vs_authors_")  # removed when the script ends
+    tmp = Path(tmp_dir.name)
     for name in args.files:
-        file = str(data / FILES[name])
+        file = dataset_file(name, data, tmp)
         if not args.start_only:
             ours(file)  # warm the compilation cache (untimed)
             a, o = [], []
@@ -155,8 +174,10 @@ def main() -> None:
                          f"| {af:.4f} / {of:.4f} | {fc:.4f} | {(of - fc) / fc:+.1e} |")
     text = "\n".join(lines) + "\n"
     print(text)
-    if args.out:
-        args.out.write_text(text)
+    if args.out:  # all or nothing: a stopped run leaves the old file
+        part = args.out.with_name(args.out.name + ".part")
+        part.write_text(text)
+        os.replace(part, args.out)
 
 
 if __name__ == "__main__":
