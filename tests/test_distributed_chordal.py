@@ -428,3 +428,36 @@ def test_inverse_of_a_decaying_matrix_is_accurate_and_has_no_subnormals(dtype):
         assert np.linalg.norm(inverse[a] - reference[a], 2) <= 10 * n * eps * np.linalg.norm(reference[a], 2)
     real_parts = inverse.view(np.finfo(dtype).dtype) if np.iscomplexobj(inverse) else inverse
     assert not np.any((real_parts != 0) & (np.abs(real_parts) < np.finfo(dtype).tiny))
+
+
+def _ring(n: int, holonomy: float) -> PoseGraph:
+    """One cycle of ``n`` unit steps whose measured rotations turn by 2 pi + ``holonomy`` in all: near
+    pi the relaxed rotations collapse (the blocks opposite the anchor shrink towards 0), as on long
+    noisy chains, and their projection to SO(2) amplifies any error of the rotation stage."""
+    i = np.arange(n)
+    th = np.full(n, (2 * np.pi + holonomy) / n)
+    R = np.stack([np.stack([np.cos(th), -np.sin(th)], -1), np.stack([np.sin(th), np.cos(th)], -1)], -2)
+    return PoseGraph.from_arrays(i, (i + 1) % n, R, np.tile([1.0, 0.0], (n, 1)), np.ones(n), np.ones(n),
+                                 num_poses=n)
+
+
+def test_a_collapsed_relaxation_is_solved_until_its_projection_settles():
+    """With nearly opposite rotations around the ring the relaxed objective settles (relative change
+    under tol) while the blocks it projects are still off; the rotation stage goes on until its
+    residual is within sqrt(tol) of the smallest block's singular value, and the start then equals
+    the centralized chordal start (the objective's relative-change rule alone stopped at 30
+    iterations, 1.1e-6 above it)."""
+    g = _ring(300, np.pi - 1e-6)
+    X, info = distributed_chordal_initialization(g, 10)
+    central = float(cost(g, chordal_initialization(g)))
+    assert info.rotation_converged
+    assert _rel(float(cost(g, X)), central) < 1e-9
+    R, _, _, _ = distributed_relaxed_rotations(g, 10)
+    assert np.linalg.svd(np.asarray(R), compute_uv=False)[:, -1].min() < 1e-3  # the collapse the rule is for
+
+
+def test_the_projection_bound_applies_only_where_the_residual_is_above_it():
+    g = np.array([2.0, 1e-9])  # residual norms: the first and the last of a stage
+    assert dc._projection_settled(g, 1.0, 1e-10) is None  # 5e-10 <= sqrt(1e-10) * 1
+    bound = dc._projection_settled(g, 1e-6, 1e-10)  # 5e-10 > 1e-5 * 1e-6
+    assert bound == pytest.approx(2.0 * 1e-5 * 1e-6)

@@ -120,7 +120,14 @@ sums its own edges and half of its inter-robot edges; CG updates it along each s
 momentum restart the objective decreases essentially monotonically and linearly, and on the
 benchmark files the gap to the optimum at the stop was within 1-100x of tol; CG's relaxed rotation
 gap at the stop was 5e-13 to 2.4e-9 (parking-garage). ``tol`` and the budget are traced values:
-the one compiled chunk of a graph shape serves every tolerance and budget.
+the one compiled chunk of a graph shape serves every tolerance and budget. The rotation stage's
+output is projected to SO(d) block by block, which multiplies a block's error by the inverse of its
+smallest singular value sigma: where the relaxation collapses (long noisy chains, sigma down to
+2e-8; the benchmark files 0.013-0.99) the relaxed objective settles to 11 digits while the projected
+rotations are still off by radians. So a rotation stage stopped by ``tol`` goes on (the same CG, its
+state kept) until its residual is within sqrt(tol) sigma of the first (:func:`_projection_settled`);
+no benchmark file needs it, and a 15 000-pose chain graph's start went from +500 % of the
+centralized chordal start's f to +0.36 % (160 -> 250 rotation iterations).
 
 Budgets. The defaults (20000 + 20000 iterations) are a cap, not a cost: every benchmark file
 stops by ``tol`` first. With CG the files need 60-470 iterations per stage; AMM-Chordal needs
@@ -603,18 +610,54 @@ def _single(solver: Solver) -> bool:
     return isinstance(solver, CGChordal)
 
 
-def _drive_stage(part: Partition, problem: _Stage, X0, budget: int, tol, solver: Solver):
+def _drive_stage(part: Partition, problem: _Stage, X0, budget: int, tol, solver: Solver, conditioning=None):
     """One stage of the distributed chordal start on the driver: (final iterate, f history,
-    iterations, whether the tolerance stopped it)."""
+    iterations, whether a tolerance stopped it). ``conditioning(X)``: the smallest singular value of
+    the iterate's blocks where the stage's output is projected (the rotation stage); a stage stopped
+    by ``tol`` then goes on where its residual is large against it (:func:`_projection_settled`)."""
     placement = Placement(part)
     # the start's program from the persistent cache when it is on (a warm process does not trace it)
     start_fn = compile_once(start_run, solver, problem, X0,
                             exported=(start_run.__wrapped__, (), solver.start_structure(problem)), once=True)
     state, start = start_fn(solver, problem, X0)
     termination = Termination(budget, _CHUNK, rel_change_tol=tol, stop_when_stalled=False)
-    out = drive(placement.compile_chunk(solver, problem), state, placement.start_record(jax.device_get(start)),
-                termination, fetch=placement.fetch)
-    return out.state.X, out.history.f, out.history.iterations, out.result is RESULTS.rel_change_tol
+    chunk = placement.compile_chunk(solver, problem)
+    out = drive(chunk, state, placement.start_record(jax.device_get(start)), termination, fetch=placement.fetch)
+    if conditioning is not None and out.result is RESULTS.rel_change_tol and out.history.iterations < budget:
+        target = _projection_settled(out.history.grad_norm, conditioning(out.state.X), tol)
+        if target is not None:  # the same iteration goes on (one compiled chunk, its state kept)
+            out = drive(chunk, out.state, None, Termination(budget, _CHUNK, grad_tol=target, stop_when_stalled=False),
+                        fetch=placement.fetch, history=out.history)
+    converged = out.result in (RESULTS.rel_change_tol, RESULTS.grad_tol)
+    return out.state.X, out.history.f, out.history.iterations, converged
+
+
+def _projection_settled(grad_norm: np.ndarray, sigma: float, tol: float) -> float | None:
+    """The residual norm a stage stopped by its relative-change ``tol`` must reach before its output
+    is projected, or None where it already has. The rotation stage's relaxed blocks are projected to
+    SO(d), which multiplies their error by 1 / ``sigma`` (the smallest singular value of a block);
+    where the relaxation collapses (long noisy chains: sigma 2e-8 on the 15 000-pose chain graph of
+    benchmarks/vs_authors.md, against 0.013-0.99 on the benchmark files) the objective agrees with
+    its optimum to 11 digits while the projected rotations are still wrong by radians, and the
+    translations follow them along the chains (f at the start +500 % against the centralized
+    start's). So the relative residual (CG's error bound up to the conditioning) must be within
+    sqrt(tol) sigma: the relative-change rule holds f to tol, i.e. the iterate to about sqrt(tol),
+    and that bound is asked of the projected blocks."""
+    relative = grad_norm[-1] / grad_norm[0]
+    bound = np.sqrt(tol) * sigma
+    return None if relative <= bound else float(bound * grad_norm[0])
+
+
+def _smallest_singular_value(st: _Setup):
+    """``conditioning`` of the rotation stage: the smallest singular value of the relaxed blocks of
+    the free poses (not anchors, not padding), on the host."""
+    free = np.asarray(st.part.pose_mask) & ~np.asarray(st.anchor)
+
+    def sigma(X):
+        blocks = np.asarray(X)[free]
+        return float(np.linalg.svd(blocks, compute_uv=False)[:, -1].min(initial=1.0))
+
+    return sigma
 
 
 # --------------------------------------------------------------------------------------------
@@ -734,7 +777,8 @@ def _run_rotations(st: _Setup, Ginv, R0, budget: int, tol, solver: Solver):
     """The rotation stage on the driver; ``budget`` and ``tol`` are traced (the compiled chunk of 10
     iterations serves every budget and tolerance)."""
     stage = RotationStage(st.part.edges, jnp.asarray(st.anchor), Ginv)
-    return _drive_stage(st.part, stage, jnp.asarray(R0), budget, _check_tol(tol), solver)
+    return _drive_stage(st.part, stage, jnp.asarray(R0), budget, _check_tol(tol), solver,
+                        conditioning=_smallest_singular_value(st))
 
 
 def _run_translations(st: _Setup, Ginv, Rpad, t0, budget: int, tol, solver: Solver):
