@@ -373,9 +373,14 @@ def from_soa(Y):
 
 def soa_bmm(a, b):
     """Product of small matrices stored along the last axis: (p, q, n) x (q, r, n) -> (p, r, n)."""
-    out = a[:, 0, None] * b[None, 0]
+    # static slices (not a[:, k, None] * b[None, k]): the same products and sums, in the same order,
+    # without NumPy-style indexing, whose tracing is most of this function's share of a compile
+    def term(k):
+        return jax.lax.slice_in_dim(a, k, k + 1, axis=1) * jax.lax.slice_in_dim(b, k, k + 1, axis=0)
+
+    out = term(0)
     for k in range(1, a.shape[1]):
-        out = out + a[:, k, None] * b[None, k]
+        out = out + term(k)
     return out
 
 
