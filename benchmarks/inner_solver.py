@@ -37,9 +37,14 @@ REFERENCE = mg.SubproblemConfig(max_steps=30, cg_iterations=300, cg_tolerance=1e
                              decrease_tolerance=0.0)
 
 
+def chain15k():
+    """The synthetic long-chain graph (module docstring) as a dataset (graph and ground truth)."""
+    return mg.grid_2d_dataset(0, grid=300, num_poses=15000, loop_closure_prob=0.05)
+
+
 def load(name: str):
     if name == "chain15k":
-        return mg.grid_2d_dataset(0, grid=300, num_poses=15000, loop_closure_prob=0.05).graph
+        return chain15k().graph
     return mg.read_g2o(mg.find_benchmark(name)).graph
 
 

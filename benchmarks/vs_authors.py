@@ -12,9 +12,8 @@ the whole process's wall seconds, its processor seconds (user + sys of the child
 authors' ``dist_pgo --dist_init true --iters 1`` against ``mmpgo solve --init distributed-chordal
 --iterations 0`` (whole process; f at the start, and our centralized chordal start's f beside it);
 ``--start-only`` runs only those. Besides the benchmark files, ``chain15k``: the long-chain graph of
-``benchmarks/inner_solver.py`` (``grid_2d_dataset(0, grid=300, num_poses=15000,
-loop_closure_prob=0.05)``: 15 000 planar poses, mostly odometry chains, 10 robots of 1 500), written
-to a temporary g2o file that both programs read.
+``benchmarks/inner_solver.py`` (15 000 planar poses, mostly odometry chains, 10 robots of 1 500),
+written to a temporary g2o file that both programs read.
 
     DPGO_MIRROR=... bash ../shared/anchors/build_dpgo.sh      # once per machine
     python benchmarks/vs_authors.py --repeats 3 --start --out benchmarks/vs_authors.md
@@ -45,9 +44,11 @@ def dataset_file(name: str, data: Path, tmp: Path) -> str:
     """The g2o path of ``name``: a benchmark file in ``data``, or the generated ``chain15k`` in ``tmp``."""
     if FILES[name] is not None:
         return str(data / FILES[name])
+    from inner_solver import chain15k  # the graph's one definition (this folder is on the path as a script)
+
     import mmpgo_jax as mm  # only to write the graph; this process runs no solve
 
-    ds = mm.grid_2d_dataset(0, grid=300, num_poses=15000, loop_closure_prob=0.05)
+    ds = chain15k()
     path = tmp / f"{name}.g2o"
     mm.write_g2o(path, ds.graph, ds.ground_truth)
     return str(path)
