@@ -30,7 +30,9 @@ loop-closure information) so that ``rate`` percent of the inter-robot closures a
   start, then TLS (the default until 2026-12-05);
 * ``default``: ``solve(graph, robots, loss="tls")``: the default since 2026-12-05, a run from each of
   ``ROBUST_STARTS`` (the GNC-chordal and the distributed robust start), the lower TLS objective kept
-  (the report names the start kept);
+  (the report names the start kept); since 2026-12-06 the distributed start's runs are finished from
+  the distributed chordal start of their kept edges, as in ``distributed``, and that row ends with a
+  run from its kept edges' optimum (kept when the TLS objective is lower);
 * ``gtsam``: a reference outside this package: GTSAM's ``GncOptimizer`` (TLS, Levenberg-Marquardt
   stages) from the centralized chordal start, odometry known inliers, the same scale c
   (:func:`~mmpgo_jax._experiments.gtsam_lm.gtsam_gnc`; needs ``pip install gtsam``); its inliers are

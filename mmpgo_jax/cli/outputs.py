@@ -252,10 +252,13 @@ def print_summary(result, fstar, data: LoadedInput | None = None) -> None:
         rejected = "" if count is None else f", {count} edge{'' if count == 1 else 's'} rejected"
         finished = ("" if row.get("finished") is None
                     else f" (f = {row['finished']:.6f} before it was finished from its kept edges)")
+        polished = ("" if row.get("polished") is None
+                    else f"; f = {row['polished']:.6f} before a last run from its kept edges' optimum")
         print(f"start       {row['start']}: f = {row['f']:.6f}{finished}{rejected}, {row['iterations']} iterations, "
               f"{row['seconds']:.2f} s ({kept}){_revisits_text(row.get('revisits', ()))}"
               f"{_trials_text(result, row.get('readmissions', ()), data, 'admitted', 'it had rejected tried')}"
-              f"{_trials_text(result, row.get('removals', ()), data, 'removed', 'it had accepted left out')}")
+              f"{_trials_text(result, row.get('removals', ()), data, 'removed', 'it had accepted left out')}"
+              f"{polished}")
     if result.loss is not None:
         robust = ~result.inliers if prefiltered is None else ~result.inliers & ~prefiltered
         used = len(result.inliers) - (0 if prefiltered is None else int(prefiltered.sum()))
