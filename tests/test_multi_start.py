@@ -249,10 +249,10 @@ def test_a_run_that_overrules_its_distributed_start_goes_on_from_that_start_with
     assert plain.stats["starts"][0]["revisits"] == []
 
 
-def test_start_rejected_inter_robot_closures_are_admitted_by_residual_while_the_objective_falls(monkeypatch):
-    """The converse of the revisits: candidates are the inter-robot closures the start rejected (not
-    the consecutive-pose edges between robots, which it trusts) that the run rejected too; with other
-    starts, only those another run accepted. One per round, the one of smallest residual at the
+def test_rejected_inter_robot_closures_are_admitted_by_residual_while_the_objective_falls(monkeypatch):
+    """The converse of the revisits: candidates are the inter-robot closures the run rejected (not
+    the consecutive-pose edges between robots, which the start trusts), whether the start rejected
+    them too or accepted them. One per round, the one of smallest residual at the
     current run's result, a run from that result holding its classification with the closure
     accepted (and made to try it: ``keeps``), a round kept when its objective is lower, the search
     ending at the first round that is not."""
@@ -306,10 +306,11 @@ def test_start_rejected_inter_robot_closures_are_admitted_by_residual_while_the_
     assert [r["admitted"] for r in rounds] == [b, c, a] and [r["kept"] for r in rounds] == [True, True, False]
     assert [r["f_before"] for r in rounds] == [10.0, 9.0, 8.5]
     assert f == out.f == 8.5 and all(r["iterations"] == 7 for r in rounds)
-    # the first round not kept ends the search (a first by residual, its f above the run's)
+    # the first round not kept ends the search (a first by residual, its f above the run's); a, which
+    # the start accepted and the run rejected (overruled), is a candidate too
     tried.clear()
     residual[a], outcome[a] = 0.5, 10.5
-    out, f, rounds = readmit(run([], 0.0, doubted=[b, c, a]), [a, b, c])
+    out, f, rounds = readmit(run([], 0.0, doubted=[b, c]), [a, b, c])
     assert tried == [a] and [(r["admitted"], r["kept"]) for r in rounds] == [(a, False)] and f == out.f == 10.0
     residual[a], outcome[a] = 3.0, 9.5
     # maps whose residuals are 0.6 of what their information claims (variance factor 0.6): a round is
@@ -359,9 +360,9 @@ def test_start_rejected_inter_robot_closures_are_admitted_by_residual_while_the_
     out, f, rounds = readmit(run([], 0.0, doubted=[b, c]), [a, b, c])
     assert tried == [b] and [(r["admitted"], r["f"], r["kept"]) for r in rounds] == [(b, 9.0, False)] and f == 10.0
     monkeypatch.setattr(solve_module, "_run_finished", run_finished)
-    # nothing doubted, or the run took every doubted closure back: no round
+    # the run rejected no inter-robot closure (it took back every one the start doubted): no round
     tried.clear()
-    assert readmit(run([], 0.0), [a, b])[2] == [] and readmit(run([], 0.0, doubted=[b]), [a])[2] == []
+    assert readmit(run([], 0.0), [])[2] == [] and readmit(run([], 0.0, doubted=[b]), [0, 1])[2] == []
     assert tried == []
 
 
