@@ -228,8 +228,10 @@ def solve(
 
     starts = _starts(start, loss, robots, start_weights=start_weights, checkpoint=checkpoint, resume=resume)
     finish_kept = _kept_edges_finish(loss, distributed, len(starts), robots, fixed)
-    # the default's distributed robust row, finished and searched as distributed=True, ends at the optimum
-    # of the edges it keeps where that lowers F_rho, as the GNC start's row does
+    # the default's distributed robust row, finished and searched as distributed=True, ends where its last
+    # run's budget ran out (teams at 50 % wrong closures, every edge right: 1e-4 to 1e-2 from the
+    # outlier-free optimum on maps ~20 across); so it goes on once from the optimum of the edges it keeps,
+    # kept where that lowers F_rho, as the GNC start's row ends at an optimum
     polish = functools.partial(_kept_edges_optimum, fixed=fixed) if finish_kept is not None and not distributed \
         else None
     revisit = _revisits(loss, start_weights, checkpoint, resume)
@@ -413,8 +415,8 @@ def _best_of(starts: tuple, run_from: Callable, graph: PoseGraph, monitor: Monit
             row["iterations"] += sum(r["iterations"] for r in rounds)
             row["polished"] = None
             if polish is not None and runs[k].result is RESULTS.iterations:
-                runs[k], row["f"], row["polished"], iterations = _polished(runs[k], row["f"], polish, label, run_from,
-                                                                           graph, monitor)
+                runs[k], row["f"], row["polished"], iterations, _ = _went_on(
+                    runs[k], row["f"], polish, f"{label}, at its kept edges' optimum", run_from, graph, monitor)
                 row["iterations"] += iterations
             row["rejected"] = int((~np.asarray(runs[k].inliers, bool)).sum())
             row["seconds"] += time.perf_counter() - t
@@ -425,21 +427,21 @@ def _best_of(starts: tuple, run_from: Callable, graph: PoseGraph, monitor: Monit
     return runs[best]
 
 
-def _polished(run: SolveResult, f: float, polish: Callable, label: str, run_from: Callable, graph: PoseGraph,
-              monitor: Monitor) -> tuple[SolveResult, float, float | None, int]:
-    """(run, f, f before or None, iterations): a last run from ``polish(graph, run)``, kept when its
-    robust objective is lower. The distributed robust start's search finishes its runs from the
-    distributed chordal start of their kept edges and ends where its last run's budget ran out (10 x
-    500-pose teams at 50 % wrong inter-robot closures, every edge classified right: 1e-4 to 1e-2
-    from the outlier-free optimum on maps about 20 across); the GNC start's row ends at an optimum."""
-    begin = polish(graph, run)
-    if begin is None:
-        return run, f, None, 0
-    again = run_from(begin[0], _FromStart(monitor, f"{label}, at its kept edges' optimum"))
+def _went_on(run: SolveResult, f: float, make_start: Callable, label: str, run_from: Callable, graph: PoseGraph,
+             monitor: Monitor) -> tuple[SolveResult, float, float | None, int, dict | None]:
+    """(run, f, f before or None, iterations, how the start was made or None): a run from the start
+    ``make_start(graph, run)`` makes of ``run``'s kept edges (None: nothing goes on), kept when its
+    robust objective is lower (a finish, :func:`_run_finished`, or the default's last run from the
+    kept edges' optimum after a distributed robust start's search, :func:`_best_of`)."""
+    made = make_start(graph, run)
+    if made is None:
+        return run, f, None, 0, None
+    begin, made_by = made
+    again = run_from(begin, _FromStart(monitor, label))
     f_again = _objective(again, graph)
     if f_again < f:
-        return again, f_again, f, again.iterations
-    return run, f, None, again.iterations
+        return again, f_again, f, again.iterations, made_by
+    return run, f, None, again.iterations, made_by
 
 
 def _finish_for(finish_for: Callable | None, name: str) -> Callable | None:
@@ -463,14 +465,9 @@ def _run_finished(begin, label: str, run_from: Callable, graph: PoseGraph, monit
     f, before, iterations, finished_by = _objective(run, graph), None, run.iterations, None
     tried = keeps is None or run.inliers is None or bool(run.inliers[keeps])
     if finish is not None and tried and run.result is RESULTS.iterations and run.iterations > 0:
-        begin_again = finish(graph, run)
-        if begin_again is not None:
-            begin_again, finished_by = begin_again
-            again = run_from(begin_again, _FromStart(monitor, f"{label}, finished from its kept edges"))
-            iterations += again.iterations
-            f_again = _objective(again, graph)
-            if f_again < f:
-                run, before, f = again, f, f_again
+        run, f, before, more, finished_by = _went_on(run, f, finish, f"{label}, finished from its kept edges",
+                                                     run_from, graph, monitor)
+        iterations += more
     return first, run, f, iterations, before, finished_by
 
 
