@@ -29,6 +29,7 @@ from .._mm.driver import RESULTS, History, Monitor, NonFiniteError, Termination,
 from .._mm.robust import L2, GNCConfig, RobustLoss, as_loss, robust_objective
 from .._mm.solvers import MM, Solver, as_solver
 from .._mm.subproblem import SubproblemConfig
+from .._robust.release import removal_changes
 from .build import ROBUST_START, ROBUST_STARTS, Clock, NamedStart, as_termination, finish, prepare
 from .devices import auto_layout
 from .methods import check_loss, solver_for
@@ -407,10 +408,15 @@ def _best_of(starts: tuple, run_from: Callable, graph: PoseGraph, monitor: Monit
             row_finish = _finish_for(finish, row["start"])
             runs[k], row["f"], row["revisits"], first = _revisited(
                 firsts[k], runs[k], row["f"], others, label, run_from, graph, monitor, row_finish)
-            runs[k], row["f"], row["readmissions"] = _readmitted_to_start(
-                first, runs[k], row["f"], label, run_from, graph, monitor, row_finish)
-            runs[k], row["f"], row["removals"] = _removed_from_run(first, runs[k], row["f"], label, run_from, graph,
-                                                                   monitor, row_finish)
+            while True:  # a closure left out may let a rejected one back in: again until none is left out
+                runs[k], row["f"], rounds = _readmitted_to_start(first, runs[k], row["f"], label, run_from, graph,
+                                                                 monitor, row_finish)
+                row["readmissions"] += rounds
+                runs[k], row["f"], rounds = _removed_from_run(first, runs[k], row["f"], label, run_from, graph,
+                                                              monitor, row_finish)
+                row["removals"] += rounds
+                if not any(r["kept"] for r in rounds):
+                    break
             rounds = (*row["revisits"], *row["readmissions"], *row["removals"])
             row["iterations"] += sum(r["iterations"] for r in rounds)
             row["polished"] = None
@@ -610,56 +616,59 @@ def _inter_robot_closures(run: SolveResult, graph: PoseGraph) -> np.ndarray:
     return (robot[i] != robot[j]) & (np.abs(i - j) != 1)
 
 
-def _strain_shares(first: SolveResult, run: SolveResult, graph: PoseGraph) -> tuple[np.ndarray, np.ndarray]:
-    """(candidates, share): the inter-robot loop closures ``run`` accepted (not the trusted
-    consecutive-pose edges), and per candidate the larger of its two robots' strain shares. A robot's
-    strain: the cost of its own edges the start kept at the run's result less their cost in its own map
-    (``first.start``: the distributed robust start places each robot's map rigidly, so there they cost
-    what they cost in the map); its share: the strain over the number of candidates that touch it."""
+def _outvotable_closures(run: SolveResult, graph: PoseGraph) -> np.ndarray:
+    """(m,) bool: the inter-robot loop closures ``run`` accepted (not the trusted consecutive-pose
+    edges) whose robot pair holds at most two accepted closures: a pair of three or more outvotes a
+    wrong one of them (its residual at the pair's frame stays large, and TLS drops it), one of one or
+    two it cannot (one closure alone, or two that disagree without telling which is wrong)."""
     robot = np.asarray(run.partition.robot_of_pose)
     a, b = robot[np.asarray(graph.i)], robot[np.asarray(graph.j)]
-    own = (a == b) & (np.asarray(first.start_weights) > 0.5)
-    excess = host_edge_costs(graph, run.poses) - host_edge_costs(graph, first.start)
+    accepted = np.asarray(run.inliers, bool) & _inter_robot_closures(run, graph)
     count = int(robot.max()) + 1
-    strain = np.bincount(a[own], excess[own], minlength=count)
-    candidates = np.flatnonzero(np.asarray(run.inliers, bool) & _inter_robot_closures(run, graph))
-    touching = np.bincount(np.concatenate([a[candidates], b[candidates]]), minlength=count)
-    share = strain / np.maximum(touching, 1)
-    return candidates, np.maximum(share[a[candidates]], share[b[candidates]])
+    pair = np.minimum(a, b) * count + np.maximum(a, b)
+    held = np.bincount(pair[accepted], minlength=count * count)
+    return accepted & (held[pair] <= 2)
 
 
 def _removed_from_run(first: SolveResult, run: SolveResult, f: float, label: str, run_from: Callable,
                       graph: PoseGraph, monitor: Monitor, finish: Callable | None) -> tuple[SolveResult, float, list]:
     """An inter-robot loop closure the start accepted wrongly may fit the run's result (it bent the
     maps to itself), so neither the run nor :func:`_revisited` nor :func:`_readmitted_to_start` ever
-    looks at it. What it leaves is strain: the robots it bent carry their own edges at a cost above
-    what those edges cost in the robots' own maps (MIT with 50 % wrong inter-robot closures, seed 1:
-    robot 8's only accepted closure is wrong, cost 0.05 c^2 at the result; robot 8's odometry costs
-    19.5 there against 2.2 at the outlier-free classification's result). Removing a closure lowers
-    the robust objective only if it releases more than c^2 less its own cost; what one closure can
-    release is judged by its robots' strain shared among the closures that touch them
-    (:func:`_strain_shares`). So, one per round, the closure of largest share beyond that is left out:
-    a run goes on from the result with the run's classification held and that closure rejected, kept
-    when its robust objective is lower (MIT 50 %: 346.6 -> 322.1, the outlier-free classification),
-    until a round is not kept or no closure's share passes. Each closure is tried once. Returns (run,
-    f, rounds: per round the edge removed, f before and after, iterations, kept, seconds)."""
-    if run.inliers is None or first.start is None or first.start_weights is None:
+    looks at it. What it leaves is strain in its robots' other edges (MIT with 50 % wrong
+    inter-robot closures, seed 1: robot 8's only accepted closure is wrong, cost 0.05 c^2 at the
+    result; robot 8's odometry costs 19.5 there against 2.2 at the outlier-free classification's
+    result). Candidates: the accepted closures their own robot pair cannot outvote
+    (:func:`_outvotable_closures`); per candidate the change of the objective its removal is
+    predicted to bring, its two robots' maps re-optimized with and without it, the neighbours held
+    (:func:`~mmpgo_jax._robust.release.removal_changes`). Until 2026-12-06 the prediction was the
+    robots' strain shared among the closures touching them, which on a 10 x 500-pose team with the
+    Cube's noise (seed 1, 13 wrong inter-robot closures; benchmarks/robust_teams.md) left the one
+    wrong closure the run kept untried: its robots' share 3.58 against c^2 less its cost, 11.0, while
+    its predicted change is -6.4 and every correct one's of its kind above +6 (the wrong one first).
+    One per round, the most negative prediction first: a run goes on from the result with the run's
+    classification held and that closure rejected, kept when its robust objective is lower (MIT 50 %:
+    346.6 -> 322.1, the outlier-free classification), until a round is not kept or no prediction is
+    negative. Each closure is tried once. Returns (run, f, rounds: per round the edge removed, its
+    predicted change, f before and after, iterations, kept, seconds)."""
+    if run.inliers is None or first.start_weights is None:
         return run, f, []
     c2 = float(np.asarray(run.loss.scale)) ** 2
     tried = np.zeros(graph.num_edges, bool)
     rounds = []
     while True:
-        candidates, share = _strain_shares(first, run, graph)
-        cost = host_edge_costs(graph, run.poses)[candidates]
-        open_ = ~tried[candidates] & (share > c2 - cost)
-        if not open_.any():
+        candidates = np.flatnonzero(_outvotable_closures(run, graph) & ~tried)
+        if not candidates.size:
             break
-        edge = int(candidates[open_][np.argmax(share[open_])])
+        change = removal_changes(graph, run.partition.robot_of_pose, run.poses, run.inliers, candidates, c2)
+        if not (change < 0).any():
+            break
+        edge = int(candidates[np.argmin(change)])
         tried[edge] = True
         again, f_again, iterations, seconds = _trial(run, edge, 0.0, f"{label}, {len(rounds) + 1} accepted closure(s) "
                                                      "left out", run_from, graph, monitor, finish)
         kept = f_again < f
-        rounds.append(dict(removed=edge, f_before=f, f=f_again, iterations=iterations, kept=kept, seconds=seconds))
+        rounds.append(dict(removed=edge, predicted=float(change.min()), f_before=f, f=f_again, iterations=iterations,
+                           kept=kept, seconds=seconds))
         if not kept:
             break
         run, f = again, f_again
