@@ -6,10 +6,12 @@ out changes the truncated least-squares objective 2 F_rho by c^2 - (its cost) - 
 other edges release once it is gone). The release is estimated here per robot pair: the two robots'
 poses re-optimized (Newton, :func:`~mmpgo_jax._mm.centralized.newton_optimum`) over the edges the
 run keeps that touch them, every other robot's poses held where they are (what the pair's neighbours
-send them), once with the closure and once without it. The estimate is a bound from below on what a
-whole run can release (the neighbours hold still), so a closure whose estimate lowers the objective
-is worth a trial; one whose estimate does not may still be wrong. No step needs more than two robots'
-maps and their neighbours' boundary poses.
+send them), once with the closure and once without it. A whole run, whose other robots move too, can
+release more, so the prediction is conservative: a closure predicted to lower the objective is worth
+a trial run, one predicted not to may still be wrong. No step needs more than two robots' maps and
+their neighbours' boundary poses. Measured on a 10 x 500-pose team with the Cube's noise (seed 1,
+benchmarks/robust_teams.md): the one wrong closure the run kept is predicted at -6.4, every correct
+closure of a pair holding at most two at +6.6 or more.
 """
 
 from __future__ import annotations
