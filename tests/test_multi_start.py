@@ -371,13 +371,13 @@ def _rotations(rng, k):
     return np.stack([np.stack([np.cos(a), -np.sin(a)], -1), np.stack([np.sin(a), np.cos(a)], -1)], -2)
 
 
-def test_outvotable_closures_are_accepted_inter_robot_closures_of_pairs_holding_at_most_two():
-    """``_outvotable_closures``: accepted edges between two robots, not between consecutive poses,
+def test_closures_their_pair_cannot_outvote_are_accepted_inter_robot_closures_of_pairs_holding_at_most_two():
+    """``_closures_their_pair_cannot_outvote``: accepted edges between two robots, not between consecutive poses,
     whose robot pair (either direction) holds at most two accepted ones; rejected closures neither
     count nor are candidates."""
     from types import SimpleNamespace
 
-    from mmpgo_jax._solve.solve import _outvotable_closures
+    from mmpgo_jax._solve.solve import _closures_their_pair_cannot_outvote
 
     robot = np.repeat([0, 1, 2], 4)
     #            odometry 3-4 | pair 0-1: three accepted | pair 1-2: two (one reversed) | 0-2: one + one rejected
@@ -387,9 +387,9 @@ def test_outvotable_closures_are_accepted_inter_robot_closures_of_pairs_holding_
     inliers[10] = False
     graph = SimpleNamespace(i=i, j=j)
     run = SimpleNamespace(inliers=inliers, partition=SimpleNamespace(robot_of_pose=robot))
-    assert np.flatnonzero(_outvotable_closures(run, graph)).tolist() == [7, 8, 9]
+    assert np.flatnonzero(_closures_their_pair_cannot_outvote(run, graph)).tolist() == [7, 8, 9]
     inliers[6] = False  # pair 0-1 down to two: its closures become candidates too
-    assert np.flatnonzero(_outvotable_closures(run, graph)).tolist() == [4, 5, 7, 8, 9]
+    assert np.flatnonzero(_closures_their_pair_cannot_outvote(run, graph)).tolist() == [4, 5, 7, 8, 9]
 
 
 def test_removal_changes_are_the_pair_optima_without_and_with_the_closure_by_an_independent_minimizer():
@@ -478,7 +478,7 @@ def test_accepted_inter_robot_closures_are_left_out_by_predicted_change_while_th
         made[out.poses] = out
         return out
 
-    def outvotable(here, graph):
+    def cannot_outvote(here, graph):
         return np.isin(np.arange(m), [a, b, c, d]) & here.inliers
 
     def changes(graph, robots, poses, kept, candidates, c2):
@@ -494,7 +494,7 @@ def test_accepted_inter_robot_closures_are_left_out_by_predicted_change_while_th
         again = run([e for e in (a, b, c) if e in tried], outcome[removed])
         return again, again, outcome[removed], 7, None, None
 
-    monkeypatch.setattr(solve_module, "_outvotable_closures", outvotable)
+    monkeypatch.setattr(solve_module, "_closures_their_pair_cannot_outvote", cannot_outvote)
     monkeypatch.setattr(solve_module, "removal_changes", changes)
     monkeypatch.setattr(solve_module, "_run_finished", run_finished)
     graph = SimpleNamespace(num_edges=m)

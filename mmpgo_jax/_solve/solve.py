@@ -616,7 +616,7 @@ def _inter_robot_closures(run: SolveResult, graph: PoseGraph) -> np.ndarray:
     return (robot[i] != robot[j]) & (np.abs(i - j) != 1)
 
 
-def _outvotable_closures(run: SolveResult, graph: PoseGraph) -> np.ndarray:
+def _closures_their_pair_cannot_outvote(run: SolveResult, graph: PoseGraph) -> np.ndarray:
     """(m,) bool: the inter-robot loop closures ``run`` accepted (not the trusted consecutive-pose
     edges) whose robot pair holds at most two accepted closures: a pair of three or more outvotes a
     wrong one of them (its residual at the pair's frame stays large, and TLS drops it), one of one or
@@ -638,7 +638,7 @@ def _removed_from_run(first: SolveResult, run: SolveResult, f: float, label: str
     inter-robot closures, seed 1: robot 8's only accepted closure is wrong, cost 0.05 c^2 at the
     result; robot 8's odometry costs 19.5 there against 2.2 at the outlier-free classification's
     result). Candidates: the accepted closures their own robot pair cannot outvote
-    (:func:`_outvotable_closures`); per candidate the change of the objective its removal is
+    (:func:`_closures_their_pair_cannot_outvote`); per candidate the change of the objective its removal is
     predicted to bring, its two robots' maps re-optimized with and without it, the neighbours held
     (:func:`~mmpgo_jax._robust.release.removal_changes`). Until 2026-12-06 the prediction was the
     robots' strain shared among the closures touching them, which on a 10 x 500-pose team with the
@@ -656,7 +656,7 @@ def _removed_from_run(first: SolveResult, run: SolveResult, f: float, label: str
     tried = np.zeros(graph.num_edges, bool)
     rounds = []
     while True:
-        candidates = np.flatnonzero(_outvotable_closures(run, graph) & ~tried)
+        candidates = np.flatnonzero(_closures_their_pair_cannot_outvote(run, graph) & ~tried)
         if not candidates.size:
             break
         change = removal_changes(graph, run.partition.robot_of_pose, run.poses, run.inliers, candidates, c2)
