@@ -171,6 +171,7 @@ def test_distributed_robust_runs_on_their_budget_go_on_from_their_kept_edges_cho
     monkeypatch.setattr(solve_module, "centralized_optimum", lambda *a, **k: pytest.fail("a centralized step"))
     monkeypatch.setattr(solve_module, "_revisited", lambda first, run, f, *a: (run, f, [], first))  # below
     monkeypatch.setattr(solve_module, "_readmitted_to_start", lambda first, run, f, *a: (run, f, []))
+    monkeypatch.setattr(solve_module, "_exchanged_in_run", lambda first, run, f, *a: (run, f, []))
     ds = mg.cube_dataset(1, grid=3, num_poses=80)
     bad = add_outliers(ds.graph, 0.3, reference=ds.ground_truth, seed=2)
     for iterations, second_kept in ((5, True), (20, False)):  # as measured on this graph
@@ -225,6 +226,7 @@ def test_a_run_that_overrules_its_distributed_start_goes_on_from_that_start_with
     import mmpgo_jax._solve.solve as solve_module
 
     monkeypatch.setattr(solve_module, "_readmitted_to_start", lambda first, run, f, *a: (run, f, []))
+    monkeypatch.setattr(solve_module, "_exchanged_in_run", lambda first, run, f, *a: (run, f, []))
     d = mg.solve(bad.graph, 3, loss="tls", iterations=200, distributed=True)
     (row,) = d.stats["starts"]
     rounds = row["revisits"]
@@ -392,13 +394,12 @@ def test_closures_their_pair_cannot_outvote_are_accepted_inter_robot_closures_of
     assert np.flatnonzero(_closures_their_pair_cannot_outvote(run, graph)).tolist() == [4, 5, 7, 8, 9]
 
 
-def test_removal_changes_are_the_pair_optima_without_and_with_the_closure_by_an_independent_minimizer():
-    """``removal_changes``: per candidate, min over its two robots' poses of the kept edges touching
-    them without it, plus c^2, less that minimum with it, the other robots' poses held. Reference: BFGS
-    over (angle, x, y) of each free pose (scipy), the cost written out edge by edge."""
+def _three_robots_one_wrong_closure():
+    """Three robots of four poses (2D), 14 edges, edge 11 (3-7, robots 0-1) wrong, edge 12 rejected by a
+    run; poses near the truth; and the minimum of the cost of some edges over some poses, the others
+    held, by BFGS over (angle, x, y) of each free pose (scipy), the cost written out edge by edge: an
+    independent reference for the pair-local predictions."""
     from scipy.optimize import minimize
-
-    from mmpgo_jax._robust.release import removal_changes
 
     rng = np.random.default_rng(3)
     robot = np.repeat([0, 1, 2], 4)
@@ -421,10 +422,8 @@ def test_removal_changes_are_the_pair_optima_without_and_with_the_closure_by_an_
     poses = mg.Poses(R=np.stack([rot(a) for a in angles]), t=t0)
     kept = np.ones(m, bool)
     kept[12] = False  # rejected by the run: in neither optimum
-    candidates = np.array([11, 10, 13, 9])
-    c2 = 5.0
 
-    def pair_minimum(edges, free):
+    def minimum(edges, free):
         index = np.flatnonzero(free)
 
         def cost(x):
@@ -440,18 +439,56 @@ def test_removal_changes_are_the_pair_optima_without_and_with_the_closure_by_an_
         x0 = np.concatenate([angles[index], t0[index].ravel()])
         return minimize(cost, x0, method="BFGS", options=dict(gtol=1e-10, maxiter=10_000)).fun
 
+    return graph, robot, poses, kept, minimum
+
+
+def test_removal_changes_are_the_pair_optima_without_and_with_the_closure_by_an_independent_minimizer():
+    """``removal_changes``: per candidate, min over its two robots' poses of the kept edges touching
+    them without it, plus c^2, less that minimum with it, the other robots' poses held."""
+    from mmpgo_jax._robust.release import removal_changes
+
+    graph, robot, poses, kept, minimum = _three_robots_one_wrong_closure()
+    i, j = np.asarray(graph.i), np.asarray(graph.j)
+    candidates = np.array([11, 10, 13, 9])
+    c2 = 5.0
     expected = []
     for e in candidates:
         free = np.isin(robot, [robot[i[e]], robot[j[e]]])
         edges = kept & (free[i] | free[j])
         without = edges.copy()
         without[e] = False
-        expected.append(pair_minimum(without, free) + c2 - pair_minimum(edges, free))
+        expected.append(minimum(without, free) + c2 - minimum(edges, free))
     got = removal_changes(graph, robot, poses, kept, candidates, c2)
     np.testing.assert_allclose(got, expected, rtol=1e-6, atol=1e-6)
     # robot 1 hangs on robot 0 by 0-6 and the wrong 3-7 alone: leaving either out, the other is fitted
     # exactly, so both predict the same (negative) change -- two closures cannot tell which is wrong
     assert got[0] == pytest.approx(got[3], rel=1e-8) and got[0] < 0 < got[1]
+
+
+def test_move_changes_free_every_robot_a_move_touches_by_an_independent_minimizer():
+    """``move_changes``: per move (admitted, left out), min over the poses of every robot its edges
+    touch of the kept edges touching them after the move, less that minimum before it, plus c^2 per
+    edge left out and minus c^2 per edge admitted; the other robots' poses held."""
+    from mmpgo_jax._robust.release import move_changes
+
+    graph, robot, poses, kept, minimum = _three_robots_one_wrong_closure()
+    i, j = np.asarray(graph.i), np.asarray(graph.j)
+    kept[9] = False  # 0-6 (robots 0-1) rejected too: robot 1 hangs on the wrong 3-7 alone
+    c2 = 5.0
+    moves = [((9,), (11,)), ((9,), ()), ((12,), (10,)), ((), (13,)), ((12,), ())]
+    expected = []
+    for admitted, left_out in moves:
+        moved = [*admitted, *left_out]
+        free = np.isin(robot, np.concatenate([robot[i[moved]], robot[j[moved]]]))
+        edges = kept & (free[i] | free[j])
+        after = edges.copy()
+        after[list(admitted)], after[list(left_out)] = True, False
+        expected.append(minimum(after, free) - minimum(edges, free) + c2 * (len(left_out) - len(admitted)))
+    got = move_changes(graph, robot, poses, kept, moves, c2)
+    np.testing.assert_allclose(got, expected, rtol=1e-6, atol=1e-6)
+    # robot 1 hangs on one of 0-6 and the wrong 3-7: exchanged, either is fitted exactly (no change,
+    # nothing tells them apart); 0-6 admitted beside 3-7, the two disagree and cost more than c^2
+    assert got[0] == pytest.approx(0.0, abs=1e-8) and got[1] > 0
 
 
 def test_accepted_inter_robot_closures_are_left_out_by_predicted_change_while_the_objective_falls(monkeypatch):
@@ -529,9 +566,83 @@ def test_accepted_inter_robot_closures_are_left_out_by_predicted_change_while_th
     assert text == "; 3 closures it had accepted left out in turn from its result, 3 of those runs kept (lower f)"
 
 
+def test_closures_the_run_overruled_are_admitted_alone_or_in_exchange_by_predicted_change(monkeypatch):
+    """``_exchanged_in_run``: moves are the loop closures the start accepted and the run rejected
+    (within a robot too), admitted alone or exchanged for an accepted inter-robot closure of one of
+    their robots whose pair cannot outvote it; one per round, the lowest predicted change first while it is below c^2, a run
+    from the result with the move made, kept when its objective is lower and the admitted closure
+    stays; the first round not kept ends the search."""
+    from types import SimpleNamespace
+
+    import mmpgo_jax._solve.solve as solve_module
+
+    # 4 robots (poses 0-1, 2-3, 4-5, 6-8); p (robots 0-1), q (2-3) and r (within robot 3) overruled,
+    # a (1-2) and b (0-3) accepted alone
+    i = np.array([0, 0, 4, 2, 4, 3, 1, 6, 6, 7])
+    j = np.array([1, 2, 6, 3, 5, 5, 7, 7, 8, 8])
+    p, q, a, b, r = 1, 2, 5, 6, 8
+    m = i.size
+    graph = SimpleNamespace(i=i, j=j, num_edges=m)
+    robot_of_pose = np.array([0, 0, 1, 1, 2, 2, 3, 3, 3])
+    c2 = 4.0
+    change = {((p,), ()): 20.0, ((p,), (a,)): -3.0, ((p,), (b,)): 9.0,
+              ((q,), ()): 2.0, ((q,), (a,)): 5.0, ((q,), (b,)): 6.0, ((r,), ()): 30.0, ((r,), (b,)): 12.0}
+    outcome = {((p,), (a,)): 9.0, ((q,), ()): 9.5}
+    made, asked, tried = {}, [], []
+
+    def run(rejected, f):
+        inliers = np.ones(m, bool)
+        inliers[list(rejected)] = False
+        out = SimpleNamespace(inliers=inliers, f=f, poses=f"poses at f = {f}", loss=SimpleNamespace(scale=2.0),
+                              partition=SimpleNamespace(robot_of_pose=robot_of_pose))
+        made[out.poses] = out
+        return out
+
+    def changes(graph_, robots, poses, kept, moves, scale_squared):
+        assert scale_squared == c2 and np.array_equal(kept, made[poses].inliers)
+        asked.append(sorted(moves))
+        return np.array([change[mv] for mv in moves])
+
+    def run_finished(begin, label, run_from, graph_, monitor, finish, keeps=None, weights=None):
+        here = made[begin]
+        admitted = int(np.flatnonzero((weights == 1.0) & ~here.inliers)[0])
+        left_out = tuple(np.flatnonzero((weights == 0.0) & here.inliers).tolist())
+        assert keeps == admitted and ((weights == 0.0) == (~here.inliers ^ (np.arange(m) == admitted)
+                                                            | np.isin(np.arange(m), left_out))).all()
+        move = ((admitted,), left_out)
+        tried.append(move)
+        again = run(sorted(set(np.flatnonzero(~here.inliers)) - {admitted} | set(left_out)), outcome[move])
+        return again, again, outcome[move], 7, None, None
+
+    monkeypatch.setattr(solve_module, "move_changes", changes)
+    monkeypatch.setattr(solve_module, "_run_finished", run_finished)
+    first = SimpleNamespace(start_weights=np.ones(m), stats={})
+    out, f, rounds = solve_module._exchanged_in_run(first, run([p, q, r], 10.0), 10.0, "start", None, graph, None,
+                                                    None)
+    # a left out: no longer a partner, nor a closure to admit
+    assert asked == [sorted(change), [((q,), ()), ((q,), (b,)), ((r,), ()), ((r,), (b,))]]
+    assert tried == [((p,), (a,)), ((q,), ())]
+    assert [(r["admitted"], r["removed"], r["predicted"], r["f_before"], r["f"], r["kept"]) for r in rounds] == [
+        (p, a, -3.0, 10.0, 9.0, True), (q, None, 2.0, 9.0, 9.5, False)]
+    assert f == out.f == 9.0 and not out.inliers[a] and out.inliers[p]
+    # every move predicted at c^2 or more: no round
+    change.update({((p,), (a,)): 4.0, ((q,), ()): 4.5})
+    assert solve_module._exchanged_in_run(first, run([p, q, r], 10.0), 10.0, "start", None, graph, None,
+                                          None)[2] == []
+    # no start classification (another start): no round
+    assert solve_module._exchanged_in_run(SimpleNamespace(start_weights=None, stats={}), run([p, q], 10.0), 10.0,
+                                          "start", None, graph, None, None)[2] == []
+    # the summary line names how many were tried and kept
+    from mmpgo_jax.cli.outputs import _exchanges_text
+
+    text = _exchanges_text(SimpleNamespace(inliers=np.ones(m, bool)), rounds, None)
+    assert text == "; 2 exchanges of closures tried in turn from its result, 1 of those runs kept (lower f)"
+
+
 def test_a_closure_left_out_sends_the_search_back_to_the_readmissions(monkeypatch):
     """After the revisits, re-admissions and removals alternate while a removal is kept (a closure left
-    out may let a rejected one back in); every round is recorded in the start's row."""
+    out may let a rejected one back in), and the exchanges follow a round of removals none of which
+    was kept, back to the re-admissions when one is; every round is recorded in the start's row."""
     import mmpgo_jax._solve.solve as solve_module
 
     calls = []
@@ -542,19 +653,29 @@ def test_a_closure_left_out_sends_the_search_back_to_the_readmissions(monkeypatc
 
     def removed(first, run, f, *args):
         calls.append("remove")
-        kept = calls.count("remove") < 3
+        kept = calls.count("remove") in (1, 3)
         return run, f, [dict(removed=len(calls), kept=kept, iterations=2)]
+
+    def exchanged(first, run, f, *args):
+        calls.append("exchange")
+        kept = calls.count("exchange") < 2
+        return run, f, [dict(admitted=len(calls), removed=None, kept=kept, iterations=3)]
 
     monkeypatch.setattr(solve_module, "_revisited", lambda first, run, f, *a: (run, f, [], first))
     monkeypatch.setattr(solve_module, "_readmitted_to_start", readmitted)
     monkeypatch.setattr(solve_module, "_removed_from_run", removed)
+    monkeypatch.setattr(solve_module, "_exchanged_in_run", exchanged)
     ds = mg.cube_dataset(1, grid=3, num_poses=80)
     bad = add_outliers(ds.graph, 0.3, reference=ds.ground_truth, seed=2)
     d = mg.solve(bad.graph, 3, loss="tls", iterations=5, distributed=True)
     (row,) = d.stats["starts"]
-    assert calls == ["readmit", "remove"] * 3
-    assert [r["admitted"] for r in row["readmissions"]] == [1, 3, 5]
-    assert [r["removed"] for r in row["removals"]] == [2, 4, 6]
+    # a kept removal goes back to the re-admissions; one not kept goes on to the exchanges, whose kept
+    # round goes back to the re-admissions too; a round of each not kept ends the search
+    assert calls == ["readmit", "remove", "readmit", "remove", "exchange", "readmit", "remove", "readmit",
+                     "remove", "exchange"]
+    assert [r["admitted"] for r in row["readmissions"]] == [1, 3, 6, 8]
+    assert [r["removed"] for r in row["removals"]] == [2, 4, 7, 9]
+    assert [r["admitted"] for r in row["exchanges"]] == [5, 10]
 
 
 @pytest.mark.slow  # MIT, two distributed robust solves with their trials, about 40 s

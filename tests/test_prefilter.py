@@ -67,18 +67,19 @@ def test_pcm_with_a_robust_loss_reports_in_the_original_edge_order():
 
 def test_the_edges_named_in_starts_stats_are_reported_in_the_original_edge_order():
     """A robust run after the pre-filter names edges of the filtered graph in stats["starts"] (the
-    edge a revisit left out, the closure a re-admission admitted or a removal left out): put back in
-    the original order."""
+    edge a revisit left out, the closure a re-admission admitted or a removal left out, those an
+    exchange admitted and left out): put back in the original order."""
     import dataclasses
 
     from mmpgo_jax._solve.prefilter import Prefiltered
 
     rejected = np.array([False, True, False, True, False, False])  # kept edges 0, 2, 4, 5
     pre = Prefiltered(graph=None, rejected=rejected, robot_of_pose=np.zeros(3, np.int64), stats={"pcm_rejected": 2})
-    starts = [dict(start="gnc-chordal", revisits=[], readmissions=[], removals=[]),
+    starts = [dict(start="gnc-chordal", revisits=[], readmissions=[], removals=[], exchanges=[]),
               dict(start="distributed-robust", revisits=[dict(excluded=1, kept=True)],
                    readmissions=[dict(admitted=2, kept=True), dict(admitted=3, kept=False)],
-                   removals=[dict(removed=3, kept=False)])]
+                   removals=[dict(removed=3, kept=False)],
+                   exchanges=[dict(admitted=1, removed=None, kept=True), dict(admitted=0, removed=2, kept=False)])]
 
     @dataclasses.dataclass(frozen=True)
     class Result:
@@ -94,6 +95,7 @@ def test_the_edges_named_in_starts_stats_are_reported_in_the_original_edge_order
     assert [r["excluded"] for r in dist["revisits"]] == [2]
     assert [(r["admitted"], r["kept"]) for r in dist["readmissions"]] == [(4, True), (5, False)]
     assert [(r["removed"], r["kept"]) for r in dist["removals"]] == [(5, False)]
+    assert [(r["admitted"], r["removed"]) for r in dist["exchanges"]] == [(2, None), (0, 4)]
     assert starts[1]["readmissions"][0]["admitted"] == 2  # the run's own stats are not changed in place
 
 

@@ -1,4 +1,5 @@
-"""What leaving out one accepted inter-robot loop closure would change, judged robot pair by robot pair.
+"""What leaving out one accepted inter-robot loop closure (or any move of the classification) would
+change, judged robot pair by robot pair.
 
 A wrong closure the start accepted can bend its two robots' maps until it fits them: at the run's
 result its own cost is small, and what it costs shows only in the robots' other edges. Leaving it
@@ -12,6 +13,10 @@ a trial run, one predicted not to may still be wrong. No step needs more than tw
 their neighbours' boundary poses. Measured on a 10 x 500-pose team with the Cube's noise (seed 1,
 benchmarks/robust_teams.md): the one wrong closure the run kept is predicted at -6.4, every correct
 closure of a pair holding at most two at +6.6 or more.
+
+:func:`move_changes` predicts any move of the classification the same way (closures admitted, left
+out, or both: an exchange), with every robot the moved closures touch re-optimized; the robust
+search's exchanges (``mmpgo_jax._solve.solve._exchanged_in_run``) are proposed by it.
 """
 
 from __future__ import annotations
@@ -37,20 +42,33 @@ def removal_changes(graph: PoseGraph, robot_of_pose, poses: Poses, kept, candida
     optimum of its two robots' maps over the ``kept`` (m,) edges touching them without it, plus c^2,
     less that optimum with it (other robots' poses held at ``poses``). Negative: leaving it out is
     predicted to lower the objective."""
+    return move_changes(graph, robot_of_pose, poses, kept, [((), (int(e),)) for e in candidates], scale_squared)
+
+
+def move_changes(graph: PoseGraph, robot_of_pose, poses: Poses, kept, moves, scale_squared: float) -> np.ndarray:
+    """(k,) the change of 2 F_rho predicted for each of ``moves``: (admitted, left out), two tuples of
+    edge indices, the first rejected by ``kept`` (m,), the second accepted. The robots the moved edges
+    touch are re-optimized over the kept edges touching them, before and after the move (the other
+    robots' poses held at ``poses``); the change is the optimum after less the one before, plus c^2 per
+    edge left out (it now costs c^2) and minus c^2 per edge admitted (it cost c^2). A re-admission is
+    a move of one admitted edge, a removal one of one left out, an exchange one of each."""
     g = host_view(graph)
     robot = np.asarray(robot_of_pose)
     kept = np.asarray(kept, bool)
     R, t = np.asarray(poses.R, np.float64), np.asarray(poses.t, np.float64)
-    with_it = {}  # per robot pair: the optimum with every kept edge (the same for each of its closures)
-    out = np.empty(len(candidates))
-    for k, e in enumerate(np.asarray(candidates, np.int64)):
-        pair = tuple(sorted((int(robot[g.i[e]]), int(robot[g.j[e]]))))
-        free = np.isin(robot, pair)
+    before = {}  # per set of free robots: the optimum of the kept edges (the same for each of its moves)
+    out = np.empty(len(moves))
+    for k, (admitted, left_out) in enumerate(moves):
+        moved = np.asarray([*admitted, *left_out], np.int64)
+        robots = tuple(sorted(set(robot[g.i[moved]].tolist()) | set(robot[g.j[moved]].tolist())))
+        free = np.isin(robot, robots)
         edges = kept & (free[g.i] | free[g.j])
-        if pair not in with_it:
-            with_it[pair] = _pair_optimum(g, R, t, edges, free)
-        edges[e] = False
-        out[k] = _pair_optimum(g, R, t, edges, free) + scale_squared - with_it[pair]
+        if robots not in before:
+            before[robots] = _pair_optimum(g, R, t, edges, free)
+        edges[list(admitted)] = True
+        edges[list(left_out)] = False
+        out[k] = (_pair_optimum(g, R, t, edges, free) - before[robots]
+                  + scale_squared * (len(left_out) - len(admitted)))
     return out
 
 

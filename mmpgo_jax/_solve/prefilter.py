@@ -81,15 +81,16 @@ class Prefiltered:
             return out
 
         stats = {**result.stats, **self.stats}
-        if "starts" in stats:  # the edges of the revisits, re-admissions and removals: original order
+        if "starts" in stats:  # the edges of the revisits, re-admissions, removals and exchanges: original order
             original = np.flatnonzero(keep)
 
-            def renumbered(rounds, edge):
-                return [dict(r, **{edge: int(original[r[edge]])}) for r in rounds]
+            def renumbered(rounds, *edges):  # an edge of None (an exchange that admitted only) stays None
+                return [dict(r, **{e: None if r[e] is None else int(original[r[e]]) for e in edges}) for r in rounds]
 
             stats["starts"] = [dict(row, revisits=renumbered(row.get("revisits", []), "excluded"),
                                     readmissions=renumbered(row.get("readmissions", []), "admitted"),
-                                    removals=renumbered(row.get("removals", []), "removed"))
+                                    removals=renumbered(row.get("removals", []), "removed"),
+                                    exchanges=renumbered(row.get("exchanges", []), "admitted", "removed"))
                                for row in stats["starts"]]
         return dataclasses.replace(result, inliers=inliers, weights=widened(result.weights),
                                    start_weights=widened(result.start_weights), prefiltered=self.rejected.copy(),

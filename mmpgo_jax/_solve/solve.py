@@ -29,7 +29,7 @@ from .._mm.driver import RESULTS, History, Monitor, NonFiniteError, Termination,
 from .._mm.robust import L2, GNCConfig, RobustLoss, as_loss, robust_objective
 from .._mm.solvers import MM, Solver, as_solver
 from .._mm.subproblem import SubproblemConfig
-from .._robust.release import removal_changes
+from .._robust.release import move_changes, removal_changes
 from .build import ROBUST_START, ROBUST_STARTS, Clock, NamedStart, as_termination, finish, prepare
 from .devices import auto_layout
 from .methods import check_loss, solver_for
@@ -397,7 +397,7 @@ def _best_of(starts: tuple, run_from: Callable, graph: PoseGraph, monitor: Monit
         rows.append(dict(start=name, f=f, iterations=iterations, rejected=rejected, finished=before,
                          finished_by=finished_by, held=bool(first.stats.get("start_weights_given", False)),
                          start_seconds=float(first.stats.get("initialize_seconds", 0.0)), revisits=[],
-                         readmissions=[], removals=[], seconds=time.perf_counter() - t))
+                         readmissions=[], removals=[], exchanges=[], seconds=time.perf_counter() - t))
         runs.append(run)
         firsts.append(first)
     for k, row in enumerate(rows):  # after every start ran: the other starts' runs are evidence too
@@ -415,9 +415,14 @@ def _best_of(starts: tuple, run_from: Callable, graph: PoseGraph, monitor: Monit
                 runs[k], row["f"], rounds = _removed_from_run(first, runs[k], row["f"], label, run_from, graph,
                                                               monitor, row_finish)
                 row["removals"] += rounds
+                if any(r["kept"] for r in rounds):
+                    continue
+                runs[k], row["f"], rounds = _exchanged_in_run(first, runs[k], row["f"], label, run_from, graph,
+                                                              monitor, row_finish)
+                row["exchanges"] += rounds
                 if not any(r["kept"] for r in rounds):
                     break
-            rounds = (*row["revisits"], *row["readmissions"], *row["removals"])
+            rounds = (*row["revisits"], *row["readmissions"], *row["removals"], *row["exchanges"])
             row["iterations"] += sum(r["iterations"] for r in rounds)
             row["polished"] = None
             if polish is not None and runs[k].result is RESULTS.iterations:
@@ -608,12 +613,16 @@ def _trial(run: SolveResult, edge: int, weight: float, label: str, run_from: Cal
     return again, f_again, iterations, time.perf_counter() - t
 
 
+def _loop_closures(graph: PoseGraph) -> np.ndarray:
+    """(m,) bool: the edges not between consecutive poses (those the distributed robust start trusts
+    as odometry)."""
+    return np.abs(np.asarray(graph.i) - np.asarray(graph.j)) != 1
+
+
 def _inter_robot_closures(run: SolveResult, graph: PoseGraph) -> np.ndarray:
-    """(m,) bool: the edges between two robots of ``run``'s split that are not between consecutive
-    poses (those the distributed robust start trusts as odometry)."""
+    """(m,) bool: the loop closures (:func:`_loop_closures`) between two robots of ``run``'s split."""
     robot = np.asarray(run.partition.robot_of_pose)
-    i, j = np.asarray(graph.i), np.asarray(graph.j)
-    return (robot[i] != robot[j]) & (np.abs(i - j) != 1)
+    return (robot[np.asarray(graph.i)] != robot[np.asarray(graph.j)]) & _loop_closures(graph)
 
 
 def _closures_their_pair_cannot_outvote(run: SolveResult, graph: PoseGraph) -> np.ndarray:
@@ -672,6 +681,71 @@ def _removed_from_run(first: SolveResult, run: SolveResult, f: float, label: str
         if not kept:
             break
         run, f = again, f_again
+    return run, f, rounds
+
+
+def _exchanged_in_run(first: SolveResult, run: SolveResult, f: float, label: str, run_from: Callable,
+                      graph: PoseGraph, monitor: Monitor, finish: Callable | None) -> tuple[SolveResult, float, list]:
+    """What the re-admissions and removals cannot do one closure at a time: a wrong closure that bent
+    its robots' maps keeps a correct one out, and neither leaving out the wrong one (the correct one
+    does not fit yet) nor admitting the correct one (the wrong one holds the maps away) lowers the
+    objective alone. Candidates: the loop closures the start accepted and the run rejected
+    (:func:`_overruled`: the two pieces of evidence disagree), each admitted alone or exchanged with an
+    accepted inter-robot closure of one of its robots whose pair cannot outvote it
+    (:func:`_closures_their_pair_cannot_outvote`). Intra-robot closures too: a run that rejected one
+    early can fold its robot's map away from it, beyond any weight update of TLS (the same team: a
+    closure of robot 1 at 1.2e5 c^2 at the result, 1e-4 c^2 at the outlier-free optimum, its
+    admission predicted at -9.5). Each move's change of the objective is predicted
+    with the robots it touches re-optimized, the other robots held
+    (:func:`~mmpgo_jax._robust.release.move_changes`); a whole run moves those too and can only
+    release more, so a move predicted below c^2 (less than one closure's share of the objective) is
+    worth a trial: on a 10 x 500-pose team with the Cube's noise (seed 2, 13 wrong inter-robot
+    closures; benchmarks/robust_teams.md) the exchange the outlier-free classification needs is
+    predicted at +0.27 with its three robots free and -0.79 with their neighbours free too, the wrong
+    closures' moves at +36.8 or more. One per round, the lowest prediction first: a run goes on from
+    the result with the run's classification held and the move made, kept when its robust objective
+    is lower by more than the re-admissions' margin and the admitted closure stays accepted; until a
+    round is not kept or no move is predicted below c^2. Each move is tried once, and a closure a kept
+    exchange left out is not admitted again by this search. Returns (run, f,
+    rounds: per round the edges admitted and left out, the prediction, f before and after,
+    iterations, kept, seconds)."""
+    if run.inliers is None or first.start_weights is None:
+        return run, f, []
+    c2 = float(np.asarray(run.loss.scale)) ** 2
+    factor = min(float(first.stats.get("start_variance_factor", 1.0)), 1.0)
+    margin = 0.0 if factor == 1.0 else (1.0 - factor) * c2
+    robot = np.asarray(run.partition.robot_of_pose)
+    i, j = np.asarray(graph.i), np.asarray(graph.j)
+    tried, rounds = set(), []
+    left = np.zeros(graph.num_edges, bool)  # left out by a kept exchange: not admitted again (no undoing)
+    while True:
+        overruled = np.flatnonzero(_overruled(first.start_weights, run) & _loop_closures(graph) & ~left)
+        partners = np.flatnonzero(_closures_their_pair_cannot_outvote(run, graph))
+        moves = [m for e in overruled.tolist()
+                 for m in [((e,), ()), *[((e,), (a,)) for a in partners.tolist()
+                                         if {robot[i[e]], robot[j[e]]} & {robot[i[a]], robot[j[a]]}]]
+                 if m not in tried]
+        if not moves:
+            break
+        change = move_changes(graph, robot, run.poses, run.inliers, moves, c2)
+        best = int(np.argmin(change))
+        if change[best] >= c2:
+            break
+        (admitted,), left_out = moves[best]
+        tried.add(moves[best])
+        weights = np.asarray(run.inliers, np.float64)
+        weights[[admitted, *left_out]] = [1.0] + [0.0] * len(left_out)
+        t = time.perf_counter()
+        _, again, f_again, iterations, _, _ = _run_finished(
+            run.poses, f"{label}, {len(rounds) + 1} closure(s) exchanged", run_from, graph, monitor, finish,
+            keeps=admitted, weights=weights)
+        kept = bool(again.inliers[admitted]) and f_again < f - margin
+        rounds.append(dict(admitted=admitted, removed=left_out[0] if left_out else None, predicted=float(change[best]),
+                           f_before=f, f=f_again, iterations=iterations, kept=kept, seconds=time.perf_counter() - t))
+        if not kept:
+            break
+        run, f = again, f_again
+        left[list(left_out)] = True
     return run, f, rounds
 
 

@@ -177,6 +177,26 @@ def _trials_text(result, rounds, data, edge: str, what: str) -> str:
             f"result, {int(kept.sum())} of those runs kept (lower f){_rejected_lines(result, data, kept, lead=': ')}")
 
 
+def _exchanges_text(result, rounds, data) -> str:
+    """How many moves of the exchange search (``stats["starts"][k]["exchanges"]``: a closure the start
+    accepted and the run rejected admitted, alone or in exchange for an accepted one) were tried by a
+    run from the result, and the lines of the closures the kept ones admitted and left out."""
+    if not rounds:
+        return ""
+    admitted = np.zeros(len(result.inliers), bool)
+    left_out = np.zeros(len(result.inliers), bool)
+    admitted[[r["admitted"] for r in rounds if r["kept"]]] = True
+    left_out[[r["removed"] for r in rounds if r["kept"] and r["removed"] is not None]] = True
+    kept = sum(r["kept"] for r in rounds)
+    text = (f"; {len(rounds)} exchange{'' if len(rounds) == 1 else 's'} of closures tried in turn from its result, "
+            f"{kept} of those runs kept (lower f)")
+    if kept:
+        text += f"{_rejected_lines(result, data, admitted, lead=': admitted ')}"
+        if left_out.any():
+            text += f"{_rejected_lines(result, data, left_out, lead=', left out ')}"
+    return text
+
+
 def _noise_line(result, graph) -> str:
     """A robust run's line on the data's noise against their information matrices: the
     a-posteriori variance factor of the kept edges at the final poses (:func:`~mmpgo_jax.noise_level`)
@@ -258,6 +278,7 @@ def print_summary(result, fstar, data: LoadedInput | None = None) -> None:
               f"{row['seconds']:.2f} s ({kept}){_revisits_text(row.get('revisits', ()))}"
               f"{_trials_text(result, row.get('readmissions', ()), data, 'admitted', 'it had rejected tried')}"
               f"{_trials_text(result, row.get('removals', ()), data, 'removed', 'it had accepted left out')}"
+              f"{_exchanges_text(result, row.get('exchanges', ()), data)}"
               f"{polished}")
     if result.loss is not None:
         robust = ~result.inliers if prefiltered is None else ~result.inliers & ~prefiltered
