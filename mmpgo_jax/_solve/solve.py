@@ -600,13 +600,14 @@ def _readmitted_to_start(first: SolveResult, run: SolveResult, f: float, label: 
     return run, f, rounds
 
 
-def _trial(run: SolveResult, edge: int, weight: float, label: str, run_from: Callable, graph: PoseGraph,
+def _trial(run: SolveResult, edge, weight, label: str, run_from: Callable, graph: PoseGraph,
            monitor: Monitor, finish: Callable | None, keeps: int | None = None) -> tuple:
-    """One round of the re-admissions or removals: a run (finished as the first) from ``run``'s result
-    holding its classification with ``edge``'s weight set to ``weight``. Returns (the run, its
-    objective, iterations, seconds)."""
+    """One round of the re-admissions, removals or exchanges: a run (finished as the first) from
+    ``run``'s result holding its classification with the weight of ``edge`` (an index, or a list of
+    them) set to ``weight`` (one value, or one per edge). Returns (the run, its objective,
+    iterations, seconds)."""
     weights = np.asarray(run.inliers, np.float64)
-    weights[edge] = weight
+    weights[np.atleast_1d(edge)] = weight
     t = time.perf_counter()
     _, again, f_again, iterations, _, _ = _run_finished(run.poses, label, run_from, graph, monitor, finish,
                                                         keeps=keeps, weights=weights)
@@ -694,8 +695,8 @@ def _exchanged_in_run(first: SolveResult, run: SolveResult, f: float, label: str
     accepted inter-robot closure of one of its robots whose pair cannot outvote it
     (:func:`_closures_their_pair_cannot_outvote`). Intra-robot closures too: a run that rejected one
     early can fold its robot's map away from it, beyond any weight update of TLS (the same team: a
-    closure of robot 1 at 1.2e5 c^2 at the result, 1e-4 c^2 at the outlier-free optimum, its
-    admission predicted at -9.5). Each move's change of the objective is predicted
+    closure of robot 1 at 1.1e4 c^2 at the result, 1.4e-4 c^2 at the outlier-free optimum, its
+    admission predicted at -9.3). Each move's change of the objective is predicted
     with the robots it touches re-optimized, the other robots held
     (:func:`~mmpgo_jax._robust.release.move_changes`); a whole run moves those too and can only
     release more, so a move predicted below c^2 (less than one closure's share of the objective) is
@@ -733,15 +734,12 @@ def _exchanged_in_run(first: SolveResult, run: SolveResult, f: float, label: str
             break
         (admitted,), left_out = moves[best]
         tried.add(moves[best])
-        weights = np.asarray(run.inliers, np.float64)
-        weights[[admitted, *left_out]] = [1.0] + [0.0] * len(left_out)
-        t = time.perf_counter()
-        _, again, f_again, iterations, _, _ = _run_finished(
-            run.poses, f"{label}, {len(rounds) + 1} closure(s) exchanged", run_from, graph, monitor, finish,
-            keeps=admitted, weights=weights)
+        again, f_again, iterations, seconds = _trial(run, [admitted, *left_out], [1.0] + [0.0] * len(left_out),
+                                                     f"{label}, {len(rounds) + 1} closure(s) exchanged", run_from,
+                                                     graph, monitor, finish, keeps=admitted)
         kept = bool(again.inliers[admitted]) and f_again < f - margin
         rounds.append(dict(admitted=admitted, removed=left_out[0] if left_out else None, predicted=float(change[best]),
-                           f_before=f, f=f_again, iterations=iterations, kept=kept, seconds=time.perf_counter() - t))
+                           f_before=f, f=f_again, iterations=iterations, kept=kept, seconds=seconds))
         if not kept:
             break
         run, f = again, f_again
