@@ -489,6 +489,18 @@ def test_move_changes_free_every_robot_a_move_touches_by_an_independent_minimize
     # robot 1 hangs on one of 0-6 and the wrong 3-7: exchanged, either is fitted exactly (no change,
     # nothing tells them apart); 0-6 admitted beside 3-7, the two disagree and cost more than c^2
     assert got[0] == pytest.approx(0.0, abs=1e-8) and got[1] > 0
+    # warm: each move's free poses at its optimum after the move, the next call's start; from there
+    # (poses moved a little) the same optima
+    warm = {}
+    np.testing.assert_allclose(move_changes(graph, robot, poses, kept, moves, c2, warm=warm), expected,
+                               rtol=1e-6, atol=1e-6)
+    for (admitted, left_out), (at, R_at, t_at) in warm.items():
+        moved = [*admitted, *left_out]
+        np.testing.assert_array_equal(at, np.flatnonzero(np.isin(robot, [*robot[i[moved]], *robot[j[moved]]])))
+        assert R_at.shape == (at.size, *np.shape(poses.R)[1:]) and t_at.shape == (at.size, np.shape(poses.t)[1])
+    moved_a_little = type(poses)(np.asarray(poses.R), np.asarray(poses.t) + 0.01)
+    np.testing.assert_allclose(move_changes(graph, robot, moved_a_little, kept, moves, c2, warm=warm),
+                               move_changes(graph, robot, moved_a_little, kept, moves, c2), rtol=1e-6, atol=1e-6)
 
 
 def test_accepted_inter_robot_closures_are_left_out_by_predicted_change_while_the_objective_falls(monkeypatch):
@@ -569,9 +581,10 @@ def test_accepted_inter_robot_closures_are_left_out_by_predicted_change_while_th
 def test_closures_the_run_overruled_are_admitted_alone_or_in_exchange_by_predicted_change(monkeypatch):
     """``_exchanged_in_run``: moves are the loop closures the start accepted and the run rejected
     (within a robot too), admitted alone or exchanged for an accepted inter-robot closure of one of
-    their robots whose pair cannot outvote it; one per round, the lowest predicted change first while it is below c^2, a run
-    from the result with the move made, kept when its objective is lower and the admitted closure
-    stays; the first round not kept ends the search."""
+    their robots whose pair cannot outvote it. Per round the move of lowest predicted change (below
+    c^2) and every other move predicted below 0 on robots the chosen ones do not touch, made together
+    by a run from the result, kept when its objective is lower and every admitted closure stays; a
+    batch not kept is followed by its first move alone; a round of one move not kept ends the search."""
     from types import SimpleNamespace
 
     import mmpgo_jax._solve.solve as solve_module
@@ -586,8 +599,10 @@ def test_closures_the_run_overruled_are_admitted_alone_or_in_exchange_by_predict
     robot_of_pose = np.array([0, 0, 1, 1, 2, 2, 3, 3, 3])
     c2 = 4.0
     change = {((p,), ()): 20.0, ((p,), (a,)): -3.0, ((p,), (b,)): 9.0,
-              ((q,), ()): 2.0, ((q,), (a,)): 5.0, ((q,), (b,)): 6.0, ((r,), ()): 30.0, ((r,), (b,)): 12.0}
-    outcome = {((p,), (a,)): 9.0, ((q,), ()): 9.5}
+              ((q,), ()): 2.0, ((q,), (a,)): 5.0, ((q,), (b,)): 6.0, ((r,), ()): -1.0, ((r,), (b,)): 12.0}
+    # per set of moves tried together: f after, and the admitted closures the run rejected again
+    outcome = {frozenset({((p,), (a,)), ((r,), ())}): (8.5, {r}), frozenset({((p,), (a,))}): (9.0, set()),
+               frozenset({((r,), ())}): (8.0, set()), frozenset({((q,), ())}): (8.5, set())}
     made, asked, tried = {}, [], []
 
     def run(rejected, f):
@@ -598,45 +613,77 @@ def test_closures_the_run_overruled_are_admitted_alone_or_in_exchange_by_predict
         made[out.poses] = out
         return out
 
-    def changes(graph_, robots, poses, kept, moves, scale_squared):
+    def changes(graph_, robots, poses, kept, moves, scale_squared, warm=None):
         assert scale_squared == c2 and np.array_equal(kept, made[poses].inliers)
         asked.append(sorted(moves))
         return np.array([change[mv] for mv in moves])
 
     def run_finished(begin, label, run_from, graph_, monitor, finish, keeps=None, weights=None):
         here = made[begin]
-        admitted = int(np.flatnonzero((weights == 1.0) & ~here.inliers)[0])
-        left_out = tuple(np.flatnonzero((weights == 0.0) & here.inliers).tolist())
-        assert keeps == admitted and ((weights == 0.0) == (~here.inliers ^ (np.arange(m) == admitted)
-                                                            | np.isin(np.arange(m), left_out))).all()
-        move = ((admitted,), left_out)
-        tried.append(move)
-        again = run(sorted(set(np.flatnonzero(~here.inliers)) - {admitted} | set(left_out)), outcome[move])
-        return again, again, outcome[move], 7, None, None
+        admitted = np.flatnonzero((weights == 1.0) & ~here.inliers).tolist()
+        left_out = np.flatnonzero((weights == 0.0) & here.inliers).tolist()
+        assert sorted(keeps) == admitted
+        moves = frozenset(((e,), tuple(x for x in left_out if {robot_of_pose[i[x]], robot_of_pose[j[x]]}
+                                       & {robot_of_pose[i[e]], robot_of_pose[j[e]]})) for e in admitted)
+        tried.append(moves)
+        f_after, again = outcome[moves]
+        rejected = set(np.flatnonzero(~here.inliers).tolist()) - set(admitted) | set(left_out) | again
+        out = run(sorted(rejected), f_after)
+        return out, out, f_after, 7, None, None
 
     monkeypatch.setattr(solve_module, "move_changes", changes)
     monkeypatch.setattr(solve_module, "_run_finished", run_finished)
     first = SimpleNamespace(start_weights=np.ones(m), stats={})
     out, f, rounds = solve_module._exchanged_in_run(first, run([p, q, r], 10.0), 10.0, "start", None, graph, None,
                                                     None)
-    # a left out: no longer a partner, nor a closure to admit
-    assert asked == [sorted(change), [((q,), ()), ((q,), (b,)), ((r,), ()), ((r,), (b,))]]
-    assert tried == [((p,), (a,)), ((q,), ())]
-    assert [(r["admitted"], r["removed"], r["predicted"], r["f_before"], r["f"], r["kept"]) for r in rounds] == [
-        (p, a, -3.0, 10.0, 9.0, True), (q, None, 2.0, 9.0, 9.5, False)]
-    assert f == out.f == 9.0 and not out.inliers[a] and out.inliers[p]
+    # round 1: p for a (robots 0-2) with r (robot 3) together; r rejected again, so p for a alone (kept;
+    # a left out: no longer a partner, nor a closure to admit); then r alone (kept; q shares robot 3
+    # with it and is predicted above 0; r accepted: no longer a closure to admit), then q alone (not kept)
+    assert asked == [sorted(change), [((q,), ()), ((q,), (b,)), ((r,), ()), ((r,), (b,))],
+                     [((q,), ()), ((q,), (b,))]]
+    assert tried == [frozenset({((p,), (a,)), ((r,), ())}), frozenset({((p,), (a,))}), frozenset({((r,), ())}),
+                     frozenset({((q,), ())})]
+    assert [(r_["moves"], r_["predicted"], r_["f_before"], r_["f"], r_["kept"]) for r_ in rounds] == [
+        ([(p, a), (r, None)], [-3.0, -1.0], 10.0, 8.5, False), ([(p, a)], [-3.0], 10.0, 9.0, True),
+        ([(r, None)], [-1.0], 9.0, 8.0, True), ([(q, None)], [2.0], 8.0, 8.5, False)]
+    assert f == out.f == 8.0 and not out.inliers[a] and out.inliers[p] and out.inliers[r]
+    # the search's memory: a later call (after its re-admissions and removals) tries no move again
+    memory = solve_module._ExchangeMemory()
+    tried.clear()
+    out, f, rounds = solve_module._exchanged_in_run(first, run([p, q, r], 10.0), 10.0, "start", None, graph, None,
+                                                    None, memory)
+    assert memory.tried == {((p,), (a,)), ((r,), ()), ((q,), ())} and memory.left == {a}
+    assert solve_module._exchanged_in_run(first, out, f, "start", None, graph, None, None, memory)[2] == []
+    assert len(tried) == 4
     # every move predicted at c^2 or more: no round
-    change.update({((p,), (a,)): 4.0, ((q,), ()): 4.5})
+    change.update({((p,), (a,)): 4.0, ((q,), ()): 4.5, ((r,), ()): 4.0})
     assert solve_module._exchanged_in_run(first, run([p, q, r], 10.0), 10.0, "start", None, graph, None,
                                           None)[2] == []
     # no start classification (another start): no round
     assert solve_module._exchanged_in_run(SimpleNamespace(start_weights=None, stats={}), run([p, q], 10.0), 10.0,
                                           "start", None, graph, None, None)[2] == []
-    # the summary line names how many were tried and kept
+    # the summary line names how many trials and moves were run and kept
     from mmpgo_jax.cli.outputs import _exchanges_text
 
     text = _exchanges_text(SimpleNamespace(inliers=np.ones(m, bool)), rounds, None)
-    assert text == "; 2 exchanges of closures tried in turn from its result, 1 of those runs kept (lower f)"
+    assert text == "; 4 exchange trials (5 moves) of closures run in turn from its result, 2 of those runs kept (lower f)"
+
+
+def test_moves_tried_together_are_the_lowest_and_those_below_zero_on_other_robots():
+    """``_moves_on_disjoint_robots``: the move of lowest prediction (even at or above 0), then, lowest
+    first, the moves predicted below 0 whose robots no chosen move touches."""
+    from mmpgo_jax._solve.solve import _moves_on_disjoint_robots
+
+    # edges: 0 robots 0-1, 1 robots 1-2, 2 robots 2-3, 3 within robot 4, 4 robots 3-4, 5 robots 5-6
+    robot = np.arange(7)
+    i, j = np.array([0, 1, 2, 4, 3, 5]), np.array([1, 2, 3, 4, 4, 6])
+    moves = [((0,), ()), ((1,), ()), ((2,), ()), ((3,), (4,)), ((3,), ()), ((5,), ())]
+    change = np.array([-5.0, -6.0, -1.0, -2.0, -0.5, 0.5])
+    # 1 (robots 1-2) first, 0 shares robot 1, 3 (robots 3-4 with its partner 4) next, 2 shares robots 2-3,
+    # 4 shares robot 4, 5 is predicted above 0
+    assert _moves_on_disjoint_robots(moves, change, robot, i, j) == [1, 3]
+    assert _moves_on_disjoint_robots(moves, np.array([3.0, 1.0, 2.0, 2.5, 0.5, 0.2]), robot, i, j) == [5]
+    assert _moves_on_disjoint_robots(moves, np.array([3.0, 1.0, 2.0, 2.5, 0.5, -0.2]), robot, i, j) == [5]
 
 
 def test_a_closure_left_out_sends_the_search_back_to_the_readmissions(monkeypatch):
@@ -659,7 +706,7 @@ def test_a_closure_left_out_sends_the_search_back_to_the_readmissions(monkeypatc
     def exchanged(first, run, f, *args):
         calls.append("exchange")
         kept = calls.count("exchange") < 2
-        return run, f, [dict(admitted=len(calls), removed=None, kept=kept, iterations=3)]
+        return run, f, [dict(moves=[(len(calls), None)], kept=kept, iterations=3)]
 
     monkeypatch.setattr(solve_module, "_revisited", lambda first, run, f, *a: (run, f, [], first))
     monkeypatch.setattr(solve_module, "_readmitted_to_start", readmitted)
@@ -675,7 +722,7 @@ def test_a_closure_left_out_sends_the_search_back_to_the_readmissions(monkeypatc
                      "remove", "exchange"]
     assert [r["admitted"] for r in row["readmissions"]] == [1, 3, 6, 8]
     assert [r["removed"] for r in row["removals"]] == [2, 4, 7, 9]
-    assert [r["admitted"] for r in row["exchanges"]] == [5, 10]
+    assert [r["moves"] for r in row["exchanges"]] == [[(5, None)], [(10, None)]]
 
 
 @pytest.mark.slow  # MIT, two distributed robust solves with their trials, about 40 s

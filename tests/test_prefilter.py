@@ -79,7 +79,7 @@ def test_the_edges_named_in_starts_stats_are_reported_in_the_original_edge_order
               dict(start="distributed-robust", revisits=[dict(excluded=1, kept=True)],
                    readmissions=[dict(admitted=2, kept=True), dict(admitted=3, kept=False)],
                    removals=[dict(removed=3, kept=False)],
-                   exchanges=[dict(admitted=1, removed=None, kept=True), dict(admitted=0, removed=2, kept=False)])]
+                   exchanges=[dict(moves=[(1, None)], kept=True), dict(moves=[(0, 2), (3, None)], kept=False)])]
 
     @dataclasses.dataclass(frozen=True)
     class Result:
@@ -95,7 +95,7 @@ def test_the_edges_named_in_starts_stats_are_reported_in_the_original_edge_order
     assert [r["excluded"] for r in dist["revisits"]] == [2]
     assert [(r["admitted"], r["kept"]) for r in dist["readmissions"]] == [(4, True), (5, False)]
     assert [(r["removed"], r["kept"]) for r in dist["removals"]] == [(5, False)]
-    assert [(r["admitted"], r["removed"]) for r in dist["exchanges"]] == [(2, None), (0, 4)]
+    assert [r["moves"] for r in dist["exchanges"]] == [[(2, None)], [(0, 4), (5, None)]]
     assert starts[1]["readmissions"][0]["admitted"] == 2  # the run's own stats are not changed in place
 
 

@@ -84,13 +84,17 @@ class Prefiltered:
         if "starts" in stats:  # the edges of the revisits, re-admissions, removals and exchanges: original order
             original = np.flatnonzero(keep)
 
-            def renumbered(rounds, *edges):  # an edge of None (an exchange that admitted only) stays None
-                return [dict(r, **{e: None if r[e] is None else int(original[r[e]]) for e in edges}) for r in rounds]
+            def renumbered(rounds, *edges):
+                return [dict(r, **{e: int(original[r[e]]) for e in edges}) for r in rounds]
+
+            def moves_renumbered(rounds):  # an exchange's (admitted, left out); None (admitted alone) stays None
+                return [dict(r, moves=[(int(original[a]), None if out is None else int(original[out]))
+                                       for a, out in r["moves"]]) for r in rounds]
 
             stats["starts"] = [dict(row, revisits=renumbered(row.get("revisits", []), "excluded"),
                                     readmissions=renumbered(row.get("readmissions", []), "admitted"),
                                     removals=renumbered(row.get("removals", []), "removed"),
-                                    exchanges=renumbered(row.get("exchanges", []), "admitted", "removed"))
+                                    exchanges=moves_renumbered(row.get("exchanges", [])))
                                for row in stats["starts"]]
         return dataclasses.replace(result, inliers=inliers, weights=widened(result.weights),
                                    start_weights=widened(result.start_weights), prefiltered=self.rejected.copy(),

@@ -9,6 +9,7 @@ budget or a stopping rule) and :func:`~mmpgo_jax._solve.build.finish` (the :clas
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import os
 import time
@@ -408,6 +409,7 @@ def _best_of(starts: tuple, run_from: Callable, graph: PoseGraph, monitor: Monit
             row_finish = _finish_for(finish, row["start"])
             runs[k], row["f"], row["revisits"], first = _revisited(
                 firsts[k], runs[k], row["f"], others, label, run_from, graph, monitor, row_finish)
+            exchanges = _ExchangeMemory()  # each move tried once in this search
             while True:  # a closure left out may let a rejected one back in: again until none is left out
                 runs[k], row["f"], rounds = _readmitted_to_start(first, runs[k], row["f"], label, run_from, graph,
                                                                  monitor, row_finish)
@@ -418,7 +420,7 @@ def _best_of(starts: tuple, run_from: Callable, graph: PoseGraph, monitor: Monit
                 if any(r["kept"] for r in rounds):
                     continue
                 runs[k], row["f"], rounds = _exchanged_in_run(first, runs[k], row["f"], label, run_from, graph,
-                                                              monitor, row_finish)
+                                                              monitor, row_finish, exchanges)
                 row["exchanges"] += rounds
                 if not any(r["kept"] for r in rounds):
                     break
@@ -466,15 +468,16 @@ def _start_name(begin) -> str:
 
 
 def _run_finished(begin, label: str, run_from: Callable, graph: PoseGraph, monitor: Monitor,
-                  finish: Callable | None, keeps: int | None = None, weights: np.ndarray | None = None) -> tuple:
+                  finish: Callable | None, keeps=None, weights: np.ndarray | None = None) -> tuple:
     """(first run, kept run, f, iterations, f before the finish or None, how it was finished or None):
     a run from ``begin`` and, when it used its budget, the second run from its kept edges (kept when
-    lower, :func:`_best_of`). ``keeps``: an edge the run is made to try (a re-admission); a run
-    that rejected it again is not finished (the kept edges are those the trial was to change).
+    lower, :func:`_best_of`). ``keeps``: an edge (or a list of edges) the run is made to try (a
+    re-admission, an exchange); a run that rejected one again is not finished (the kept edges are
+    those the trial was to change).
     ``weights``: start weights the first run holds (the second run's come from its own start)."""
     first = run = run_from(begin, _FromStart(monitor, label), weights=weights)
     f, before, iterations, finished_by = _objective(run, graph), None, run.iterations, None
-    tried = keeps is None or run.inliers is None or bool(run.inliers[keeps])
+    tried = keeps is None or run.inliers is None or bool(np.all(run.inliers[keeps]))
     if finish is not None and tried and run.result is RESULTS.iterations and run.iterations > 0:
         run, f, before, more, finished_by = _went_on(run, f, finish, f"{label}, finished from its kept edges",
                                                      run_from, graph, monitor)
@@ -601,7 +604,7 @@ def _readmitted_to_start(first: SolveResult, run: SolveResult, f: float, label: 
 
 
 def _trial(run: SolveResult, edge, weight, label: str, run_from: Callable, graph: PoseGraph,
-           monitor: Monitor, finish: Callable | None, keeps: int | None = None) -> tuple:
+           monitor: Monitor, finish: Callable | None, keeps=None) -> tuple:
     """One round of the re-admissions, removals or exchanges: a run (finished as the first) from
     ``run``'s result holding its classification with the weight of ``edge`` (an index, or a list of
     them) set to ``weight`` (one value, or one per edge). Returns (the run, its objective,
@@ -685,8 +688,20 @@ def _removed_from_run(first: SolveResult, run: SolveResult, f: float, label: str
     return run, f, rounds
 
 
+@dataclasses.dataclass
+class _ExchangeMemory:
+    """What the exchange rounds of one search carry from call to call (:func:`_exchanged_in_run`):
+    the moves tried, each move's last predicting solve (``move_changes``'s ``warm``), and the
+    closures a kept exchange left out."""
+
+    tried: set = dataclasses.field(default_factory=set)
+    warm: dict = dataclasses.field(default_factory=dict)
+    left: set = dataclasses.field(default_factory=set)
+
+
 def _exchanged_in_run(first: SolveResult, run: SolveResult, f: float, label: str, run_from: Callable,
-                      graph: PoseGraph, monitor: Monitor, finish: Callable | None) -> tuple[SolveResult, float, list]:
+                      graph: PoseGraph, monitor: Monitor, finish: Callable | None,
+                      memory: _ExchangeMemory | None = None) -> tuple[SolveResult, float, list]:
     """What the re-admissions and removals cannot do one closure at a time: a wrong closure that bent
     its robots' maps keeps a correct one out, and neither leaving out the wrong one (the correct one
     does not fit yet) nor admitting the correct one (the wrong one holds the maps away) lowers the
@@ -703,13 +718,17 @@ def _exchanged_in_run(first: SolveResult, run: SolveResult, f: float, label: str
     worth a trial: on a 10 x 500-pose team with the Cube's noise (seed 2, 13 wrong inter-robot
     closures; benchmarks/robust_teams.md) the exchange the outlier-free classification needs is
     predicted at +0.27 with its three robots free and -0.79 with their neighbours free too, the wrong
-    closures' moves at +36.8 or more. One per round, the lowest prediction first: a run goes on from
-    the result with the run's classification held and the move made, kept when its robust objective
-    is lower by more than the re-admissions' margin and the admitted closure stays accepted; until a
-    round is not kept or no move is predicted below c^2. Each move is tried once, and a closure a kept
-    exchange left out is not admitted again by this search. Returns (run, f,
-    rounds: per round the edges admitted and left out, the prediction, f before and after,
-    iterations, kept, seconds)."""
+    closures' moves at +36.8 or more. Per round, the move of lowest prediction and with it every
+    other move predicted below 0 on robots none of the chosen moves touch
+    (:func:`_moves_on_disjoint_robots`): a run goes on from the result with the run's classification
+    held and the moves made, kept when its robust objective is lower by more than the re-admissions'
+    margin per admitted closure and every admitted closure stays accepted; a batch of several not kept
+    is followed by its first move alone. Until a round of one move is not kept or no move is
+    predicted below c^2. Each move is tried once in a search (alone or in a kept batch; ``memory``
+    carries the moves tried from call to call), and a closure a kept exchange left out is not admitted
+    again. Returns (run, f, rounds: per round the
+    moves (admitted, left out or None), their predictions, f before and after, iterations, kept,
+    seconds)."""
     if run.inliers is None or first.start_weights is None:
         return run, f, []
     c2 = float(np.asarray(run.loss.scale)) ** 2
@@ -717,8 +736,10 @@ def _exchanged_in_run(first: SolveResult, run: SolveResult, f: float, label: str
     margin = 0.0 if factor == 1.0 else (1.0 - factor) * c2
     robot = np.asarray(run.partition.robot_of_pose)
     i, j = np.asarray(graph.i), np.asarray(graph.j)
-    tried, rounds = set(), []
+    memory = _ExchangeMemory() if memory is None else memory
+    tried, rounds = memory.tried, []
     left = np.zeros(graph.num_edges, bool)  # left out by a kept exchange: not admitted again (no undoing)
+    left[list(memory.left)] = True
     while True:
         overruled = np.flatnonzero(_overruled(first.start_weights, run) & _loop_closures(graph) & ~left)
         partners = np.flatnonzero(_closures_their_pair_cannot_outvote(run, graph))
@@ -728,23 +749,54 @@ def _exchanged_in_run(first: SolveResult, run: SolveResult, f: float, label: str
                  if m not in tried]
         if not moves:
             break
-        change = move_changes(graph, robot, run.poses, run.inliers, moves, c2)
-        best = int(np.argmin(change))
-        if change[best] >= c2:
+        change = move_changes(graph, robot, run.poses, run.inliers, moves, c2, warm=memory.warm)
+        if change.min() >= c2:
             break
-        (admitted,), left_out = moves[best]
-        tried.add(moves[best])
-        again, f_again, iterations, seconds = _trial(run, [admitted, *left_out], [1.0] + [0.0] * len(left_out),
-                                                     f"{label}, {len(rounds) + 1} closure(s) exchanged", run_from,
-                                                     graph, monitor, finish, keeps=admitted)
-        kept = bool(again.inliers[admitted]) and f_again < f - margin
-        rounds.append(dict(admitted=admitted, removed=left_out[0] if left_out else None, predicted=float(change[best]),
-                           f_before=f, f=f_again, iterations=iterations, kept=kept, seconds=seconds))
+        together = _moves_on_disjoint_robots(moves, change, robot, i, j)
+        batches = [together, together[:1]] if len(together) > 1 else [together]
+        for batch in batches:  # a batch not kept: its first move alone, as one move per round would
+            chosen = [moves[k] for k in batch]
+            admitted = [e for (e,), _ in chosen]
+            left_out = [a for _, out in chosen for a in out]
+            again, f_again, iterations, seconds = _trial(
+                run, admitted + left_out, [1.0] * len(admitted) + [0.0] * len(left_out),
+                f"{label}, {len(rounds) + 1} exchange trial(s)", run_from, graph, monitor, finish,
+                keeps=admitted)
+            kept = bool(np.all(again.inliers[admitted])) and f_again < f - margin * len(admitted)
+            rounds.append(dict(moves=[(e, out[0] if out else None) for (e,), out in chosen],
+                               predicted=[float(change[k]) for k in batch], f_before=f, f=f_again,
+                               iterations=iterations, kept=kept, seconds=seconds))
+            if kept or len(batch) == 1:
+                tried.update(chosen)
+            if kept:
+                run, f = again, f_again
+                left[left_out] = True
+                memory.left.update(left_out)
+                break
         if not kept:
             break
-        run, f = again, f_again
-        left[list(left_out)] = True
     return run, f, rounds
+
+
+def _moves_on_disjoint_robots(moves: list, change: np.ndarray, robot: np.ndarray, i: np.ndarray,
+                              j: np.ndarray) -> list[int]:
+    """Indices of ``moves`` to try together: the one of lowest predicted ``change``, then, lowest
+    first, each further move predicted to lower the objective (below 0) whose robots share none with
+    a move already chosen. Each prediction holds every robot its move does not touch, so on disjoint
+    robots the predictions add up to first order, and one run tries them all (on a team whose run
+    rejected tens of correct closures each kept move costs a trial and a pass of predictions)."""
+    order = np.argsort(change, kind="stable")
+    chosen, busy = [], set()
+    for k in order.tolist():
+        if chosen and change[k] >= 0.0:
+            break
+        (e,), out = moves[k]
+        robots = {int(robot[i[x]]) for x in (e, *out)} | {int(robot[j[x]]) for x in (e, *out)}
+        if chosen and robots & busy:
+            continue
+        chosen.append(k)
+        busy |= robots
+    return chosen
 
 
 #: starts that need the whole graph in one place, and why (refused by ``distributed=True``)

@@ -178,18 +178,22 @@ def _trials_text(result, rounds, data, edge: str, what: str) -> str:
 
 
 def _exchanges_text(result, rounds, data) -> str:
-    """How many moves of the exchange search (``stats["starts"][k]["exchanges"]``: a closure the start
-    accepted and the run rejected admitted, alone or in exchange for an accepted one) were tried by a
-    run from the result, and the lines of the closures the kept ones admitted and left out."""
+    """How many rounds of the exchange search (``stats["starts"][k]["exchanges"]``: closures the start
+    accepted and the run rejected admitted, alone or in exchange for an accepted one, one move or
+    several on disjoint robots per round) were tried by a run from the result, and the lines of the
+    closures the kept ones admitted and left out."""
     if not rounds:
         return ""
     admitted = np.zeros(len(result.inliers), bool)
     left_out = np.zeros(len(result.inliers), bool)
-    admitted[[r["admitted"] for r in rounds if r["kept"]]] = True
-    left_out[[r["removed"] for r in rounds if r["kept"] and r["removed"] is not None]] = True
+    kept_moves = [m for r in rounds if r["kept"] for m in r["moves"]]
+    admitted[[a for a, _ in kept_moves]] = True
+    left_out[[out for _, out in kept_moves if out is not None]] = True
     kept = sum(r["kept"] for r in rounds)
-    text = (f"; {len(rounds)} exchange{'' if len(rounds) == 1 else 's'} of closures tried in turn from its result, "
-            f"{kept} of those runs kept (lower f)")
+    moves = sum(len(r["moves"]) for r in rounds)
+    text = (f"; {len(rounds)} exchange trial{'' if len(rounds) == 1 else 's'} ({moves} "
+            f"move{'' if moves == 1 else 's'}) of closures run in turn from its result, {kept} of those runs kept "
+            "(lower f)")
     if kept:
         text += f"{_rejected_lines(result, data, admitted, lead=': admitted ')}"
         if left_out.any():
