@@ -740,9 +740,8 @@ def _exchanged_in_run(first: SolveResult, run: SolveResult, f: float, label: str
     i, j = np.asarray(graph.i), np.asarray(graph.j)
     memory = _ExchangeMemory() if memory is None else memory
     tried, rounds = memory.tried, []
-    left = np.zeros(graph.num_edges, bool)  # left out by a kept exchange: not admitted again (no undoing)
-    left[list(memory.left)] = True
-    while True:
+    while True:  # a closure a kept exchange left out is not admitted again (no undoing)
+        left = np.isin(np.arange(graph.num_edges), list(memory.left))
         overruled = np.flatnonzero(_overruled(first.start_weights, run) & _loop_closures(graph) & ~left)
         partners = np.flatnonzero(_closures_their_pair_cannot_outvote(run, graph))
         moves = [m for e in overruled.tolist()
@@ -772,7 +771,6 @@ def _exchanged_in_run(first: SolveResult, run: SolveResult, f: float, label: str
                 tried.update(chosen)
             if kept:
                 run, f = again, f_again
-                left[left_out] = True
                 memory.left.update(left_out)
                 break
         if not kept:
