@@ -579,8 +579,7 @@ def _readmitted_to_start(first: SolveResult, run: SolveResult, f: float, label: 
     was never tried). Stopping at the first round not kept bounds the cost to one trial more than
     those kept (city10000 at 10 %: 23 candidates within that bound, none kept, 6 s each). Returns (run, f,
     rounds: per round the edge admitted, f before and after, iterations, kept, seconds)."""
-    factor = min(float(first.stats.get("start_variance_factor", 1.0)), 1.0)
-    margin = 0.0 if factor == 1.0 else (1.0 - factor) * float(np.asarray(run.loss.scale)) ** 2
+    margin = _admission_margin(first, run)
     if first.start_weights is None:
         return run, f, []
     doubted = np.flatnonzero(_inter_robot_closures(run, graph)).tolist()  # those the run rejects are open
@@ -601,6 +600,13 @@ def _readmitted_to_start(first: SolveResult, run: SolveResult, f: float, label: 
             break
         run, f = again, f_again
     return run, f, rounds
+
+
+def _admission_margin(first: SolveResult, run: SolveResult) -> float:
+    """How much a trial that admits a closure must lower 2 F_rho to be kept: (1 - v) c^2, v the
+    maps' variance factor at the start (at most 1; :func:`_readmitted_to_start`)."""
+    factor = min(float(first.stats.get("start_variance_factor", 1.0)), 1.0)
+    return 0.0 if factor == 1.0 else (1.0 - factor) * float(np.asarray(run.loss.scale)) ** 2
 
 
 def _trial(run: SolveResult, edge, weight, label: str, run_from: Callable, graph: PoseGraph,
@@ -734,8 +740,7 @@ def _exchanged_in_run(first: SolveResult, run: SolveResult, f: float, label: str
     if run.inliers is None or first.start_weights is None:
         return run, f, []
     c2 = float(np.asarray(run.loss.scale)) ** 2
-    factor = min(float(first.stats.get("start_variance_factor", 1.0)), 1.0)
-    margin = 0.0 if factor == 1.0 else (1.0 - factor) * c2
+    margin = _admission_margin(first, run)
     robot = np.asarray(run.partition.robot_of_pose)
     i, j = np.asarray(graph.i), np.asarray(graph.j)
     memory = _ExchangeMemory() if memory is None else memory
