@@ -1,0 +1,123 @@
+"""One plot per graph of the robust study: the files (``robust_distributed_files.py``) and the
+long-chain robot teams (``robust_teams.py``), each against the outlier rate.
+
+    python benchmarks/robust_study_plot.py --files-json F.json --teams-json T10.json T30.json ...
+        [--out benchmarks/robust_study.png]
+
+Per graph (a column): precision and recall of the rejected edges against the planted outliers
+(top two rows; 1 is exact), and the accuracy the robot-teams issue asks for (bottom row): for a file,
+the ATE against the outlier-free optimum in percent of the map's extent (must show: <= 1 %); for a
+team, the ATE against the ground truth over the outlier-free optimum's (must show: <= 1.5x). One
+marker per seed, a line through the median; the default pipeline (both starts, the lower robust
+objective kept) and the fully distributed one (``distributed=True``). Nothing is solved here.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+PIPELINES = {  # the files' pipeline name, the teams' method name, the label
+    "default": ("default", "tls", "default (both starts)"),
+    "distributed": ("distributed", "dist-tls", "fully distributed"),
+}
+ATE_FLOOR = 1e-9  # exact rows (ATE ~1e-11 % of the extent) drawn at this floor of the log axis
+
+
+def file_points(saved: dict) -> dict:
+    """{file: {pipeline: [(rate, seed, precision, recall, ATE % of extent)]}} of the files' rows."""
+    out: dict = {}
+    names = {v[0]: k for k, v in PIPELINES.items()}
+    for row in saved.values():
+        if row.get("pipeline") in names:
+            out.setdefault(row["file"], {}).setdefault(names[row["pipeline"]], []).append(
+                (row["rate"], row["seed"], row["precision"], row["recall"], row["ate_percent"]))
+    return out
+
+
+def team_points(runs: list[dict]) -> dict:
+    """{team label: {pipeline: [(rate, seed, precision, recall, ATE vs truth / optimum's)]}} of the
+    teams' runs (one rate per run)."""
+    out: dict = {}
+    names = {v[1]: k for k, v in PIPELINES.items()}
+    for run in runs:
+        meta = run["meta"]
+        noise = "low noise" if meta.get("noise", {}).get("sigma_R") else "Cube noise"
+        of = "inter-robot" if meta.get("rate_of") == "inter" else "all"
+        label = (f"team {meta['robots']} x {meta['poses']} ({noise}, {meta['inter']} inter-robot closures;"
+                 f" rate of {of} closures)")
+        optimum = {r["seed"]: r["ate_gt"] for r in run["rows"] if r["method"].startswith("optimum")}
+        for r in run["rows"]:
+            if r["method"] in names:
+                out.setdefault(label, {}).setdefault(names[r["method"]], []).append(
+                    (meta["rate"], r["seed"], r["precision"], r["recall"], r["ate_gt"] / optimum[r["seed"]]))
+    return out
+
+
+def _panel(ax, series: dict, column: int, log: bool) -> None:
+    for k, (name, points) in enumerate(sorted(series.items())):
+        rates = sorted({p[0] for p in points})
+        values = np.array([p[column] for p in points], float)
+        if log:
+            values = np.maximum(values, ATE_FLOOR)
+        x = np.array([p[0] for p in points]) + (k - 0.5) * 1.2  # the two pipelines side by side
+        ax.plot(x, values, "o", color=f"C{k}", alpha=0.6, ms=4)
+        median = [np.median([max(p[column], ATE_FLOOR) if log else p[column] for p in points if p[0] == r])
+                  for r in rates]
+        ax.plot(rates, median, "-", color=f"C{k}", label=PIPELINES[name][2])
+    if log:
+        ax.set_yscale("log")
+    ax.set_xticks(sorted({p[0] for points in series.values() for p in points}))
+
+
+def plot(graphs: dict, kinds: dict, out: Path) -> None:
+    """``graphs``: {title: {pipeline: points}}; ``kinds``: {title: "file" | "team"}."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from mmpgo_jax._io.atomic import atomic_write
+
+    fig, axes = plt.subplots(3, len(graphs), figsize=(3.4 * len(graphs), 8.0), squeeze=False, sharex="col")
+    for c, (title, series) in enumerate(graphs.items()):
+        team = kinds[title] == "team"
+        for r, (column, name) in enumerate(((2, "precision"), (3, "recall"))):
+            _panel(axes[r, c], series, column, log=False)
+            axes[r, c].set_ylim(-0.03, 1.03)
+            axes[r, c].set_ylabel(name if c == 0 else "")
+        _panel(axes[2, c], series, 4, log=True)
+        bound = 1.5 if team else 1.0
+        axes[2, c].axhline(bound, color="k", lw=0.8, ls=":")
+        axes[2, c].set_ylabel("ATE vs truth / optimum's" if team else "ATE vs optimum, % of extent")
+        axes[2, c].set_xlabel("outliers, % of " + ("inter-robot closures" if team else "loop closures"))
+        axes[0, c].set_title(title if len(title) < 30 else title.replace("; ", ";\n"), fontsize=9)
+    axes[0, 0].legend(fontsize=8, loc="lower left")
+    fig.tight_layout()
+    with atomic_write(out, "wb") as fh:
+        fig.savefig(fh, format="png", dpi=100)
+    plt.close(fig)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--files-json", type=Path, required=True)
+    p.add_argument("--teams-json", type=Path, nargs="*", default=[])
+    p.add_argument("--out", type=Path, default=Path(__file__).with_name("robust_study.png"))
+    args = p.parse_args(argv)
+    graphs, kinds = {}, {}
+    for name, series in file_points(json.loads(args.files_json.read_text())).items():
+        graphs[name], kinds[name] = series, "file"
+    runs = [run for path in args.teams_json for run in json.loads(path.read_text())["runs"]]
+    for name, series in team_points(runs).items():
+        graphs[name], kinds[name] = series, "team"
+    plot(graphs, kinds, args.out)
+    print(f"wrote {args.out}: {len(graphs)} graphs")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
