@@ -46,9 +46,8 @@ def team_points(runs: list[dict]) -> dict:
     for run in runs:
         meta = run["meta"]
         noise = "low noise" if meta.get("noise", {}).get("sigma_R") else "Cube noise"
-        of = "inter-robot" if meta.get("rate_of") == "inter" else "all"
         label = f"team {meta['robots']} x {meta['poses']}, {noise},\n{meta['inter']} inter-robot closures" + \
-            ("" if of == "inter-robot" else " (rate of all closures)")
+            ("" if meta.get("rate_of") == "inter" else " (rate of all closures)")
         optimum = {r["seed"]: r["ate_gt"] for r in run["rows"] if r["method"].startswith("optimum")}
         for r in run["rows"]:
             if r["method"] in names:
@@ -59,15 +58,13 @@ def team_points(runs: list[dict]) -> dict:
 
 def _panel(ax, series: dict, column: int, log: bool) -> None:
     for k, (name, points) in enumerate(sorted(series.items())):
-        rates = sorted({p[0] for p in points})
+        at = np.array([p[0] for p in points], float)
         values = np.array([p[column] for p in points], float)
         if log:
             values = np.maximum(values, ATE_FLOOR)
-        x = np.array([p[0] for p in points]) + (k - 0.5) * 1.2  # the two pipelines side by side
-        ax.plot(x, values, "o", color=f"C{k}", alpha=0.6, ms=4)
-        median = [np.median([max(p[column], ATE_FLOOR) if log else p[column] for p in points if p[0] == r])
-                  for r in rates]
-        ax.plot(rates, median, "-", color=f"C{k}", label=PIPELINES[name][2])
+        ax.plot(at + (k - 0.5) * 1.2, values, "o", color=f"C{k}", alpha=0.6, ms=4)  # the pipelines side by side
+        rates = np.unique(at)
+        ax.plot(rates, [np.median(values[at == r]) for r in rates], "-", color=f"C{k}", label=PIPELINES[name][2])
     if log:
         ax.set_yscale("log")
     ax.set_xticks(sorted({p[0] for points in series.values() for p in points}))
