@@ -26,6 +26,9 @@ loop-closure information) so that ``rate`` percent of the inter-robot closures a
   iterations too. Not dpgo's: mu's first value (``gnc_initial_mu`` of the residuals at the held
   stage's end, where dpgo starts at 1e-4) and GNC's end (binary weights at ``final_mu``, where dpgo
   stops after a number of updates with 80 % of the weights decided);
+* ``pcm-distributed``: ``distributed`` after PCM (``prefilter="pcm"``: per robot pair, the inter-robot
+  closures outside the largest pairwise-consistent set removed before the start; PCM's removals count
+  as rejected edges);
 * ``central``: ``solve(graph, robots, loss="tls", start="gnc-chordal")``: the centralized GNC-chordal
   start, then TLS (the default until 2026-12-05);
 * ``default``: ``solve(graph, robots, loss="tls")``: the default since 2026-12-05, a run from each of
@@ -70,6 +73,7 @@ HERE = Path(__file__).parent
 PIPELINES = {"distributed": dict(distributed=True), "distributed-gnc": dict(distributed=True, gnc=mm.GNCConfig()),
              "distributed-gnc-blocks": dict(distributed=True, gnc=mm.GNCConfig(factor=1.4, stage_iterations=10,
                                                                               stage_tolerance=0.0)),
+             "pcm-distributed": dict(distributed=True, prefilter="pcm"),
              "central": dict(start="gnc-chordal"), "default": {}, "gtsam": None}
 
 
