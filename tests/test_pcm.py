@@ -190,3 +190,27 @@ def test_untestable_pairs_lone_closures_and_the_cap():
         pcm_filter(graph, rop, confidence=1.0)
     with pytest.raises(ValueError, match="robot_of_pose"):
         pcm_filter(graph, rop[:-1])
+
+
+def test_maximum_clique_is_the_best_subset_of_a_brute_force_search():
+    """The clique of ``_maximum_clique`` (a 0/1 program) against every subset of small random graphs,
+    dense and sparse: the most vertices, then the most edges to the whole graph, then the smallest sum
+    of positions (its documented order of preference)."""
+    from itertools import combinations
+
+    from mmpgo_jax._robust.pcm import _maximum_clique
+
+    rng = np.random.default_rng(7)
+    for trial in range(60):
+        k = int(rng.integers(1, 11))
+        u, v = np.triu_indices(k, 1)
+        keep = rng.random(len(u)) < (0.9 if trial % 2 else 0.4)
+        u, v = u[keep], v[keep]
+        adjacent = np.eye(k, dtype=bool)
+        adjacent[u, v] = adjacent[v, u] = True
+        degree = adjacent.sum(1) - 1
+        best = max((c for s in range(1, k + 1) for c in combinations(range(k), s) if adjacent[np.ix_(c, c)].all()),
+                   key=lambda c: (len(c), degree[list(c)].sum(), -sum(c)))
+        got = _maximum_clique(k, u, v)
+        assert adjacent[np.ix_(got, got)].all(), (k, u, v, got)
+        assert (len(got), degree[got].sum(), -got.sum()) == (len(best), degree[list(best)].sum(), -sum(best))

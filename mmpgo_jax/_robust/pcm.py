@@ -8,9 +8,9 @@ z_v = (pose j of a -> pose l of b) are *consistent* when the cycle
     x_i -(z_u)-> x_k -(b's odometry)-> x_l -(z_v^-1)-> x_j -(a's odometry)-> x_i
 
 composes to nearly the identity; the largest set of pairwise consistent closures (a maximum
-clique of the consistency graph, exact, :func:`networkx.max_weight_clique`; among cliques of that
-size, the one whose closures passed the most tests) is kept and the pair's other closures are
-dropped. Odometry edges (j == i + 1, same robot) and intra-robot edges are always kept (intra-robot
+clique of the consistency graph, exact: a 0/1 program solved by HiGHS, :func:`scipy.optimize.milp`;
+among cliques of that size, the one whose closures passed the most tests) is kept and the pair's
+other closures are dropped. Odometry edges (j == i + 1, same robot) and intra-robot edges are always kept (intra-robot
 loop closures are not checked).
 
 **Chains.** Each robot's odometry is composed once, as a prefix product: P_p = o_start ... o_(p-1)
@@ -57,6 +57,7 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.sparse as sp
 
 from .._core.geometry import se_log
 from .._core.lie import so
@@ -255,18 +256,35 @@ def _blocked_chi2(cl, chains, u, v):
 
 
 def _maximum_clique(k: int, u, v) -> np.ndarray:
-    """Positions (0..k-1) of a maximum clique of the graph on k vertices with edges (u, v): exact,
-    :func:`networkx.max_weight_clique` (branch and bound). Among the cliques of maximum size the
-    one with the most edges to the whole graph (tests passed) wins: vertex weights k^2 + degree (a
-    clique of s + 1 vertices outweighs any of s, as s (k - 1) < k^2)."""
-    import networkx as nx
+    """Positions (0..k-1) of a maximum clique of the graph on k vertices with edges (u, v): exact, as
+    the 0/1 program max sum_v w_v x_v subject to x_a + x_b <= 1 for every pair (a, b) that is not an
+    edge, solved by :func:`scipy.optimize.milp` (HiGHS' branch and cut) with no optimality gap.
 
+    Weights: (k^2 + degree) k^2 + (k - position). A clique of s + 1 vertices outweighs any of s (s (k -
+    1) < k^2 in the first term, and the second sums to under k^2); among the cliques of maximum size
+    the one with the most edges to the whole graph (tests passed) wins, then the one whose closures
+    come first in the group's order (the smallest sum of positions; e.g. of two inconsistent closures
+    alone in a pair, the first is kept). The sums stay integers below 2^53 (exact in floating point) for k <
+    1500; beyond, the last term is left out and HiGHS picks among such ties. A pair of 200
+    closures, most of them pairwise consistent, takes 0.03-0.3 s here where networkx's branch and
+    bound took 5-90 s (``benchmarks/pcm.md``)."""
+    from scipy.optimize import Bounds, LinearConstraint, milp
+
+    adjacent = np.eye(k, dtype=bool)
+    adjacent[u, v] = adjacent[v, u] = True
+    a, b = np.nonzero(np.triu(~adjacent, 1))
+    if len(a) == 0:  # every pair consistent: one clique of all
+        return np.arange(k, dtype=np.int64)
+    rows = np.arange(len(a))
+    conflicts = sp.csr_array((np.ones(2 * len(a)), (np.r_[rows, rows], np.r_[a, b])), shape=(len(a), k))
     degree = np.bincount(np.r_[u, v], minlength=k)
-    g = nx.Graph()
-    g.add_nodes_from((node, {"w": k * k + int(deg)}) for node, deg in enumerate(degree))
-    g.add_edges_from(zip(u.tolist(), v.tolist(), strict=True))
-    clique, _ = nx.max_weight_clique(g, weight="w")
-    return np.asarray(sorted(clique), np.int64)
+    order = k - np.arange(k) if k < 1500 else 0  # k^5 < 2^53
+    weight = ((k * k + degree) * (k * k if k < 1500 else 1) + order).astype(float)
+    res = milp(-weight, constraints=LinearConstraint(conflicts, -np.inf, 1.0), integrality=np.ones(k),
+               bounds=Bounds(0.0, 1.0), options=dict(mip_rel_gap=0.0))
+    if not res.success:  # a solver failure, not a property of the data
+        raise RuntimeError(f"PCM's maximum clique: HiGHS stopped without an optimum ({res.message})")
+    return np.flatnonzero(res.x > 0.5).astype(np.int64)
 
 
 def pcm_filter(graph: PoseGraph, robot_of_pose, *, confidence: float = 0.99,
@@ -276,9 +294,9 @@ def pcm_filter(graph: PoseGraph, robot_of_pose, *, confidence: float = 0.99,
     ``robot_of_pose`` (n,): the robot of each pose. ``confidence``: the chi-square quantile of the
     consistency test (d(d+1)/2 degrees of freedom). ``max_pair_closures``: a robot pair with more
     closures than this is split into consecutive groups (ordered by the pose on the smaller robot
-    id) of at most this many, each filtered separately: the exact maximum clique's search time grows
-    steeply with the number of closures (measured: ~1 s for 200 closures of which half are nearly
-    pairwise consistent, over 300 s for 400); None: no split. ``min_clique_size``: a pair (or
+    id) of at most this many, each filtered separately: the exact maximum clique is NP-hard and its
+    search time can grow steeply with the number of closures (0.03-0.3 s per group of 200 on
+    city10000 with HiGHS); None: no split. ``min_clique_size``: a pair (or
     group) whose maximum clique is smaller loses all its closures (1, the default, is Mangelson et
     al.'s PCM: a lone closure, or one of several mutually inconsistent ones, is kept; 2 demands
     that every kept closure be corroborated by another)."""
