@@ -260,12 +260,13 @@ def _maximum_clique(k: int, u, v) -> np.ndarray:
     the 0/1 program max sum_v w_v x_v subject to x_a + x_b <= 1 for every pair (a, b) that is not an
     edge, solved by :func:`scipy.optimize.milp` (HiGHS' branch and cut) with no optimality gap.
 
-    Weights: (k^2 + degree) k^2 + (k - position). A clique of s + 1 vertices outweighs any of s (s (k -
-    1) < k^2 in the first term, and the second sums to under k^2); among the cliques of maximum size
+    Weights: (k^2 + degree) k^2 + position. A clique of s + 1 vertices outweighs any of s (s (k - 1)
+    < k^2 in the first term, and the second sums to under k^2); among the cliques of maximum size
     the one with the most edges to the whole graph (tests passed) wins, then the one whose closures
-    come first in the group's order (the smallest sum of positions; e.g. of two inconsistent closures
-    alone in a pair, the first is kept). The sums stay integers below 2^53 (exact in floating point) for k <
-    1500; beyond, the last term is left out and HiGHS picks among such ties. A pair of 200
+    come last in the group's order (the largest sum of positions: PCM has no evidence to prefer
+    either; of two inconsistent closures alone in a pair the second is kept, as networkx's search,
+    used before, kept it). The sums stay integers below 2^53 (exact in floating point) for k < 1500;
+    beyond, the last term is left out and HiGHS picks among such ties. A pair of 200
     closures, most of them pairwise consistent, takes 0.03-0.3 s here where networkx's branch and
     bound took 5-90 s (``benchmarks/pcm.md``)."""
     from scipy.optimize import Bounds, LinearConstraint, milp
@@ -278,7 +279,7 @@ def _maximum_clique(k: int, u, v) -> np.ndarray:
     rows = np.arange(len(a))
     conflicts = sp.csr_array((np.ones(2 * len(a)), (np.r_[rows, rows], np.r_[a, b])), shape=(len(a), k))
     degree = np.bincount(np.r_[u, v], minlength=k)
-    order = k - np.arange(k) if k < 1500 else 0  # k^5 < 2^53
+    order = np.arange(k) if k < 1500 else 0  # k^5 < 2^53
     weight = ((k * k + degree) * (k * k if k < 1500 else 1) + order).astype(float)
     res = milp(-weight, constraints=LinearConstraint(conflicts, -np.inf, 1.0), integrality=np.ones(k),
                bounds=Bounds(0.0, 1.0), options=dict(mip_rel_gap=0.0))
