@@ -8,8 +8,10 @@ Per graph (a column): precision and recall of the rejected edges against the pla
 (top two rows; 1 is exact), and the accuracy the robot-teams issue asks for (bottom row): for a file,
 the ATE against the outlier-free optimum in percent of the map's extent (must show: <= 1 %); for a
 team, the ATE against the ground truth over the outlier-free optimum's (must show: <= 1.5x). One
-marker per seed, a line through the median; the default pipeline (both starts, the lower robust
-objective kept) and the fully distributed one (``distributed=True``). Nothing is solved here.
+marker per seed, a line through the median; four pipelines: the default (both starts, the lower robust
+objective kept), the fully distributed one (``distributed=True``), PCM then the fully distributed one
+(``prefilter="pcm", distributed=True``), and GTSAM's GNC (TLS, from the centralized chordal start), a
+reference outside this package. Nothing is solved here.
 """
 
 from __future__ import annotations
@@ -23,8 +25,12 @@ import numpy as np
 PIPELINES = {  # the files' pipeline name, the teams' method name, the label
     "default": ("default", "tls", "default (both starts)"),
     "distributed": ("distributed", "dist-tls", "fully distributed"),
+    "pcm-distributed": ("pcm-distributed", "dist-pcm+tls", "PCM + fully distributed"),
+    "gtsam": ("gtsam", "gtsam", "GTSAM's GNC (reference)"),
 }
+ORDER = list(PIPELINES)  # colours and offsets per pipeline, the same in every panel
 ATE_FLOOR = 1e-9  # exact rows (ATE ~1e-11 % of the extent) drawn at this floor of the log axis
+SCORE_FLOOR = 0.5  # precision / recall below it drawn at it as a triangle, so that one-closure misses stay visible
 
 
 def file_points(saved: dict) -> dict:
@@ -57,12 +63,16 @@ def team_points(runs: list[dict]) -> dict:
 
 
 def _panel(ax, series: dict, column: int, log: bool) -> None:
-    for k, (name, points) in enumerate(sorted(series.items())):
+    for name, points in series.items():
+        k = ORDER.index(name)
         at = np.array([p[0] for p in points], float)
-        values = np.array([p[column] for p in points], float)
-        if log:
-            values = np.maximum(values, ATE_FLOOR)
-        ax.plot(at + (k - 0.5) * 1.2, values, "o", color=f"C{k}", alpha=0.6, ms=4)  # the pipelines side by side
+        raw = np.array([p[column] for p in points], float)
+        floor = ATE_FLOOR if log else SCORE_FLOOR
+        values = np.maximum(raw, floor)
+        below = (raw < floor) & (not log)  # an exact ATE keeps its circle
+        offset = (k - (len(ORDER) - 1) / 2) * 1.0  # the pipelines side by side
+        ax.plot(at[~below] + offset, values[~below], "o", color=f"C{k}", alpha=0.6, ms=4)
+        ax.plot(at[below] + offset, values[below], "v", color=f"C{k}", alpha=0.6, ms=5)
         rates = np.unique(at)
         ax.plot(rates, [np.median(values[at == r]) for r in rates], "-", color=f"C{k}", label=PIPELINES[name][2])
     if log:
@@ -85,18 +95,24 @@ def plot(graphs: dict, kinds: dict, out: Path) -> None:
         for r, (column, name) in enumerate(((2, "precision"), (3, "recall"))):
             _panel(axes[r, c], series, column, log=False)
             lowest = min(p[column] for points in series.values() for p in points)
-            axes[r, c].set_ylim(min(0.9, lowest - 0.02), 1.005)  # misses of a closure or two stay visible
+            axes[r, c].set_ylim(max(SCORE_FLOOR, min(0.9, lowest - 0.02)) - 0.01, 1.005)
             axes[r, c].set_ylabel(name if c == 0 else "")
-        _panel(axes[2, c], series, 4, log=not team)
+        _panel(axes[2, c], series, 4, log=True)  # a reference's misses reach 10-100x the must-show
         bound = 1.5 if team else 1.0
         axes[2, c].axhline(bound, color="k", lw=0.8, ls=":")
         axes[2, c].set_ylabel("ATE vs truth / optimum's" if team else "ATE vs optimum, % of extent")
         axes[2, c].set_xlabel("wrong, % of inter-robot closures")
         axes[0, c].set_title(title, fontsize=9)
-    axes[0, 0].legend(fontsize=8, loc="lower left")
+    legend = {}  # one legend for the figure, every pipeline drawn in some panel
+    for ax in axes.flat:
+        handles, labels = ax.get_legend_handles_labels()
+        legend.update(zip(labels, handles, strict=True))
+    fig.legend(list(legend.values()), list(legend), loc="lower center", ncol=len(legend), fontsize=9)
     fig.suptitle(f"markers: seeds; lines: medians; dotted: the must-show bound; an ATE below {ATE_FLOOR:g} % "
-                 "of the extent (exact) drawn at it", fontsize=9)
-    fig.tight_layout(rect=(0, 0, 1, 0.97))
+                 f"of the extent (exact) drawn at it; triangles: precision or recall below {SCORE_FLOOR:g} "
+                 "drawn at it",
+                 fontsize=9)
+    fig.tight_layout(rect=(0, 0.04, 1, 0.97))
     with atomic_write(out, "wb") as fh:
         fig.savefig(fh, format="png", dpi=100)
     plt.close(fig)
