@@ -10,8 +10,8 @@ z_v = (pose j of a -> pose l of b) are *consistent* when the cycle
 composes to nearly the identity; the largest set of pairwise consistent closures (a maximum
 clique of the consistency graph, exact: a 0/1 program solved by HiGHS, :func:`scipy.optimize.milp`;
 among cliques of that size, the one whose closures passed the most tests) is kept and the pair's
-other closures are dropped. Odometry edges (j == i + 1, same robot) and intra-robot edges are always kept (intra-robot
-loop closures are not checked).
+other closures are dropped. Odometry edges (j == i + 1, same robot) and intra-robot edges are
+always kept (intra-robot loop closures are not checked).
 
 **Chains.** Each robot's odometry is composed once, as a prefix product: P_p = o_start ... o_(p-1)
 is pose p in the frame of the first pose of its *segment* (a maximal run of consecutive poses of
@@ -265,8 +265,8 @@ def _maximum_clique(k: int, u, v) -> np.ndarray:
     the one with the most edges to the whole graph (tests passed) wins, then the one whose closures
     come last in the group's order (the largest sum of positions: PCM has no evidence to prefer
     either; of two inconsistent closures alone in a pair the second is kept, as networkx's search,
-    used before, kept it). The sums stay integers below 2^53 (exact in floating point) for k < 1500;
-    beyond, the last term is left out and HiGHS picks among such ties. A pair of 200
+    used before, kept it). The sums (about k^5) stay integers below 2^53, exact in floating point, for
+    k < 1500; beyond, the last term is left out and HiGHS picks among such ties. A pair of 200
     closures, most of them pairwise consistent, takes 0.03-0.3 s here where networkx's branch and
     bound took 5-90 s (``benchmarks/pcm.md``)."""
     from scipy.optimize import Bounds, LinearConstraint, milp
@@ -279,8 +279,8 @@ def _maximum_clique(k: int, u, v) -> np.ndarray:
     rows = np.arange(len(a))
     conflicts = sp.csr_array((np.ones(2 * len(a)), (np.r_[rows, rows], np.r_[a, b])), shape=(len(a), k))
     degree = np.bincount(np.r_[u, v], minlength=k)
-    order = np.arange(k) if k < 1500 else 0  # k^5 < 2^53
-    weight = ((k * k + degree) * (k * k if k < 1500 else 1) + order).astype(float)
+    scale, order = (k * k, np.arange(k)) if k < 1500 else (1, 0)  # exact sums below 2^53
+    weight = ((k * k + degree) * scale + order).astype(float)
     res = milp(-weight, constraints=LinearConstraint(conflicts, -np.inf, 1.0), integrality=np.ones(k),
                bounds=Bounds(0.0, 1.0), options=dict(mip_rel_gap=0.0))
     if not res.success:  # a solver failure, not a property of the data
