@@ -70,7 +70,7 @@ def _panel(ax, series: dict, column: int, log: bool) -> None:
         floor = ATE_FLOOR if log else SCORE_FLOOR
         values = np.maximum(raw, floor)
         below = (raw < floor) & (not log)  # an exact ATE keeps its circle
-        offset = (k - (len(ORDER) - 1) / 2) * 1.0  # the pipelines side by side
+        offset = k - (len(ORDER) - 1) / 2  # the pipelines side by side
         ax.plot(at[~below] + offset, values[~below], "o", color=f"C{k}", alpha=0.6, ms=4)
         ax.plot(at[below] + offset, values[below], "v", color=f"C{k}", alpha=0.6, ms=5)
         rates = np.unique(at)
@@ -107,7 +107,8 @@ def plot(graphs: dict, kinds: dict, out: Path) -> None:
     for ax in axes.flat:
         handles, labels = ax.get_legend_handles_labels()
         legend.update(zip(labels, handles, strict=True))
-    fig.legend(list(legend.values()), list(legend), loc="lower center", ncol=len(legend), fontsize=9)
+    labels = [v[2] for v in PIPELINES.values() if v[2] in legend]  # in ORDER, as the colours
+    fig.legend([legend[label] for label in labels], labels, loc="lower center", ncol=len(labels), fontsize=9)
     fig.suptitle(f"markers: seeds; lines: medians; dotted: the must-show bound; an ATE below {ATE_FLOOR:g} % "
                  f"of the extent (exact) drawn at it; triangles: precision or recall below {SCORE_FLOOR:g} "
                  "drawn at it",
