@@ -15,7 +15,7 @@ _CHILD = textwrap.dedent("""
     n = mm.use_cpu_cores(2)
     import jax
     jax.config.update("jax_enable_x64", True)
-    big = mm.cube_dataset(0, num_poses=1200, grid=6).graph
+    big = mm.cube_dataset(0, num_poses=400, grid=4).graph
     small = mm.cube_dataset(0, num_poses=120, grid=3).graph
     a = mm.solve(big, 4, iterations=6, chunk_size=3)
     b = mm.solve(big, 4, iterations=6, chunk_size=3, layout=mm.OneDevice())
@@ -24,7 +24,7 @@ _CHILD = textwrap.dedent("""
     sw = mm.sweep(graphs, [2, 3], "amm", 6, chunk_size=3, max_batch_configs=1)
     same = [float(abs(sw.histories[(g, a, "amm")] - mm.solve(graphs[g], a, iterations=6, chunk_size=3,
                                                              stop_when_stalled=False).history.f).max())
-            for g in graphs for a in (2, 3)]
+            for g in ("g0",) for a in (2, 3)]  # one graph: a solve per robot count
     try:
         mm.use_cpu_cores(3)  # another count after the backend started
         late = None
@@ -45,14 +45,14 @@ def child():
 
 
 def test_default_layout_uses_every_cpu_device_for_large_graphs(child):
-    assert child["n"] == 2 and child["devices"] == 2  # 1200 poses: split over both CPU devices
+    assert child["n"] == 2 and child["devices"] == 2  # 400 poses: split over both CPU devices
     assert child["one"] is None and child["small"] is None  # asked for one device; below AUTO_THREAD_POSES (200)
     assert child["fa"] == pytest.approx(child["fb"], rel=1e-12)  # the same iterates, laid out differently
 
 
 def test_sweep_runs_its_batches_on_every_cpu_device(child):
     """With two CPU devices a sweep's batches run two at a time, one per device, and each
-    configuration still equals its solve() (one device, the same iterates)."""
+    configuration of the first graph still equals its solve() (one device, the same iterates)."""
     assert child["sweep_devices"] == [2, 2] and child["sweep_batches"] == [3, 3]
     assert max(child["sweep_vs_solve"]) <= 1e-9 * 1e3, child["sweep_vs_solve"]  # f about 1e3: rounding only
 
