@@ -193,12 +193,13 @@ def test_untestable_pairs_lone_closures_and_the_cap():
 
 
 def test_maximum_clique_is_the_best_subset_of_a_brute_force_search():
-    """The clique of ``_maximum_clique`` (a 0/1 program) against every subset of small random graphs,
-    dense and sparse: the most vertices, then the most edges to the whole graph, then the largest sum
-    of positions (its documented order of preference)."""
+    """Both clique searches (HiGHS' 0/1 program and networkx's branch and bound) and the choice
+    between them against every subset of small random graphs, dense and sparse: the most vertices,
+    then the most edges to the whole graph, then the largest sum of positions (the documented order
+    of preference)."""
     from itertools import combinations
 
-    from mmpgo_jax._robust.pcm import _maximum_clique
+    from mmpgo_jax._robust.pcm import _clique_program, _clique_search, _clique_weights, _maximum_clique
 
     rng = np.random.default_rng(7)
     for trial in range(60):
@@ -211,6 +212,28 @@ def test_maximum_clique_is_the_best_subset_of_a_brute_force_search():
         degree = adjacent.sum(1) - 1
         best = max((c for s in range(1, k + 1) for c in combinations(range(k), s) if adjacent[np.ix_(c, c)].all()),
                    key=lambda c: (len(c), degree[list(c)].sum(), sum(c)))
-        got = _maximum_clique(k, u, v)
-        assert adjacent[np.ix_(got, got)].all(), (k, u, v, got)
-        assert (len(got), degree[got].sum(), got.sum()) == (len(best), degree[list(best)].sum(), sum(best))
+        a, b = np.nonzero(np.triu(~adjacent, 1))
+        weight = _clique_weights(k, u, v)
+        found = [_maximum_clique(k, u, v), _clique_search(k, u, v, weight)]
+        if len(a):
+            found.append(_clique_program(k, a, b, weight))
+        for got in found:
+            assert adjacent[np.ix_(got, got)].all(), (k, u, v, got)
+            assert (len(got), degree[got].sum(), got.sum()) == (len(best), degree[list(best)].sum(), sum(best))
+
+
+def test_the_clique_search_follows_the_density(monkeypatch):
+    """HiGHS' 0/1 program for dense consistency graphs, networkx's search for sparse ones."""
+    from mmpgo_jax._robust import pcm
+
+    used = []
+    monkeypatch.setattr(pcm, "_clique_program", lambda k, a, b, w: used.append("program") or np.arange(1))
+    monkeypatch.setattr(pcm, "_clique_search", lambda k, u, v, w: used.append("search") or np.arange(1))
+    k = 20
+    u, v = np.triu_indices(k, 1)
+    pcm._maximum_clique(k, u[1:], v[1:])  # one inconsistent pair of 190
+    pcm._maximum_clique(k, u[::3], v[::3])  # a third of the pairs consistent
+    cut = int(np.ceil(pcm.DENSE_CONSISTENCY * len(u)))
+    pcm._maximum_clique(k, u[:cut], v[:cut])  # at the threshold
+    pcm._maximum_clique(k, u[:cut - 1], v[:cut - 1])  # just below it
+    assert used == ["program", "search", "program", "search"]

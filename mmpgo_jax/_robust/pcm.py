@@ -8,8 +8,9 @@ z_v = (pose j of a -> pose l of b) are *consistent* when the cycle
     x_i -(z_u)-> x_k -(b's odometry)-> x_l -(z_v^-1)-> x_j -(a's odometry)-> x_i
 
 composes to nearly the identity; the largest set of pairwise consistent closures (a maximum
-clique of the consistency graph, exact: a 0/1 program solved by HiGHS, :func:`scipy.optimize.milp`;
-among cliques of that size, the one whose closures passed the most tests) is kept and the pair's
+clique of the consistency graph, exact: a 0/1 program solved by HiGHS, :func:`scipy.optimize.milp`,
+for dense consistency graphs, networkx's branch and bound for sparse ones; among cliques of that
+size, the one whose closures passed the most tests) is kept and the pair's
 other closures are dropped. Odometry edges (j == i + 1, same robot) and intra-robot edges are
 always kept (intra-robot loop closures are not checked).
 
@@ -255,37 +256,70 @@ def _blocked_chi2(cl, chains, u, v):
     return chi2, testable
 
 
+#: consistency graphs with at least this fraction of their pairs consistent go to the 0/1 program,
+#: sparser ones to networkx's branch and bound (the faster of the two on each side: random graphs of
+#: 100-200 closures with and without a consistent half, benchmarks/pcm.md)
+DENSE_CONSISTENCY = 0.65
+
+
+def _clique_weights(k: int, u, v) -> np.ndarray:
+    """Integer vertex weights (k^2 + degree) k^2 + position (int64; :func:`_maximum_clique`)."""
+    degree = np.bincount(np.r_[u, v], minlength=k).astype(np.int64)
+    scale, order = (k * k, np.arange(k, dtype=np.int64)) if k < 1500 else (1, 0)  # exact sums below 2^53
+    return (k * k + degree) * scale + order
+
+
 def _maximum_clique(k: int, u, v) -> np.ndarray:
-    """Positions (0..k-1) of a maximum clique of the graph on k vertices with edges (u, v): exact, as
-    the 0/1 program max sum_v w_v x_v subject to x_a + x_b <= 1 for every pair (a, b) that is not an
-    edge, solved by :func:`scipy.optimize.milp` (HiGHS' branch and cut) with no optimality gap.
+    """Positions (0..k-1) of a maximum-weight clique of the graph on k vertices with edges (u, v), exact.
 
-    Weights: (k^2 + degree) k^2 + position. A clique of s + 1 vertices outweighs any of s (s (k - 1)
-    < k^2 in the first term, and the second sums to under k^2); among the cliques of maximum size
-    the one with the most edges to the whole graph (tests passed) wins, then the one whose closures
-    come last in the group's order (the largest sum of positions: PCM has no evidence to prefer
-    either; of two inconsistent closures alone in a pair the second is kept, as networkx's search,
-    used before, kept it). The sums (about k^5) stay integers below 2^53, exact in floating point, for
-    k < 1500; beyond, the last term is left out and HiGHS picks among such ties. A pair of 200
-    closures, most of them pairwise consistent, takes 0.03-0.3 s here where networkx's branch and
-    bound took 5-90 s (``benchmarks/pcm.md``)."""
-    from scipy.optimize import Bounds, LinearConstraint, milp
+    Weights (:func:`_clique_weights`): (k^2 + degree) k^2 + position. A clique of s + 1 vertices
+    outweighs any of s (s (k - 1) < k^2 in the first term, and the second sums to under k^2); among
+    the cliques of maximum size the one with the most edges to the whole graph (tests passed) wins,
+    then the one whose closures come last in the group's order (the largest sum of positions: PCM has
+    no evidence to prefer either; of two inconsistent closures alone in a pair the second is kept).
+    The sums (about k^5) stay integers below 2^53, exact in floating point, for k < 1500; beyond, the
+    last term is left out and the search picks among such ties.
 
+    Two exact searches of the same weights, chosen by the graph's density (consistent pairs over all
+    pairs): at :data:`DENSE_CONSISTENCY` or above the 0/1 program max sum_v w_v x_v subject to x_a +
+    x_b <= 1 for every pair (a, b) that is not an edge, solved by :func:`scipy.optimize.milp`
+    (HiGHS' branch and cut, no optimality gap); below, networkx's ``max_weight_clique`` (branch and
+    bound). Each is the slow one on the other side: a pair of 200 closures, most of them pairwise
+    consistent, takes 0.03-0.3 s with HiGHS where networkx took 5-90 s; a sparse graph of 200, 0.2-1.7
+    s with networkx where HiGHS took 2 s to minutes (``benchmarks/pcm.md``)."""
     adjacent = np.eye(k, dtype=bool)
     adjacent[u, v] = adjacent[v, u] = True
     a, b = np.nonzero(np.triu(~adjacent, 1))
     if len(a) == 0:  # every pair consistent: one clique of all
         return np.arange(k, dtype=np.int64)
+    weight = _clique_weights(k, u, v)
+    if len(a) <= (1.0 - DENSE_CONSISTENCY) * k * (k - 1) / 2:
+        return _clique_program(k, a, b, weight)
+    return _clique_search(k, u, v, weight)
+
+
+def _clique_program(k: int, a, b, weight) -> np.ndarray:
+    """The maximum-weight clique as a 0/1 program over the non-edges (a, b) (HiGHS)."""
+    from scipy.optimize import Bounds, LinearConstraint, milp
+
     rows = np.arange(len(a))
     conflicts = sp.csr_array((np.ones(2 * len(a)), (np.r_[rows, rows], np.r_[a, b])), shape=(len(a), k))
-    degree = np.bincount(np.r_[u, v], minlength=k)
-    scale, order = (k * k, np.arange(k)) if k < 1500 else (1, 0)  # exact sums below 2^53
-    weight = ((k * k + degree) * scale + order).astype(float)
-    res = milp(-weight, constraints=LinearConstraint(conflicts, -np.inf, 1.0), integrality=np.ones(k),
-               bounds=Bounds(0.0, 1.0), options=dict(mip_rel_gap=0.0))
+    res = milp(-weight.astype(float), constraints=LinearConstraint(conflicts, -np.inf, 1.0),
+               integrality=np.ones(k), bounds=Bounds(0.0, 1.0), options=dict(mip_rel_gap=0.0))
     if not res.success:  # a solver failure, not a property of the data
         raise RuntimeError(f"PCM's maximum clique: HiGHS stopped without an optimum ({res.message})")
     return np.flatnonzero(res.x > 0.5).astype(np.int64)
+
+
+def _clique_search(k: int, u, v, weight) -> np.ndarray:
+    """The maximum-weight clique of the edges (u, v) by networkx's branch and bound."""
+    import networkx as nx
+
+    graph = nx.Graph()
+    graph.add_nodes_from((n, {"w": int(w)}) for n, w in enumerate(weight))
+    graph.add_edges_from(zip(np.asarray(u).tolist(), np.asarray(v).tolist(), strict=True))
+    clique, _ = nx.max_weight_clique(graph, weight="w")
+    return np.sort(np.asarray(clique, dtype=np.int64))
 
 
 def pcm_filter(graph: PoseGraph, robot_of_pose, *, confidence: float = 0.99,
