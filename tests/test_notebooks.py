@@ -92,7 +92,7 @@ def test_private_pattern():
         assert not PRIVATE.search(good), good
 
 
-# 03 and 04 take 35-50 s each on a 2-core CI machine (a sweep's and the robust solves' compiles): they
+# 03 and 04 take 20-50 s each on a 2-core machine (a sweep's and the robust solves' compiles): they
 # run with -m slow; the default run still checks their committed outputs and their public names.
 RUN_BY_DEFAULT = {"01_quickstart.ipynb", "02_reproduce_tables.ipynb"}
 
