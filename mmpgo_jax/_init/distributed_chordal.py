@@ -148,7 +148,7 @@ import scipy.linalg as sla
 import scipy.sparse as sp
 
 from .._core.gauge import FixedPoses, anchor_set
-from .._core.geometry import project_to_so
+from .._core.geometry import bmm, mT, project_to_so
 from .._core.partition import Partition
 from .._core.partition import partition as make_partition
 from .._core.pose_graph import PoseGraph, Poses, edge_hessian_blocks
@@ -327,21 +327,24 @@ def _flush_tiny(c: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------------------------
 
 
-def _rotation_gradient_one(edges, anchor, R, n_max: int):
-    """grad_alpha F_R at the padded global iterate R (A, n_max, d, d) and the robot's cost share.
+def _rotation_gradient_one(edges, anchor, Y, n_max: int):
+    """grad_alpha F_R and the robot's cost share at the padded global iterate held transposed,
+    Y (A, n_max, d, d) with Y_i = R_i^T (:class:`RotationStage`); the gradient is returned transposed.
 
-    Cost share in the 2F convention: own edges fully, inter-robot edges half, so that the shares
-    sum to 2 F_R.
+    E^T = Rt^T R_i^T - R_j^T; the gradient w.r.t. R_i is kappa E Rt^T (transposed: Rt kappa E^T), the
+    one w.r.t. R_j is -kappa E. The small products are unrolled (:func:`bmm`: XLA:CPU's batched dot of
+    2 x 2 / 3 x 3 matrices is slower). Cost share in the 2F convention: own edges fully, inter-robot
+    edges half, so that the shares sum to 2 F_R.
     """
-    Ri = R[edges.robot_i, edges.slot_i]
-    Rj = R[edges.robot_j, edges.slot_j]
-    E = Ri @ edges.R - Rj
-    wE = edges.kappa[:, None, None] * E
-    gi = jnp.where(edges.local_i[:, None, None], wE @ jnp.swapaxes(edges.R, -1, -2), 0.0)
-    gj = jnp.where(edges.local_j[:, None, None], wE, 0.0)
+    Yi = Y[edges.robot_i, edges.slot_i]
+    Yj = Y[edges.robot_j, edges.slot_j]
+    Et = bmm(mT(edges.R), Yi) - Yj
+    wEt = edges.kappa[:, None, None] * Et
+    gi = jnp.where(edges.local_i[:, None, None], bmm(edges.R, wEt), 0.0)
+    gj = jnp.where(edges.local_j[:, None, None], wEt, 0.0)
     g = jax.ops.segment_sum(gi, edges.slot_i, n_max) - jax.ops.segment_sum(gj, edges.slot_j, n_max)
     g = jnp.where(anchor[:, None, None], 0.0, g)
-    share = jnp.sum(jnp.where(edges.is_inter, 0.5, 1.0) * jnp.sum(wE * E, axis=(-1, -2)))
+    share = jnp.sum(jnp.where(edges.is_inter, 0.5, 1.0) * jnp.sum(wEt * Et, axis=(-1, -2)))
     return g, share
 
 
@@ -372,25 +375,27 @@ def _translation_gradient(edges, anchor, v, t):
 
 
 def _apply_inverse_rot(Ginv, G):
-    """Rows of the step for every robot: (G Gamma^{-1}) in block form, G (A, n_max, d, d); in
-    Ginv's precision (float32 for the CG preconditioner), returned in G's."""
+    """The step of every robot, G Gamma^{-1} in block form, for G held transposed (A, n_max, d, d):
+    the blocks G_i^T stacked are the columns Gamma^{-1} acts on (its rows ``slot*d + a``), so no
+    block is transposed here. In Ginv's precision (float32 for the CG preconditioner), returned in G's."""
     if Ginv.ndim == 4:
         return _apply_planar_inverse(Ginv, G)
     A, n_max, d, _ = G.shape
-    rhs = jnp.swapaxes(G, -1, -2).reshape(A, n_max * d, d)  # stacked G_i^T
-    sol = jnp.einsum("aij,ajk->aik", Ginv, rhs.astype(Ginv.dtype)).astype(G.dtype)
-    return jnp.swapaxes(sol.reshape(A, n_max, d, d), -1, -2)
+    sol = jnp.einsum("aij,ajk->aik", Ginv, G.reshape(A, n_max * d, d).astype(Ginv.dtype))
+    return sol.astype(G.dtype).reshape(G.shape)
 
 
 def _apply_planar_inverse(Ginv, G):
     """:func:`_apply_inverse_rot` with the complex inverse (Hr, Hi) = Ginv[:, 0], Ginv[:, 1]: row k of
-    every block, (G_s[k, 0], G_s[k, 1]), is the complex number z_k[s]; w_k = (Hr + i Hi) z_k."""
-    Z = jnp.concatenate([G[..., 0], G[..., 1]], axis=-1).astype(Ginv.dtype)  # (A, n_max, 4): Re z, Im z
+    every block G_s (column k of the transposed block held), G_s[k, 0] + i G_s[k, 1], is the complex
+    number z_k[s]; w_k = (Hr + i Hi) z_k. The held block (G_s^T) read row by row is (Re z, Im z)."""
+    A, n_max = G.shape[:2]
+    Z = G.reshape(A, n_max, 4).astype(Ginv.dtype)  # (A, n_max, 4): Re z_0, Re z_1, Im z_0, Im z_1
     PQ = jnp.einsum("apij,ajk->apik", Ginv, Z)  # Hr Z and Hi Z in one pass over the inverse
     P, Q = PQ[:, 0], PQ[:, 1]
     wr = P[..., :2] - Q[..., 2:]
     wi = P[..., 2:] + Q[..., :2]
-    return jnp.stack([wr, wi], axis=-1).astype(G.dtype)
+    return jnp.concatenate([wr, wi], axis=-1).astype(G.dtype).reshape(G.shape)
 
 
 def _apply_inverse_trans(Ginv, g):
@@ -434,10 +439,14 @@ class _Stage(eqx.Module):
 
 
 class RotationStage(_Stage):
-    """The relaxed rotation problem (22) as majorized by Eq. (24)."""
+    """The relaxed rotation problem (22) as majorized by Eq. (24), its iterate held transposed:
+    blocks R_i^T (A, n_max, d, d), the layout of Gamma's rows, which the preconditioner then reads as
+    they are (:func:`_run_rotations` transposes on the way in and out). Held as R itself, XLA:CPU
+    transposed every block before and after each preconditioner product: more than half of a CG
+    iteration's time on parking-garage (3 x 3 blocks), measured with JAX's profiler."""
 
-    def gradient(self, R):
-        return _rotation_gradient(self.edges, self.anchor, R)
+    def gradient(self, Y):
+        return _rotation_gradient(self.edges, self.anchor, Y)
 
     def apply_inverse(self, G):
         return _apply_inverse_rot(self.Ginv, G)
@@ -446,7 +455,7 @@ class RotationStage(_Stage):
         return _rotation_gradient(self.edges, self.anchor, P)[0]  # the gradient is linear in R
 
     def column_dot(self, X, Y):
-        return jnp.sum(X * Y, axis=(0, 1, 3), keepdims=True)  # column k of R^T = row k of every R_i
+        return jnp.sum(X * Y, axis=(0, 1, 2), keepdims=True)  # column k of the stacked R^T
 
 
 class TranslationStage(_Stage):
@@ -775,10 +784,12 @@ def _initial_translations(st: _Setup, initial, n: int) -> np.ndarray:
 
 def _run_rotations(st: _Setup, Ginv, R0, budget: int, tol, solver: Solver):
     """The rotation stage on the driver; ``budget`` and ``tol`` are traced (the compiled chunk of 10
-    iterations serves every budget and tolerance)."""
+    iterations serves every budget and tolerance). The stage holds the blocks transposed
+    (:class:`RotationStage`): ``R0`` (host) and the result are transposed here, on the host."""
     stage = RotationStage(st.part.edges, jnp.asarray(st.anchor), Ginv)
-    return _drive_stage(st.part, stage, jnp.asarray(R0), budget, _check_tol(tol), solver,
-                        conditioning=_smallest_singular_value(st))
+    Y, history, k, converged = _drive_stage(st.part, stage, jnp.asarray(np.swapaxes(R0, -1, -2)), budget,
+                                            _check_tol(tol), solver, conditioning=_smallest_singular_value(st))
+    return np.swapaxes(np.asarray(Y), -1, -2), history, k, converged
 
 
 def _run_translations(st: _Setup, Ginv, Rpad, t0, budget: int, tol, solver: Solver):
