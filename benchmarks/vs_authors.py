@@ -11,7 +11,8 @@ the whole process's wall seconds, its processor seconds (user + sys of the child
 (both f = 2F of the same objective). ``--start`` adds the distributed initializations: the
 authors' ``dist_pgo --dist_init true --iters 1`` against ``mmpgo solve --init distributed-chordal
 --iterations 0`` (whole process; f at the start, and our centralized chordal start's f beside it);
-``--start-only`` runs only those. Besides the benchmark files, ``chain15k``: the long-chain graph of
+``--start-only`` runs only those; ``--baseline DIR`` runs another checkout's start beside ours
+(interleaved; e.g. ``git archive`` of the commit before a change, unpacked in DIR). Besides the benchmark files, ``chain15k``: the long-chain graph of
 ``benchmarks/inner_solver.py`` (15 000 planar poses, mostly odometry chains, 10 robots of 1 500),
 written to a temporary g2o file that both programs read.
 
@@ -92,8 +93,8 @@ def authors_start(file: str) -> dict:
     return dict(wall=wall, cpu=cpu, f=float(f[-1]) if f else float("nan"))
 
 
-def ours_start(file: str, init: str = "distributed-chordal") -> dict:
-    env = dict(os.environ, PYTHONPATH=str(HERE))
+def ours_start(file: str, init: str = "distributed-chordal", root: Path = HERE) -> dict:
+    env = dict(os.environ, PYTHONPATH=str(root))
     out, wall, cpu = timed_process([sys.executable, "-m", "mmpgo_jax.cli", "solve", file, "--robots", "10",
                              "--init", init, "--iterations", "0"], env)
     f = float(re.search(r"f = 2F\s+(\S+)", out).group(1))
@@ -112,6 +113,9 @@ def main() -> None:
     ap.add_argument("--start", action="store_true", help="also the distributed initializations")
     ap.add_argument("--start-only", action="store_true",
                     help="only the distributed initializations (their table, without the solves')")
+    ap.add_argument("--baseline", type=Path,
+                    help="another checkout (e.g. a `git archive` of an earlier commit) whose distributed start "
+                         "runs beside ours, interleaved, in the start table (an A/B of a change)")
     ap.add_argument("--out", type=Path)
     args = ap.parse_args()
     data = Path(os.environ.get("MMPGO_DATA", HERE.parent / "shared" / "datasets"))
@@ -134,17 +138,23 @@ def main() -> None:
             print(row, flush=True)
         if args.start or args.start_only:
             ours_start(file)  # warm
-            sa, so = [], []
+            if args.baseline:
+                ours_start(file, root=args.baseline)
+            sa, so, sb = [], [], []
             for _ in range(args.repeats):
                 sa.append(authors_start(file))
                 so.append(ours_start(file))
+                if args.baseline:
+                    sb.append(ours_start(file, root=args.baseline))
+            before = (_median(sb, "wall"), _median(sb, "inside")) if sb else ()
             start_rows.append((name, _median(sa, "wall"), _median(so, "wall"), _median(so, "inside"),
                                _median(sa, "cpu"), _median(so, "cpu"), sa[0]["f"], so[0]["f"],
-                               ours_start(file, "chordal")["f"]))
+                               ours_start(file, "chordal")["f"], *before))
             print(start_rows[-1], flush=True)
     model = next((ln.split(":", 1)[1].strip() for ln in Path("/proc/cpuinfo").read_text().splitlines()
                   if ln.startswith("model name")), "unknown CPU")
     flag = " --start-only" if args.start_only else (" --start" if args.start else "")
+    flag += f" --baseline {args.baseline}" if args.baseline else ""
     run = (f"Command: `python benchmarks/vs_authors.py --repeats {args.repeats}{flag}`; "
            f"{datetime.date.today().isoformat()}, {model}, {os.cpu_count()} logical CPUs, load average "
            f"{load0[0]:.2f} at the start, {os.getloadavg()[0]:.2f} at the end. Authors: MurpheyLab/DPGO @ da0157f, "
@@ -168,11 +178,13 @@ def main() -> None:
                   "--iters 1`; ours: `mmpgo solve FILE --init distributed-chordal --iterations 0`):", "",
                   "| file | authors' s | ours s | ratio | ours: the start in the process s "
                   "| processor s, authors' / ours | f at the start, authors' / ours | centralized chordal f "
-                  "| ours against it |",
-                  "|---|---|---|---|---|---|---|---|---|"]
-        for name, aw, ow, oi, ac, oc, af, of, fc in start_rows:
+                  "| ours against it |"
+                  + (" baseline s | baseline: the start in the process s |" if args.baseline else ""),
+                  "|---|---|---|---|---|---|---|---|---|" + ("---|---|" if args.baseline else "")]
+        for name, aw, ow, oi, ac, oc, af, of, fc, *before in start_rows:
             lines.append(f"| {name} | {aw:.2f} | {ow:.2f} | {ow / aw:.2f} | {oi:.2f} | {ac:.2f} / {oc:.2f} "
-                         f"| {af:.4f} / {of:.4f} | {fc:.4f} | {(of - fc) / fc:+.1e} |")
+                         f"| {af:.4f} / {of:.4f} | {fc:.4f} | {(of - fc) / fc:+.1e} |"
+                         + "".join(f" {x:.2f} |" for x in before))
     text = "\n".join(lines) + "\n"
     print(text)
     if args.out:  # all or nothing: a stopped run leaves the old file
