@@ -110,16 +110,19 @@ def test_padding_invariance(scheme):
         np.testing.assert_allclose(i1.translation_history, i2.translation_history, rtol=1e-12)
 
 
-def test_first_two_iterations_minimise_the_majorizer_of_eq24():
+@pytest.mark.parametrize("dim", [2, 3])
+def test_first_two_iterations_minimise_the_majorizer_of_eq24(dim):
     """R^1 = argmin G_R(. | R^0) and R^2 = argmin G_R(. | Y^1), Y^1 = R^1 + gamma_1 (R^1 - R^0),
-    with G_R of Eq. (24) built explicitly (midpoints P, proximal term) and minimised by lstsq."""
-    g, _, _ = random_graph(14, 2, 10, seed=7)
+    with G_R of Eq. (24) built explicitly (midpoints P, proximal term) and minimised by lstsq; in 2D
+    through the complex (planar) inverse, in 3D through the real one."""
+    g, _, _ = random_graph(14, dim, 10, seed=7)
     robots = 3
     xi = 0.3  # large enough to matter
     st = dc._setup(g, robots)
     Ginv = st.gamma_inverse(xi, True)
-    R0 = np.asarray(random_graph(14, 2, 0, seed=8)[1])  # arbitrary rotations as R^0
-    R0[0] = np.eye(2)
+    assert Ginv.ndim == (4 if dim == 2 else 3)
+    R0 = np.asarray(random_graph(14, dim, 0, seed=8)[1])  # arbitrary rotations as R^0
+    R0[0] = np.eye(dim)
     R0pad = dc._initial_rotations(st, R0, 14)
     iters = [
         np.asarray(dc._unpad(st, dc._run_rotations(st, Ginv, R0pad, k, None, dc.AMMChordal(restart=False))[0]))
@@ -129,7 +132,7 @@ def test_first_two_iterations_minimise_the_majorizer_of_eq24():
 
     def argmin_majorizer(Y):
         # unknowns: vec(R_1..R_{n-1}) row-major; every term is a weighted linear residual
-        n, d = 14, 2
+        n, d = 14, dim
         q = d * d
         rows, rhs = [], []
 
