@@ -12,8 +12,9 @@ the whole process's wall seconds, its processor seconds (user + sys of the child
 authors' ``dist_pgo --dist_init true --iters 1`` against ``mmpgo solve --init distributed-chordal
 --iterations 0`` (whole process; f at the start, and our centralized chordal start's f beside it);
 ``--start-only`` runs only those; ``--baseline DIR`` runs another checkout's start beside ours
-(interleaved; e.g. ``git archive`` of the commit before a change, unpacked in DIR). Besides the benchmark files, ``chain15k``: the long-chain graph of
-``benchmarks/inner_solver.py`` (15 000 planar poses, mostly odometry chains, 10 robots of 1 500),
+(interleaved; e.g. ``git archive`` of the commit before a change, unpacked in DIR). Besides the
+benchmark files, ``chain15k``: the long-chain graph of ``benchmarks/inner_solver.py`` (15 000 planar
+poses, mostly odometry chains, 10 robots of 1 500),
 written to a temporary g2o file that both programs read.
 
     DPGO_MIRROR=... bash ../shared/anchors/build_dpgo.sh      # once per machine
