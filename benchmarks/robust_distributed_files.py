@@ -103,6 +103,7 @@ def _loop_closures(graph) -> np.ndarray:
 
 
 def run(args, saved: dict) -> None:
+    machine = _machine()
     for name in args.files:
         graph = mm.read_g2o(mm.find_benchmark(name)).graph
         rop = mm.contiguous_robots(graph.num_poses, args.robots)
@@ -148,7 +149,7 @@ def run(args, saved: dict) -> None:
                         held=pipe != "gtsam" and bool(res.stats.get("start_weights_given", False)),
                         kept=kept[0] if pipe != "gtsam" and kept else None,
                         starts=None if pipe == "gtsam" else res.stats.get("starts"),
-                        date=time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+                        date=time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), machine=machine,
                         load=" ".join(f"{x:.2f}" for x in os.getloadavg()))
                     print(key, {k: saved[key][k] for k in ("precision", "recall", "ate_percent", "seconds")},
                           flush=True)
@@ -168,9 +169,11 @@ def _pipeline(row) -> str:
     return row["pipeline"] + (f" (kept {row['kept']})" if row.get("kept") else "")
 
 
-def report(saved: dict, machine: str) -> str:
+def report(saved: dict) -> str:
     rows = sorted(saved.values(), key=lambda r: (r["file"], r["rate"], r["seed"], r["pipeline"]))
     dates = sorted({r["date"] for r in rows})
+    # the machines the rows name (rows written before 2026-12-07 do not): never the machine at hand
+    machine = "; ".join(sorted({r.get("machine", "machines not recorded in the rows") for r in rows}))
     lines = [
         "# Fully distributed robust solves of benchmark files (wrong inter-robot loop closures)",
         "",
@@ -211,7 +214,7 @@ def main(argv=None) -> int:
     path = Path(args.json)
     saved = json.loads(path.read_text()) if path.is_file() else {}
     if args.report:
-        text = report(saved, _machine())
+        text = report(saved)
         findings = Path(args.findings)
         if findings.is_file():
             text += "\n" + findings.read_text()
