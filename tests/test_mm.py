@@ -463,6 +463,75 @@ def test_amm_average_bounded_and_faster(runs, problem2d):
     assert np.all(np.abs(st.share_fast - st.share) <= np.abs(st.share_slow - st.share) + 1e-12)
 
 
+def _spread_weights_graph():
+    """A 40-pose planar grid walk whose measurement weights (kappa and tau of every edge) spread over
+    nine orders of magnitude, 1e-3 to 1e6: the kind of graph on which AMM's adaptive slack let F climb
+    to 2.5x its start (benchmarks/restart_rules.md)."""
+    import mmpgo_jax as mm
+
+    g = mm.grid_2d_dataset(6, grid=6, num_poses=40, loop_closure_prob=0.3).graph
+    rng = np.random.default_rng(6)
+    kappa, tau = (jnp.asarray(10.0 ** rng.uniform(-3, 6, g.num_edges)) for _ in range(2))
+    return PoseGraph(g.i, g.j, g.R, g.t, kappa, tau, g.num_poses)
+
+
+def test_momentum_guard_restarts_every_robot_when_f_gives_back_progress(problem2d):
+    """MMConfig.rise_limit, the mechanism: a state with strong momentum (s large, X^{k-1} far from
+    X^k, a slack that lets any step through) whose run had brought F down to 1 % of its start takes a
+    step that ends far above that; the guard then sets every robot's s to 1, halves the slack and
+    counts a reset, where with ``rise_limit=inf`` the momentum and the slack go on as before."""
+    from mmpgo_jax._mm.outer import step
+
+    part = partition(problem2d["graph"], problem2d["robots"])
+    X0 = _scatter(part, problem2d["X0"])
+    out = {}
+    for lim in (MMConfig().rise_limit, float("inf")):
+        cfg = MMConfig(rise_limit=lim)
+        problem = MMProblem.build(part, config=cfg, poses=X0)
+        st = _init(problem, X0, cfg)
+        far = st.X.at[..., 0].add(50.0)  # X^{k-1}: every translation 50 away
+        # as if the run had brought F down to 1 % of its start: any F above 1.1 % gives back too much
+        F0 = st.f_start
+        st = eqx.tree_at(lambda s: (s.X_prev, s.s, s.slack, s.f_start, s.f_best), st,
+                         (far, jnp.full_like(st.s, 40.0), 1e12 * jnp.ones_like(st.slack), 0.02 * F0, 0.01 * F0))
+        new, rec = jax.jit(step, static_argnums=1)(problem, cfg, st)
+        out[lim] = (st, new, float(rec.f))
+    (st, guarded, f), (_, free, f_free) = out.values()
+    assert f == f_free > 2 * 0.011 * float(F0)  # the same step either way (f = 2F), far above that
+    np.testing.assert_array_equal(np.asarray(guarded.s), 1.0)
+    np.testing.assert_allclose(np.asarray(guarded.slack), 0.5 * np.asarray(st.slack))
+    assert int(guarded.resets) == 1 and int(free.resets) == 0
+    assert np.all(np.asarray(free.s) > 1.0)
+    np.testing.assert_allclose(np.asarray(free.slack), (1.0 - MMConfig().slack_decay) * np.asarray(st.slack))
+
+
+def test_momentum_guard_on_spread_weights():
+    """On a graph whose weights spread over nine orders of magnitude (where, without the guard and with
+    XLA's default code generation, the adaptive slack let F climb to 2.5x its start in a run of this
+    length, benchmarks/restart_rules.md; the tests' quicker code generation rounds differently) the
+    default AMM never rises above its start and ends at the optimum (1 robot: the majorizer is F
+    itself, so only the momentum can raise F)."""
+    import mmpgo_jax as mm
+
+    g = _spread_weights_graph()
+    guarded = mm.solve(g, 1, iterations=300, stop_when_stalled=False)
+    f = np.asarray(guarded.history.f)
+    assert f.max() <= f[0] * (1 + 1e-12)
+    f_opt = mm.centralized_optimum(g).f
+    assert guarded.f <= f_opt * (1 + 1e-3), (guarded.f, f_opt)
+
+
+def test_momentum_guard_is_inert_while_f_falls():
+    """On a graph of ordinary weights the guard never acts: the run is the unguarded one bit for bit."""
+    import mmpgo_jax as mm
+
+    g = mm.grid_2d_dataset(1, grid=6, num_poses=60).graph
+    runs_ = [mm.solve(g, 4, solver=mm.AMM(rise_limit=lim), iterations=200, stop_when_stalled=False)
+             for lim in (MMConfig().rise_limit, float("inf"))]
+    assert [r.stats["momentum_resets"] for r in runs_] == [0, 0]
+    np.testing.assert_array_equal(np.asarray(runs_[0].history.f), np.asarray(runs_[1].history.f))
+
+
 @pytest.mark.slow  # keeps the default run under 15 minutes
 def test_amm_average_hard_and_soft_restarts(runs):
     """Hard restart (value above the slow average) takes the MM step; a soft restart keeps the
@@ -654,6 +723,7 @@ def test_traced_config_numbers_compile_once_and_match_static(problem2d):
     (MMConfig, dict(average_rates=(0.1, 2.0)), r"MMConfig\.average_rates\[1\] must be a finite number in \[0, 1\]"),
     (MMConfig, dict(average_rates=(0.1,)), r"MMConfig\.average_rates must be a pair"),
     (MMConfig, dict(soft_restart_hits=0), r"MMConfig\.soft_restart_hits must be an integer >= 1"),
+    (MMConfig, dict(rise_limit=-0.1), r"MMConfig\.rise_limit must be a finite number >= 0"),
     (MMConfig, dict(soft_restart_hits=2.5), r"MMConfig\.soft_restart_hits must be an integer >= 1"),
     (SubproblemConfig, dict(preconditioner="ilu"), r"SubproblemConfig\.preconditioner.*'two-level' or 'block-jacobi'"),
     (SubproblemConfig, dict(cg_tolerance=0.0), r"SubproblemConfig\.cg_tolerance must be a finite number in \(0, 1\]"),

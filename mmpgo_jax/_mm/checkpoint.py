@@ -35,7 +35,7 @@ from .driver import History
 
 __all__ = ["FORMAT", "CheckpointError", "Checkpointer", "Snapshot", "identity", "load", "restore_state"]
 
-FORMAT = "mmpgo-checkpoint/1"
+FORMAT = "mmpgo-checkpoint/2"  # 2: MMState holds f_start, f_best and resets (rise_limit)
 # Chunks between checkpoints. Every chunk: the runs that need checkpoints are the long ones, whose
 # chunks are long (10^6 poses: 9 s per iteration, 7.5 minutes per chunk of 50) against writing
 # the state (about 0.5 GB there, seconds); on small graphs a chunk's checkpoint costs milliseconds.

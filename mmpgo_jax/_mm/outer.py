@@ -63,6 +63,18 @@ class MMConfig(eqx.Module):
       Algorithm 2's); a soft restart (momentum reset only, Z kept) after ``soft_restart_hits``
       consecutive iterations in which G^alpha(Z|X^k) exceeds the fast average (rate
       ``average_rates[1]``). Measured against "adaptive" in benchmarks/restart_rules.md.
+    rise_limit: AMM's guard against momentum that runs away (every restart rule). Let F_best be the
+      lowest value of the objective the MM step minimises (F; with a robust loss F_rho, or the
+      weighted objective while its weights are held fixed, ``Weighting.minimised``) since the start
+      or since that objective last changed (a GNC stage), and F_start its value there. When it rises
+      above F_best by more than ``rise_limit`` times the decrease F_start - F_best made since then,
+      every robot's momentum restarts (s = 1: the next iteration is an MM step) and the slack of the
+      adaptive and average tests is halved (repeated, they become Algorithm 2's test). It needs F
+      summed over the robots, which the history and the stopping rules already sum at every
+      iteration. On the benchmark files AMM's F never rises above its lowest value by more than 1e-4
+      of it, far below a tenth of the decrease made, so the guard never acts there; on graphs whose
+      measurement weights spread over many orders of magnitude the slack alone let F climb to
+      2.5-3x its start (benchmarks/restart_rules.md). ``inf`` turns it off.
     xi: the proximal term of Eq. (13), >= 0, or None: "the xi the MMProblem was built with".
       Gamma^alpha (and its preconditioners) contain xi, so the xi of a run is the problem's
       (``MMProblem.xi``). The rule: ``MMProblem.build(partition, config=config)`` takes xi from
@@ -88,6 +100,7 @@ class MMConfig(eqx.Module):
     slack_decay: float = 5e-4
     average_rates: tuple[float, float] = (5e-4, 2.5e-2)
     soft_restart_hits: int = 25
+    rise_limit: float = 0.1
 
     def __check_init__(self):
         owner = "MMConfig"
@@ -105,6 +118,8 @@ class MMConfig(eqx.Module):
         check_real(owner, "average_rates[0]", rates[0], 0.0, 1.0)
         check_real(owner, "average_rates[1]", rates[1], 0.0, 1.0)
         check_count(owner, "soft_restart_hits", self.soft_restart_hits, 1)
+        if not (isinstance(self.rise_limit, (int, float)) and self.rise_limit == float("inf")):  # inf: no guard
+            check_real(owner, "rise_limit", self.rise_limit, 0.0)
 
 
 def check_consistent(problem: MMProblem, config: MMConfig) -> None:
@@ -278,6 +293,9 @@ class MMState(eqx.Module):
     share_slow: jax.Array  # (A,) slow moving average of Gbar^alpha ("average" restart)
     share_fast: jax.Array  # (A,) fast moving average of Gbar^alpha
     soft_hits: jax.Array  # (A,) consecutive iterations above the fast average
+    f_start: jax.Array  # () the minimised objective at the start, or where it last changed (rise_limit)
+    f_best: jax.Array  # () its lowest value since then
+    resets: jax.Array  # () int32: momentum restarts of every robot by rise_limit
     weighting: NoWeights | WeightState  # the state of the problem's weighting strategy
 
 
@@ -320,6 +338,9 @@ def init_state(problem: MMProblem, X0: Poses, config: MMConfig = None) -> MMStat
         share_slow=share,
         share_fast=share,
         soft_hits=jnp.zeros(A, jnp.int32),
+        f_start=problem.weighting.minimised(weighting, jnp.sum(share)),
+        f_best=problem.weighting.minimised(weighting, jnp.sum(share)),
+        resets=jnp.zeros((), jnp.int32),
         weighting=weighting,
     )
 
@@ -423,7 +444,17 @@ def step(problem: MMProblem, config: MMConfig, st: MMState, comm: Collectives = 
     else:
         raise ValueError(f"unknown method {config.method!r}: use 'mm' or 'amm'")
     grad, share, renewed, weighting, settled = problem.weighting.update(problem, config, weighting, X_new, comm)
-    s_new = jnp.where(renewed, 1.0, s_new)  # a new objective (GNC stage): AMM's momentum starts afresh
+    f_new = comm.sum(share)
+    # momentum that gave back more than rise_limit of the decrease made since the start restarts everywhere
+    watched = problem.weighting.minimised(weighting, f_new)
+    # a run that starts at a minimum has nothing to give back: rises at the rounding level (below sqrt(eps)
+    # of F) do not count
+    floor = jnp.sqrt(jnp.finfo(f_new.dtype).eps) * jnp.abs(st.f_best)
+    fresh = renewed | problem.weighting.switched(st.weighting, weighting)  # a new objective: its own reference
+    runaway = (watched - st.f_best > jnp.maximum(config.rise_limit * (st.f_start - st.f_best), floor)) & ~fresh
+    if config.method == "mm":
+        runaway = jnp.zeros((), bool)
+    s_new = jnp.where(renewed | runaway, 1.0, s_new)  # a new objective (GNC stage): momentum starts afresh too
     new = MMState(
         X=X_new,
         grad=grad,
@@ -431,15 +462,19 @@ def step(problem: MMProblem, config: MMConfig, st: MMState, comm: Collectives = 
         X_prev=st.X,
         grad_prev=st.grad,
         s=s_new,
-        slack=(1.0 - config.slack_decay) * st.slack,
+        # and a runaway halves the slack of the adaptive and average tests: repeated, it leaves Algorithm 2's test
+        slack=jnp.where(runaway, 0.5, 1.0 - config.slack_decay) * st.slack,
         iteration=st.iteration + 1,
         share_slow=st.share_slow + config.average_rates[0] * (share - st.share_slow),
         share_fast=st.share_fast + config.average_rates[1] * (share - st.share_fast),
         soft_hits=soft_hits,
+        f_start=jnp.where(fresh, watched, st.f_start),
+        f_best=jnp.where(fresh, watched, jnp.minimum(st.f_best, watched)),
+        resets=st.resets + runaway.astype(jnp.int32),
         weighting=weighting,
     )
     rec = IterationRecord(
-        f=2.0 * comm.sum(share), grad_norm=_riemannian_grad_norm(X_new, grad, problem.free, comm), restarted=restart,
+        f=2.0 * f_new, grad_norm=_riemannian_grad_norm(X_new, grad, problem.free, comm), restarted=restart,
         settled=settled,
     )
     return new, rec

@@ -128,7 +128,10 @@ class _Majorization(Solver):
         return IterationRecord(f=0.0, grad_norm=0.0, restarted=0.0, settled=0.0)
 
     def outcome(self, problem: MMProblem, graph, part, state: MMState, poses, to_host=np.asarray):
-        return problem.weighting.outcome(graph, part, state.weighting, poses, to_host)
+        robust, stats = problem.weighting.outcome(graph, part, state.weighting, poses, to_host)
+        if self.config.method == "amm":  # times the momentum guard (MMConfig.rise_limit) restarted every robot
+            stats = {**stats, "momentum_resets": int(to_host(state.resets))}
+        return robust, stats
 
     def step(self, problem: MMProblem, state: MMState, comm: Collectives = LOCAL):
         return step(problem, self.config, state, comm)
@@ -171,7 +174,7 @@ def as_solver(solver=None, *, method: str | None = None, xi=None, restart=None, 
             return MM(solver.xi, solver.subproblem) if solver.method == "mm" else AMM(
                 solver.xi, solver.restart, solver.subproblem, slack_scale=solver.slack_scale,
                 slack_decay=solver.slack_decay, average_rates=solver.average_rates,
-                soft_restart_hits=solver.soft_restart_hits)
+                soft_restart_hits=solver.soft_restart_hits, rise_limit=solver.rise_limit)
         if not isinstance(solver, Solver):
             raise TypeError(f"solver must be a Solver (e.g. mmpgo_jax.AMM()), got {type(solver).__name__}")
         return solver

@@ -122,6 +122,16 @@ class Weighting(eqx.Module):
         """The run's robust outcome for ``SolveResult`` (loss, weights, inliers) and its statistics."""
         return {}, {}
 
+    def minimised(self, state, f):
+        """The objective the MM step currently minimises, given F (the sum of the shares): what AMM's
+        momentum guard watches (``MMConfig.rise_limit``)."""
+        return f
+
+    def switched(self, old, new):
+        """Whether :meth:`minimised` measures another objective in state ``new`` than in ``old``
+        without a renewal (the guard then takes a new reference)."""
+        return jnp.zeros((), bool)
+
 
 class LeastSquares(Weighting):
     """Every edge weight 1: Γ^α and the preconditioner are the problem's, built once."""
@@ -275,6 +285,17 @@ class Reweighted(Weighting):
         return grad, share, renewed, WeightState(weights, state.gamma, state.newton, schedule, rebuilds, gamma_weights,
                                                 coarse_weights, coarse_rebuilds, pending=rebuild,
                                                 refresh=coarse), settled
+
+    def minimised(self, state: WeightState, f):
+        """F_rho for an M-estimator's reweighting (its majorizer majorizes F_rho); while the weights are
+        held fixed (a GNC stage, the start's held weights) the weighted objective 1/2 sum w s."""
+        fixed = jnp.asarray(self.loss.use_gnc) | state.schedule.held
+        return jnp.where(fixed, 0.5 * state.schedule.weighted_f, f)
+
+    def switched(self, old: WeightState, new: WeightState):
+        """The end of the held start weights: from there an M-estimator's step minimises F_rho (an
+        update that changed no weight ends the stage without renewing the majorizer)."""
+        return old.schedule.held & ~new.schedule.held
 
     def outcome(self, graph, part, state: WeightState, poses, to_host=np.asarray) -> tuple[dict, dict]:
         loss = jax.device_get(self.loss)
