@@ -74,7 +74,7 @@ class MMConfig(eqx.Module):
       iteration. On the benchmark files AMM's F never rises above its lowest value by more than 1e-4
       of it, far below a tenth of the decrease made, so the guard never acts there; on graphs whose
       measurement weights spread over many orders of magnitude the slack alone let F climb to
-      2.5-3x its start (benchmarks/restart_rules.md). ``inf`` turns it off.
+      up to 4.6x its start (benchmarks/restart_rules.md). ``inf`` turns it off.
     xi: the proximal term of Eq. (13), >= 0, or None: "the xi the MMProblem was built with".
       Gamma^alpha (and its preconditioners) contain xi, so the xi of a run is the problem's
       (``MMProblem.xi``). The rule: ``MMProblem.build(partition, config=config)`` takes xi from
