@@ -326,6 +326,7 @@ def init_state(problem: MMProblem, X0: Poses, config: MMConfig = None) -> MMStat
     X0 = stack(X0)
     grad, share, local, weighting = problem.weighting.start(problem, config, X0)
     A = share.shape[0]
+    f0 = problem.weighting.minimised(weighting, jnp.sum(share))
     return MMState(
         X=X0,
         grad=grad,
@@ -338,8 +339,8 @@ def init_state(problem: MMProblem, X0: Poses, config: MMConfig = None) -> MMStat
         share_slow=share,
         share_fast=share,
         soft_hits=jnp.zeros(A, jnp.int32),
-        f_start=problem.weighting.minimised(weighting, jnp.sum(share)),
-        f_best=problem.weighting.minimised(weighting, jnp.sum(share)),
+        f_start=f0,
+        f_best=f0,
         resets=jnp.zeros((), jnp.int32),
         weighting=weighting,
     )
@@ -445,16 +446,16 @@ def step(problem: MMProblem, config: MMConfig, st: MMState, comm: Collectives = 
         raise ValueError(f"unknown method {config.method!r}: use 'mm' or 'amm'")
     grad, share, renewed, weighting, settled = problem.weighting.update(problem, config, weighting, X_new, comm)
     f_new = comm.sum(share)
-    # momentum that gave back more than rise_limit of the decrease made since the start restarts everywhere
     watched = problem.weighting.minimised(weighting, f_new)
-    # a run that starts at a minimum has nothing to give back: rises at the rounding level (below sqrt(eps)
-    # of F) do not count
-    floor = jnp.sqrt(jnp.finfo(f_new.dtype).eps) * jnp.abs(st.f_best)
     fresh = renewed | problem.weighting.switched(st.weighting, weighting)  # a new objective: its own reference
-    runaway = (watched - st.f_best > jnp.maximum(config.rise_limit * (st.f_start - st.f_best), floor)) & ~fresh
-    if config.method == "mm":
-        runaway = jnp.zeros((), bool)
-    s_new = jnp.where(renewed | runaway, 1.0, s_new)  # a new objective (GNC stage): momentum starts afresh too
+    runaway = jnp.zeros((), bool)  # MM has no momentum to run away
+    if config.method == "amm":
+        # momentum that gave back more than rise_limit of the decrease made since the reference restarts
+        # everywhere; a run that starts at a minimum has nothing to give back: rises at the rounding level
+        # (below sqrt(eps) of F) do not count
+        floor = jnp.sqrt(jnp.finfo(f_new.dtype).eps) * jnp.abs(st.f_best)
+        runaway = (watched - st.f_best > jnp.maximum(config.rise_limit * (st.f_start - st.f_best), floor)) & ~fresh
+    s_new = jnp.where(renewed | runaway, 1.0, s_new)  # a new objective (GNC stage) or a runaway: no momentum
     new = MMState(
         X=X_new,
         grad=grad,
