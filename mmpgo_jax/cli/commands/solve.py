@@ -98,7 +98,8 @@ def _add_robust_options(p: argparse.ArgumentParser) -> None:
                         "from the chordal start; less reliable than the default GNC start, see README)")
     g.add_argument("--loss-scale", metavar="C", type=finite_float(0.0, strict=True), default=None,
                    help="scale c of the kernel in residual units, > 0 (default: sqrt of the 0.99 chi-square quantile "
-                        "with d(d+1)/2 degrees of freedom: 3.37 in 2D, 4.10 in 3D)")
+                        "with d(d+1)/2 degrees of freedom: 3.37 in 2D, 4.10 in 3D; 4.04 is the 2D quantile for files "
+                        "whose angle noise is what their information states, see README)")
     g.add_argument("--edge-weights", metavar="OUT.csv",
                    help="write every edge's final weight and inlier flag as CSV (i, j, weight, inlier; original ids)")
     g.add_argument("--drop-outliers", action="store_true",
