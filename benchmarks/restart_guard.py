@@ -46,6 +46,15 @@ def _rotation(d, rng, scale):
     return Rotation.from_rotvec(rng.normal(size=3) * scale).as_matrix()
 
 
+def random_walk(d, n, rng) -> list:
+    """n poses (R, t) from the identity, each step a random turn (0.3 rad per axis) and a unit step."""
+    truth = [(np.eye(d), np.zeros(d))]
+    for _ in range(n - 1):
+        R0, t0 = truth[-1]
+        truth.append((R0 @ _rotation(d, rng, 0.3), t0 + R0 @ rng.normal(size=d)))
+    return truth
+
+
 def _information(d, rng, kind):
     k = 3 if d == 2 else 6
     if kind == "iso":
@@ -80,10 +89,7 @@ def random_graph(seed: int, path) -> dict:
     n = int(rng.choice([2, 3, 5, 12, 40, 90]))
     kind = str(rng.choice(KINDS))
     noise = float(rng.choice([0.0, 0.01, 0.1, 0.5]))
-    truth = [(np.eye(d), np.zeros(d))]
-    for _ in range(n - 1):
-        R0, t0 = truth[-1]
-        truth.append((R0 @ _rotation(d, rng, 0.3), t0 + R0 @ rng.normal(size=d)))
+    truth = random_walk(d, n, rng)
 
     def measured(i, j):
         (Ri, ti), (Rj, tj) = truth[i], truth[j]

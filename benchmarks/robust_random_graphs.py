@@ -32,6 +32,7 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
+from restart_guard import _write_g2o, random_walk  # noqa: E402  (the same g2o writer and rotation noise)
 from scipy.spatial.transform import Rotation  # noqa: E402
 
 import mmpgo_jax as mm  # noqa: E402
@@ -39,26 +40,6 @@ from mmpgo_jax._io.atomic import atomic_write  # noqa: E402
 from mmpgo_jax.cli.bench import command_line, machine_info  # noqa: E402
 
 PIPELINES = {"default": {}, "distributed": dict(distributed=True)}
-
-
-def _rotation(d, rng, scale):
-    if d == 2:
-        a = rng.normal() * scale
-        return np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
-    return Rotation.from_rotvec(rng.normal(size=3) * scale).as_matrix()
-
-
-def _write_g2o(path, d, poses, edges):
-    def pose(R, t):
-        if d == 2:
-            return f"{t[0]:.17g} {t[1]:.17g} {np.arctan2(R[1, 0], R[0, 0]):.17g}"
-        return " ".join(f"{x:.17g}" for x in [*t, *Rotation.from_matrix(R).as_quat()])
-
-    lines = [f"{'VERTEX_SE2' if d == 2 else 'VERTEX_SE3:QUAT'} {i} {pose(R, t)}" for i, (R, t) in enumerate(poses)]
-    for i, j, R, t, info in edges:
-        upper = " ".join(f"{info[a, b]:.17g}" for a in range(len(info)) for b in range(a, len(info)))
-        lines.append(f"{'EDGE_SE2' if d == 2 else 'EDGE_SE3:QUAT'} {i} {j} {pose(R, t)} {upper}")
-    Path(path).write_text("\n".join(lines) + "\n")
 
 
 def random_graph(seed: int, path) -> dict:
@@ -76,10 +57,7 @@ def random_graph(seed: int, path) -> dict:
         sr = np.full(rot_axes, sig_R) * (10 ** rng.uniform(-0.5, 0.5, rot_axes) if aniso else 1)
         return np.diag(np.r_[1 / st**2, 1 / sr**2]), st, sr
 
-    truth = [(np.eye(d), np.zeros(d))]
-    for _ in range(n - 1):
-        R0, t0 = truth[-1]
-        truth.append((R0 @ _rotation(d, rng, 0.3), t0 + R0 @ rng.normal(size=d)))
+    truth = random_walk(d, n, rng)
 
     def measured(i, j):
         (Ri, ti), (Rj, tj) = truth[i], truth[j]
@@ -133,6 +111,7 @@ def run_seed(seed: int, folder: Path, noise: str = "se-sync") -> dict:
             f_tls=float(np.minimum(np.asarray(mm.edge_costs(c.graph, r.poses)), c2).sum()),
             f_tls_at_optimum=float(np.minimum(np.asarray(mm.edge_costs(c.graph, opt)), c2).sum()),
             scale=float(r.loss.scale), seconds=seconds)
+    print(json.dumps(row), flush=True)
     return row
 
 
@@ -170,13 +149,10 @@ def main(argv=None) -> int:
     p.add_argument("--json", help="write the rows as JSON too")
     p.add_argument("--out", default=None, help="markdown report (default: print it)")
     args = p.parse_args(argv)
-    info = machine_info()
     started = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
-    rows = []
     with tempfile.TemporaryDirectory() as folder:
-        for seed in range(*args.seeds):
-            rows.append(run_seed(seed, Path(folder), args.noise))
-            print(json.dumps(rows[-1]), flush=True)
+        rows = [run_seed(seed, Path(folder), args.noise) for seed in range(*args.seeds)]
+    info = machine_info()
     header = (f"Command: `{command_line()}`; {started}, {info['cpu']}, {info['usable_cores']} cores, JAX "
               f"{info['jax']}. Definitions: the script's docstring.")
     text = report(rows, header)
