@@ -64,6 +64,11 @@ L2, HUBER, CAUCHY, GM, WELSCH, TLS = range(len(LOSSES))
 NOISE_MODELS = ("se-sync", "information")
 
 
+def _check_noise(where: str, noise) -> None:
+    if noise not in NOISE_MODELS:
+        raise ValueError(f"{where}.noise must be one of {', '.join(map(repr, NOISE_MODELS))}, got {noise!r}")
+
+
 def correct_edge_sf(x, dim: int, noise: str = "se-sync"):
     """P(s > x) for a correct edge (small noise, isotropic blocks), s in SE-Sync's weights.
     ``noise="se-sync"``: SE-Sync's model with the edge's own kappa, tau (Langevin rotation noise of
@@ -75,10 +80,9 @@ def correct_edge_sf(x, dim: int, noise: str = "se-sync"):
     tail integrated over B)."""
     from scipy import special, stats
 
-    if noise not in NOISE_MODELS:
-        raise ValueError(f"noise must be one of {', '.join(map(repr, NOISE_MODELS))}, got {noise!r}")
+    _check_noise("correct_edge_sf", noise)
     x = np.asarray(x, dtype=np.float64)
-    if dim == 3 or noise == "se-sync":
+    if dim != 2 or noise == "se-sync":
         return stats.chi2.sf(x, dim * (dim + 1) // 2)
     z = np.sqrt(np.maximum(x, 0.0)) / 2.0  # exp(-x/2) erfi(z) = 2/sqrt(pi) exp(-x/4) dawsn(z): no overflow
     return special.erfc(z) + 2.0 / np.sqrt(np.pi) * np.exp(-x / 4.0) * special.dawsn(z)
@@ -96,8 +100,7 @@ def chi2_scale(dim: int, quantile: float = DEFAULT_QUANTILE, noise: str = "se-sy
         raise ValueError(f"chi2_scale.quantile must be < 1, got {quantile!r}")
     if dim not in (2, 3):
         raise ValueError(f"chi2_scale.dim must be 2 or 3, got {dim!r}")
-    if noise not in NOISE_MODELS:
-        raise ValueError(f"chi2_scale.noise must be one of {', '.join(map(repr, NOISE_MODELS))}, got {noise!r}")
+    _check_noise("chi2_scale", noise)
     from scipy import optimize, special  # here: only the default scales need them
 
     x_p = 2.0 * special.gammaincinv(0.25 * dim * (dim + 1), quantile)  # chi^2 with d(d+1)/2 degrees
