@@ -206,6 +206,7 @@ def _noise_line(result, graph) -> str:
     a-posteriori variance factor of the kept edges at the final poses (:func:`~mmpgo_jax.noise_level`)
     and what it means for the loss's scale c."""
     from .._core.noise import noise_level
+    from .._mm.robust import chi2_scale
 
     level = noise_level(graph.select_edges(np.asarray(result.inliers, bool)), result.poses)
     if level.redundancy <= 0:
@@ -218,6 +219,10 @@ def _noise_line(result, graph) -> str:
         meaning = ("the information matrices understate the noise, so the scale c is tight for these data "
                    f"(correct edges may be rejected; c for the kept edges' noise: --loss-scale "
                    f"{c * np.sqrt(level.low):.4g} or more)")
+        if graph.dim == 2 and level.low < 2.0:  # SE-Sync's 2D kappa = I33 alone reads 1-2 (docs/conventions.md §10)
+            meaning += ("; in 2D this is also what a file whose angle noise is exactly what its I33 states reads, "
+                        "because SE-Sync's kappa = I33 counts the angle twice (that file's 0.99 quantile: "
+                        f"--loss-scale {chi2_scale(2, noise='information'):.3g})")
     else:
         meaning = "consistent with the information matrices"
     return (f"noise       kept edges' residuals {level.factor:.3g}x what their information matrices predict "
