@@ -46,17 +46,22 @@ def test_no_redundancy_and_bad_confidence():
         mm.noise_level(g, X, confidence=1.0)
 
 
-def test_cli_robust_run_prints_the_noise_line(tmp_path, capsys):
+def _cli_noise_line(tmp_path, capsys, g, X) -> str:
+    """The ``noise`` line of ``mmpgo solve`` (TLS from the GNC start) on ``g`` written with poses X."""
     from mmpgo_jax.cli import main
 
-    g, X = _team(0.03, 0.01)  # information 9x too confident
     path = tmp_path / "team.g2o"
     mm.write_g2o(path, g, X)
     rc = main(["solve", str(path), "-A", "2", "--loss", "tls", "--init", "gnc-chordal", "-n", "50", "--no-progress"])
     out = capsys.readouterr().out
     assert rc == 0, out
-    line = next(line for line in out.splitlines() if line.startswith("noise "))
+    return next(line for line in out.splitlines() if line.startswith("noise "))
+
+
+def test_cli_robust_run_prints_the_noise_line(tmp_path, capsys):
+    line = _cli_noise_line(tmp_path, capsys, *_team(0.03, 0.01))  # information 9x too confident
     assert "the information matrices understate the noise" in line and "--loss-scale" in line
+    assert "in 2D this is also" not in line  # far beyond what SE-Sync's 2D kappa alone reads
 
 
 def test_cli_noise_line_names_the_2d_reading_of_a_calibrated_file(tmp_path, capsys):
@@ -64,16 +69,9 @@ def test_cli_noise_line_names_the_2d_reading_of_a_calibrated_file(tmp_path, caps
     kappa doubled against the generator's Langevin concentration) reads between 1 and 2 under SE-Sync's
     model (1.7 here: the angle's share of the residuals counts twice); the CLI's noise line says so and
     gives that file's 0.99 quantile as --loss-scale."""
-    from mmpgo_jax.cli import main
-
     g, X = _team(0.03, 0.03)
     g = PoseGraph(g.i, g.j, g.R, g.t, 2.0 * np.asarray(g.kappa), np.asarray(g.tau), num_poses=g.num_poses)
     level = mm.noise_level(g, mm.centralized_optimum(g).poses)
     assert 1.0 < level.low < level.factor < 2.0
-    path = tmp_path / "team.g2o"
-    mm.write_g2o(path, g, X)
-    rc = main(["solve", str(path), "-A", "2", "--loss", "tls", "--init", "gnc-chordal", "-n", "50", "--no-progress"])
-    out = capsys.readouterr().out
-    assert rc == 0, out
-    line = next(line for line in out.splitlines() if line.startswith("noise "))
+    line = _cli_noise_line(tmp_path, capsys, g, X)
     assert "understate the noise" in line and "in 2D this is also what a file" in line and "--loss-scale 4.04" in line
