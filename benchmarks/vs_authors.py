@@ -3,8 +3,10 @@ MM-PGO / AMM-PGO (MurpheyLab/DPGO @ da0157f, built by ``../shared/anchors/build_
 ``-O3 -march=native``, one thread, robots one after another: ``run_dpgo.sh FILE 10 1000 amm``).
 
 Both run AMM with their own adaptive restart, 10 robots (contiguous blocks), the centralized chordal
-start, 1000 iterations; ours with its defaults (float64, every iteration: ``--all-iterations``) and a
-warm compilation cache (one untimed run first). Interleaved run by run (authors', ours, authors',
+start, 1000 iterations; ours with its defaults (float64, every iteration: ``--all-iterations``), a
+warm compilation cache and Python's bytecode cache (one untimed run first; ``PYTHONDONTWRITEBYTECODE``
+is dropped from our processes' environment, since an installed package's modules are compiled once,
+not at every start). Interleaved run by run (authors', ours, authors',
 ...), so that both see the same machine load; medians of ``--repeats``. Reported: ms per iteration
 (theirs: their driver's nanosecond clock around iterate()+update(); ours: the compiled iterations),
 the whole process's wall seconds, its processor seconds (user + sys of the child), and f at 1000
@@ -75,10 +77,18 @@ def authors(file: str) -> dict:
     return dict(ms=ms, wall=wall, cpu=cpu, f=f1000)
 
 
+def ours_env(root: Path) -> dict:
+    """Our processes' environment: the checkout ``root`` first on the path, and Python's bytecode
+    cache on (a shell's ``PYTHONDONTWRITEBYTECODE`` would recompile every module at every start, about
+    0.1 s that an installed package does not pay)."""
+    env = dict(os.environ, PYTHONPATH=str(root))
+    env.pop("PYTHONDONTWRITEBYTECODE", None)
+    return env
+
+
 def ours(file: str) -> dict:
-    env = dict(os.environ, PYTHONPATH=str(HERE))
     out, wall, cpu = timed_process([sys.executable, "-m", "mmpgo_jax.cli", "solve", file, "--robots", "10",
-                             "--iterations", "1000", "--all-iterations"], env)
+                             "--iterations", "1000", "--all-iterations"], ours_env(HERE))
     ms = float(re.search(r"\(([0-9.]+) ms/iteration\)", out).group(1))
     f = float(re.search(r"f = 2F\s+\S+ -> (\S+)", out).group(1))
     return dict(ms=ms, wall=wall, cpu=cpu, f=f)
@@ -95,12 +105,23 @@ def authors_start(file: str) -> dict:
 
 
 def ours_start(file: str, init: str = "distributed-chordal", root: Path = HERE) -> dict:
-    env = dict(os.environ, PYTHONPATH=str(root))
     out, wall, cpu = timed_process([sys.executable, "-m", "mmpgo_jax.cli", "solve", file, "--robots", "10",
-                             "--init", init, "--iterations", "0"], env)
+                             "--init", init, "--iterations", "0"], ours_env(root))
     f = float(re.search(r"f = 2F\s+(\S+)", out).group(1))
     inside = float(re.search(r"initialize ([0-9.]+) s", out).group(1))  # the start itself, in the process
     return dict(wall=wall, cpu=cpu, f=f, inside=inside)
+
+
+def cpu_description() -> str:
+    """The CPU's model name, family / model numbers and whether it has AVX-512 (a bare "AMD EPYC" names
+    several generations)."""
+    info = {}
+    for ln in Path("/proc/cpuinfo").read_text().splitlines():
+        key, _, value = ln.partition(":")
+        info.setdefault(key.strip(), value.strip())
+    avx512 = "AVX-512" if "avx512f" in info.get("flags", "").split() else "no AVX-512"
+    return (f"{info.get('model name', 'unknown CPU')} (family {info.get('cpu family', '?')}, "
+            f"model {info.get('model', '?')}, {avx512})")
 
 
 def _median(rows: list[dict], key: str) -> float:
@@ -152,8 +173,7 @@ def main() -> None:
                                _median(sa, "cpu"), _median(so, "cpu"), sa[0]["f"], so[0]["f"],
                                ours_start(file, "chordal")["f"], *before))
             print(start_rows[-1], flush=True)
-    model = next((ln.split(":", 1)[1].strip() for ln in Path("/proc/cpuinfo").read_text().splitlines()
-                  if ln.startswith("model name")), "unknown CPU")
+    model = cpu_description()
     flag = " --start-only" if args.start_only else (" --start" if args.start else "")
     flag += f" --baseline {args.baseline}" if args.baseline else ""
     run = (f"Command: `python benchmarks/vs_authors.py --repeats {args.repeats}{flag}`; "
@@ -165,7 +185,7 @@ def main() -> None:
         lines += [
             "",
             "Solves: authors' `run_dpgo.sh FILE 10 1000 amm`; ours: `mmpgo solve FILE --robots 10 --iterations 1000 "
-            "--all-iterations` (defaults, float64, warm compilation cache).",
+            "--all-iterations` (defaults, float64, warm compilation and bytecode caches).",
             "",
             "| file | authors' ms/it | ours ms/it | ratio (ours / theirs) | whole run s, authors' / ours | "
             "processor s (user+sys), authors' / ours | f at 1000, authors' / ours |",
