@@ -39,9 +39,10 @@ import numpy as np
 
 jax.config.update("jax_enable_x64", True)
 
+from records import write_record  # noqa: E402  (this folder, on the path as a script's)
+
 import mmpgo_jax as mg  # noqa: E402
 from mmpgo_jax._experiments.outliers import add_outliers, outlier_scores  # noqa: E402
-from mmpgo_jax._io.atomic import atomic_write  # noqa: E402
 from mmpgo_jax._robust.pcm import pairwise_chi2, pcm_filter  # noqa: E402
 from mmpgo_jax.cli.bench import command_line, machine_info  # noqa: E402
 
@@ -216,8 +217,7 @@ def write(args, rows, chains, started, load):
             lines.append(f"| {name} | {kappa:.4g} | {span} | {np.sqrt(max(lo, 1) / kappa):.3g} | {nii} "
                          f"| {'—' if pii is None else f'{pii:.4f}'} | {nio} | {'—' if pio is None else f'{pio:.4f}'} |")
     lines += ["", *FINDINGS]
-    with atomic_write(args.out) as fh:
-        fh.write("\n".join(lines) + "\n")
+    write_record(args.out, "\n".join(lines) + "\n")  # the file's later sections kept
 
 
 def main(argv=None) -> int:

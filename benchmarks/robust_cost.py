@@ -33,10 +33,10 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
+from records import write_record  # noqa: E402  (this folder, on the path as a script's)
 
 import mmpgo_jax as mm  # noqa: E402
 from mmpgo_jax._init.start import initialize_with_weights  # noqa: E402
-from mmpgo_jax._io.atomic import atomic_write  # noqa: E402
 from mmpgo_jax.cli.bench import machine_info  # noqa: E402
 
 LOSSES = ("tls", "huber")
@@ -102,8 +102,7 @@ def main(argv=None) -> int:
     lines += [f"| {name} | {loss} | {k} | {ms:.2f} | {ms / best[name, 'l2', 1]:.2f} |"
               for (name, loss, k), ms in best.items()]
     text = "\n".join(lines) + "\n"
-    with atomic_write(args.out) as fh:
-        fh.write(text)
+    write_record(args.out, text)  # the file's later sections kept
     return 0
 
 
