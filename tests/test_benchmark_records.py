@@ -1,17 +1,11 @@
 """benchmarks/records.py: rerunning a benchmark's documented command writes its new run and keeps the
 sections added to its record below the generated run (other machines, findings, A/B runs)."""
 
-import importlib.util
-from pathlib import Path
-
-ROOT = Path(__file__).resolve().parents[1]
+from repo_scripts import load_script
 
 
 def _records():
-    spec = importlib.util.spec_from_file_location("records", ROOT / "benchmarks" / "records.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("benchmarks/records.py")
 
 
 def test_rerun_keeps_added_sections_and_replaces_its_own(tmp_path):

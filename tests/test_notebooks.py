@@ -12,12 +12,12 @@ settings).
 from __future__ import annotations
 
 import copy
-import importlib.util
 import os
 import re
 from pathlib import Path
 
 import pytest
+from repo_scripts import load_script
 
 nbformat = pytest.importorskip("nbformat")
 nbclient = pytest.importorskip("nbclient")
@@ -32,10 +32,7 @@ PRIVATE = re.compile(r"\bmmpgo_jax\s*\.\s*_|\bfrom\s+mmpgo_jax\s+import\s+\(?\s*
 
 
 def _generator():
-    spec = importlib.util.spec_from_file_location("make_notebooks", NOTEBOOK_DIR / "make_notebooks.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script("notebooks/make_notebooks.py")
 
 
 def _read(name):

@@ -1,18 +1,13 @@
 """benchmarks/robust_study_plot.py, the robust study's plot per graph: the rows of both benchmark
 scripts' JSON formats land in the right graph and pipeline, and the figure is written."""
 
-import importlib.util
 import json
-from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+from repo_scripts import load_script
 
 
 def _module():
-    spec = importlib.util.spec_from_file_location("robust_study_plot", ROOT / "benchmarks" / "robust_study_plot.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("benchmarks/robust_study_plot.py")
 
 
 def _file_row(file, rate, seed, pipeline, ate):
