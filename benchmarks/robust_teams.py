@@ -50,6 +50,8 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
+from records import write_record  # noqa: E402  (this folder, on the path as a script's)
+
 import mmpgo_jax as mm  # noqa: E402
 from mmpgo_jax._io.atomic import atomic_write  # noqa: E402
 
@@ -250,18 +252,8 @@ def write(args, runs) -> None:
     for run_ in runs:
         lines += _section(run_["rows"], run_["meta"])
     lines += [*FINDINGS, ""]
-    with atomic_write(args.out) as fh:
-        fh.write("\n".join(lines) + _kept_sections(Path(args.out)))
-
-
-#: sections other scripts append to the same file (benchmarks/robust_distributed_start.py): kept as they are
-KEPT_HEADING = "## Distributed robust start"
-
-
-def _kept_sections(out: Path) -> str:
-    old = out.read_text() if out.is_file() else ""
-    at = old.find(KEPT_HEADING)
-    return "" if at < 0 else "\n" + old[at:]
+    # the sections other scripts append (benchmarks/robust_distributed_start.py) are kept as they are
+    write_record(args.out, "\n".join(lines))
 
 
 def _load(raw: Path) -> list[dict]:
