@@ -23,7 +23,8 @@ import sys
 import tempfile
 from pathlib import Path
 
-from mmpgo_jax._io.atomic import atomic_write
+from records import write_record  # this folder, on the path as a script's
+
 from mmpgo_jax.cli.bench import machine_info
 
 HERE = Path(__file__).resolve().parents[1]
@@ -83,8 +84,7 @@ def main() -> None:
     text = "\n".join(lines) + "\n"
     print(text)
     if args.out:
-        with atomic_write(args.out) as fh:
-            fh.write(text)
+        write_record(args.out, text)  # the file's later sections kept
 
 
 if __name__ == "__main__":

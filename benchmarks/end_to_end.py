@@ -29,6 +29,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from records import write_record  # this folder, on the path as a script's
+
 from mmpgo_jax._solve.devices import AUTO_THREAD_POSES
 
 # The authors' whole run, AMM, 1000 iterations (s): MurpheyLab/DPGO @ da0157f, Release, one thread.
@@ -138,7 +140,7 @@ def main() -> None:
             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|" + ("---|---|---|" if args.baseline else "")
             + "\n" + "".join(rows))
     if args.out:
-        Path(args.out).write_text(text)
+        write_record(args.out, text)  # the file's later sections kept
     else:
         print(text)
 

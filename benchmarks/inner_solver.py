@@ -26,6 +26,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from records import write_record  # this folder, on the path as a script's
 
 import mmpgo_jax as mg
 
@@ -103,9 +104,7 @@ def main() -> None:
             rows.append(f"| {name}{mark} | {method.upper()} | " + " | ".join(cells)
                         + f" | {ms[0]:.2f} / {ms[1]:.1f} ({used}) |\n")
             if args.out:
-                with open(args.out + ".tmp", "w") as fh:
-                    fh.write(header + "".join(rows))
-                os.replace(args.out + ".tmp", args.out)
+                write_record(args.out, header + "".join(rows))  # the file's later sections kept
     worst = max((abs(float(x)) for row in rows for x in _diffs(row)), default=np.nan)
     print(f"largest relative difference: {worst:.2e}")
 

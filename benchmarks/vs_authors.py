@@ -208,10 +208,10 @@ def main() -> None:
                          + "".join(f" {x:.2f} |" for x in before))
     text = "\n".join(lines) + "\n"
     print(text)
-    if args.out:  # all or nothing: a stopped run leaves the old file
-        part = args.out.with_name(args.out.name + ".part")
-        part.write_text(text)
-        os.replace(part, args.out)
+    if args.out:  # all or nothing: a stopped run leaves the old file; the file's later sections kept
+        from records import write_record  # this folder, on the path as a script's (it imports the package)
+
+        write_record(args.out, text)
 
 
 if __name__ == "__main__":
