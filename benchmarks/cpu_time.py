@@ -23,7 +23,8 @@ import platform
 import subprocess
 import sys
 
-from mmpgo_jax._io.atomic import atomic_write
+from records import write_record  # this folder, on the path as a script's
+
 from mmpgo_jax._io.datasets import benchmark_info
 
 FILES = ["MITb", "intel", "M3500", "city10000", "sphere2500", "torus3D", "garage"]
@@ -89,8 +90,7 @@ def main() -> None:
     text = head + "\n" + "\n".join(rows) + "\n"
     print(text)
     if args.out:
-        with atomic_write(args.out) as f:
-            f.write(text)
+        write_record(args.out, text)  # the file's later sections kept
 
 
 if __name__ == "__main__":

@@ -37,6 +37,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from records import write_record
+
 HERE = Path(__file__).parent
 ANCHORS = HERE.parent.parent / "shared" / "anchors"
 
@@ -134,8 +136,7 @@ def main(argv=None) -> int:
     drift = max(abs(r["one"]["f"][k] - r["cores"]["f"][k]) / abs(r["one"]["f"][k]) for r in rows for k in r["one"]["f"])
     lines += ["", f"f at the last iteration, one device against use_cpu_cores(): largest relative difference "
               f"{drift:.1e} (the same iterates on another device).", ""]
-    with atomic_write(args.out) as fh:
-        fh.write("\n".join(lines))
+    write_record(args.out, "\n".join(lines))  # the file's later sections kept
     with atomic_write(Path(args.out).with_suffix(".json")) as fh:
         fh.write(json.dumps(dict(args=vars(args), rows=rows), indent=1))
     print("\n".join(lines))

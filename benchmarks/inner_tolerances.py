@@ -40,6 +40,7 @@ import mmpgo_jax as mg  # noqa: E402
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 from inner_solver import HELD_OUT, REFERENCE_FILE, load  # noqa: E402
+from records import write_record  # noqa: E402  (this folder, on the path as a script's)
 
 FILES = ["MITb", "CSAIL", "intel", "M3500", "city10000", "manhattan", "kitti_00", "sphere2500", "torus3D",
          "garage", "chain15k"]
@@ -83,11 +84,8 @@ def main() -> None:
                             f"{r.ms_per_iteration:.2f} | " + " | ".join(f"{d:+.1e}" for d in diffs) + " |\n")
                 print(rows[-1], end="", flush=True)
             if args.out:
-                tmp = args.out + ".tmp"
-                with open(tmp, "w") as fh:
-                    fh.write(header + "".join(rows)
+                write_record(args.out, header + "".join(rows)  # the file's later sections kept
                              + f"\nLoad average at the end: {os.getloadavg()[0]:.2f} ({time.strftime('%H:%M')} UTC).\n")
-                os.replace(tmp, args.out)
 
 
 if __name__ == "__main__":

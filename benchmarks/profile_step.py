@@ -30,6 +30,7 @@ jax.config.update("jax_num_cpu_devices", 2)  # before JAX starts its backend: th
 
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
+from records import write_record  # noqa: E402  (this folder, on the path as a script's)
 
 import mmpgo_jax as mg  # noqa: E402
 from mmpgo_jax._mm.majorization import soa_bmm, soa_T, sym0, tangent_soa, to_soa  # noqa: E402
@@ -150,8 +151,7 @@ def main() -> None:
             "AMM ms/it, 2 CPU devices | authors' AMM ms/it | ours / authors' (2 devices / 1) |\n"
             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n" + "".join(rows))
     if args.out:
-        with open(args.out, "w") as fh:
-            fh.write(text)
+        write_record(args.out, text)  # the file's later sections kept
     else:
         print(text)
 

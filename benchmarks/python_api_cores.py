@@ -22,6 +22,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+from records import write_record
+
 HERE = Path(__file__).resolve().parents[1]
 
 _CHILD = """
@@ -89,7 +91,7 @@ def main() -> None:
     text = "\n".join(lines) + "\n"
     print(text)
     if args.out:
-        args.out.write_text(text)
+        write_record(args.out, text)  # the file's later sections kept
 
 
 if __name__ == "__main__":

@@ -11,8 +11,6 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
-from mmpgo_jax._io.atomic import atomic_write
-
 
 def kept_sections(old: str, new: str) -> str:
     """The ``## `` sections of ``old`` (each up to the next ``## `` heading) whose heading line ``new``
@@ -24,6 +22,8 @@ def kept_sections(old: str, new: str) -> str:
 
 def write_record(path, text: str) -> None:
     """``text`` to ``path``, followed by the old file's sections it does not replace."""
+    from mmpgo_jax._io.atomic import atomic_write  # here: a driver script that starts children imports no JAX
+
     path = Path(path)
     old = path.read_text() if path.is_file() else ""
     kept = kept_sections(old, text)

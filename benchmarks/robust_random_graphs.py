@@ -32,6 +32,7 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
+from records import write_record  # noqa: E402  (this folder, on the path as a script's)
 from restart_guard import _write_g2o, random_walk  # noqa: E402  (the same g2o writer and rotation noise)
 from scipy.spatial.transform import Rotation  # noqa: E402
 
@@ -160,8 +161,7 @@ def main(argv=None) -> int:
         with atomic_write(args.json) as fh:
             fh.write(json.dumps(rows, indent=1))
     if args.out:
-        with atomic_write(args.out) as fh:
-            fh.write(text)
+        write_record(args.out, text)  # the file's later sections kept
     else:
         print(text)
     return 0

@@ -28,9 +28,9 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(HERE))
 
+from records import write_record  # noqa: E402  (this folder, on the path as a script's)
 from vs_authors import timed_process  # noqa: E402  (this folder is on sys.path when run as a script)
 
-from mmpgo_jax._io.atomic import atomic_write  # noqa: E402
 from mmpgo_jax.cli.bench import machine_info  # noqa: E402
 
 _TIME = re.compile(r"iterations [0-9.]+ s \(([0-9.]+) ms/iteration\)")
@@ -113,8 +113,7 @@ def main(argv=None) -> int:
     text = "\n".join(lines) + "\n"
     print(text)
     if args.out:
-        with atomic_write(args.out) as fh:
-            fh.write(text)
+        write_record(args.out, text)  # the file's later sections kept
     return 0
 
 

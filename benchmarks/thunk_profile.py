@@ -26,7 +26,7 @@ import os
 import subprocess
 import sys
 
-from mmpgo_jax._io.atomic import atomic_write
+from records import write_record
 
 CHILD = """
 import collections, glob, gzip, json, sys, tempfile
@@ -95,8 +95,7 @@ def main() -> None:
     if not args.out:
         print(text)
         return
-    with atomic_write(args.out) as f:  # the tables went to stderr as they came
-        f.write(text)
+    write_record(args.out, text)  # the tables went to stderr as they came; the file's later sections kept
 
 
 if __name__ == "__main__":

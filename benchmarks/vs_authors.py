@@ -37,6 +37,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from records import write_record  # this folder, on the path as a script's
+
 HERE = Path(__file__).resolve().parents[1]
 ANCHORS = HERE.parent / "shared" / "anchors"
 FILES = {"MITb": "MIT.g2o", "intel": "intel.g2o", "M3500": "M3500.g2o", "city10000": "city10000.g2o",
@@ -209,8 +211,6 @@ def main() -> None:
     text = "\n".join(lines) + "\n"
     print(text)
     if args.out:  # all or nothing: a stopped run leaves the old file; the file's later sections kept
-        from records import write_record  # this folder, on the path as a script's (it imports the package)
-
         write_record(args.out, text)
 
 
