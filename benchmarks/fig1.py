@@ -43,6 +43,7 @@ from mmpgo_jax import cube_dataset  # noqa: E402
 from mmpgo_jax._core.pose_graph import cost  # noqa: E402
 from mmpgo_jax._experiments.sweep import reference_optimum, sweep  # noqa: E402
 from mmpgo_jax._init.chordal import chordal_initialization  # noqa: E402
+from mmpgo_jax.cli.bench import cpu_name  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
 CHECKPOINTS = (100, 250, 1000)
@@ -53,15 +54,7 @@ LABELS = {"mm": "MM-PGO", "amm": "AMM-PGO"}
 
 
 def machine() -> str:
-    cpu = platform.processor() or platform.machine()
-    try:
-        with open("/proc/cpuinfo", encoding="utf-8") as fh:
-            for line in fh:
-                if line.startswith("model name"):
-                    cpu = line.split(":", 1)[1].strip()
-                    break
-    except OSError:
-        pass
+    cpu = cpu_name()
     mem = ""
     try:
         with open("/proc/meminfo", encoding="ascii") as fh:

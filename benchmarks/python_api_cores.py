@@ -16,7 +16,6 @@ import argparse
 import datetime
 import json
 import os
-import platform
 import statistics
 import subprocess
 import sys
@@ -67,12 +66,9 @@ def main() -> None:
         rows.append((a, runs["cores"][0]["devices"], one, cores, one / cores, s_one, s_cores, runs["one"][0]["f"],
                      runs["cores"][0]["f"]))
         print(rows[-1], flush=True)
-    cpu = platform.processor() or platform.machine()
-    try:
-        text = Path("/proc/cpuinfo").read_text()
-        model = next(line.split(":", 1)[1].strip() for line in text.splitlines() if line.startswith("model name"))
-    except (OSError, StopIteration):
-        model = cpu
+    from mmpgo_jax.cli.bench import cpu_name  # the package only now: this process only starts others
+
+    model = cpu_name()
     lines = [
         "# The Python API on every CPU core",
         "",

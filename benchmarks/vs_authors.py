@@ -114,18 +114,6 @@ def ours_start(file: str, init: str = "distributed-chordal", root: Path = HERE) 
     return dict(wall=wall, cpu=cpu, f=f, inside=inside)
 
 
-def cpu_description() -> str:
-    """The CPU's model name, family / model numbers and whether it has AVX-512 (a bare "AMD EPYC" names
-    several generations)."""
-    info = {}
-    for ln in Path("/proc/cpuinfo").read_text().splitlines():
-        key, _, value = ln.partition(":")
-        info.setdefault(key.strip(), value.strip())
-    avx512 = "AVX-512" if "avx512f" in info.get("flags", "").split() else "no AVX-512"
-    return (f"{info.get('model name', 'unknown CPU')} (family {info.get('cpu family', '?')}, "
-            f"model {info.get('model', '?')}, {avx512})")
-
-
 def _median(rows: list[dict], key: str) -> float:
     return statistics.median(r[key] for r in rows)
 
@@ -175,7 +163,9 @@ def main() -> None:
                                _median(sa, "cpu"), _median(so, "cpu"), sa[0]["f"], so[0]["f"],
                                ours_start(file, "chordal")["f"], *before))
             print(start_rows[-1], flush=True)
-    model = cpu_description()
+    from mmpgo_jax.cli.bench import cpu_name  # the package only now: this process only starts others
+
+    model = cpu_name()
     flag = " --start-only" if args.start_only else (" --start" if args.start else "")
     flag += f" --baseline {args.baseline}" if args.baseline else ""
     run = (f"Command: `python benchmarks/vs_authors.py --repeats {args.repeats}{flag}`; "

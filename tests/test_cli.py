@@ -492,3 +492,18 @@ def test_sweep_command_losses_and_outlier_rates(tmp_path):
         assert abs(float(row["f"]) - float(ref.history.f[-1])) <= 1e-4 * abs(float(row["f"]))
         assert table[("cube40@0%", kernel)]["recall"] == "1.0"  # nothing to find
     _no_temp_files(tmp_path)
+
+
+def test_cpu_name_names_model_family_and_avx512():
+    """The CPU as records name it: /proc/cpuinfo's model name with family, model and AVX-512 (or its
+    absence) on Linux; the platform's processor name elsewhere."""
+    from mmpgo_jax.cli.bench import cpu_name
+
+    name = cpu_name()
+    proc = Path("/proc/cpuinfo")
+    if proc.is_file() and "model name" in proc.read_text():
+        has = "avx512f" in proc.read_text().split()
+        assert re.search(r"\(family \S+, model \S+, (no )?AVX-512\)$", name), name
+        assert name.endswith("no AVX-512)") != has
+    else:
+        assert name

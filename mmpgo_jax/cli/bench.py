@@ -54,7 +54,7 @@ import numpy as np
 
 from .progress import progress_bar
 
-__all__ = ["command_line", "machine_info", "paper_rounding", "run_bench"]
+__all__ = ["command_line", "cpu_name", "machine_info", "paper_rounding", "run_bench"]
 
 CHECKPOINTS = (100, 250, 1000)
 TOLS = (1e-2, 1e-3, 1e-4)
@@ -83,19 +83,28 @@ _RUN_NOTE = {
 # --------------------------------------------------------------------------------------------
 
 
+def cpu_name() -> str:
+    """The CPU's model name (/proc/cpuinfo) with its family and model numbers and whether it has AVX-512
+    (one model name, e.g. "AMD EPYC", covers several generations whose speeds differ); the platform's
+    processor name where /proc/cpuinfo is absent."""
+    info = {}
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as fh:
+            for line in fh:
+                key, _, value = line.partition(":")
+                info.setdefault(key.strip().lower(), value.strip())
+    except OSError:
+        pass
+    if "model name" not in info:
+        return platform.processor() or platform.machine()
+    avx512 = "AVX-512" if "avx512f" in info.get("flags", "").split() else "no AVX-512"
+    return f"{info['model name']} (family {info.get('cpu family', '?')}, model {info.get('model', '?')}, {avx512})"
+
+
 def machine_info() -> dict:
     """CPU model (from /proc/cpuinfo), cores, Python / NumPy / JAX versions, JAX backend and devices."""
     import jax
 
-    cpu = None
-    try:
-        with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as fh:
-            for line in fh:
-                if line.lower().startswith("model name"):
-                    cpu = line.split(":", 1)[1].strip()
-                    break
-    except OSError:
-        pass
     try:
         usable = len(os.sched_getaffinity(0))
     except (AttributeError, OSError):
@@ -108,7 +117,7 @@ def machine_info() -> dict:
         jaxlib_version = None
     devs = jax.devices()
     return {
-        "cpu": cpu or platform.processor() or platform.machine(),
+        "cpu": cpu_name(),
         "cpu_count": os.cpu_count(),
         "usable_cores": usable,
         "platform": platform.platform(),
