@@ -29,6 +29,8 @@ loop-closure information) so that ``rate`` percent of the inter-robot closures a
 * ``pcm-distributed``: ``distributed`` after PCM (``prefilter="pcm"``: per robot pair, the inter-robot
   closures outside the largest pairwise-consistent set removed before the start; PCM's removals count
   as rejected edges);
+* ``pcmties-distributed``: the same with ``PCM(ties="keep")``: where several sets of the largest size
+  disagree, the closures of each are kept (PCM has no evidence either way) and TLS decides;
 * ``central``: ``solve(graph, robots, loss="tls", start="gnc-chordal")``: the centralized GNC-chordal
   start, then TLS (the default until 2026-12-05);
 * ``default``: ``solve(graph, robots, loss="tls")``: the default since 2026-12-05, a run from each of
@@ -74,6 +76,7 @@ PIPELINES = {"distributed": dict(distributed=True), "distributed-gnc": dict(dist
              "distributed-gnc-blocks": dict(distributed=True, gnc=mm.GNCConfig(factor=1.4, stage_iterations=10,
                                                                               stage_tolerance=0.0)),
              "pcm-distributed": dict(distributed=True, prefilter="pcm"),
+             "pcmties-distributed": dict(distributed=True, prefilter=mm.PCM(ties="keep")),
              "central": dict(start="gnc-chordal"), "default": {}, "gtsam": None}
 
 

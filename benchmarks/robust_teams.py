@@ -20,6 +20,8 @@ Methods (AMM, the team's robots, ``--iterations`` at most, default stopping rule
 * ``dist-tls``, ``dist-pcm+tls``: ``distributed=True`` (since 2026-12-04 the distributed robust start,
   its classification held, then TLS, finished and revisited as ``solve`` does; the tables of
   2026-12-03 ran the distributed chordal start with GNC in the solver);
+* ``dist-pcmties+tls``: ``dist-pcm+tls`` with ``PCM(ties="keep")`` (every closure of a maximum clique
+  kept where cliques of the largest size disagree);
 * ``tls+readmit``, ``pcm+tls+readmit``: ``tls`` and ``pcm+tls`` with ``readmit=True`` (rejected loop
   closures, PCM's removals included, re-admitted one at a time while the TLS objective falls, then a run
   from there);
@@ -62,6 +64,7 @@ METHODS = {
     "pcm+tls": dict(prefilter="pcm", loss="tls"),
     "dist-tls": dict(loss="tls", distributed=True),
     "dist-pcm+tls": dict(prefilter="pcm", loss="tls", distributed=True),
+    "dist-pcmties+tls": dict(prefilter=mm.PCM(ties="keep"), loss="tls", distributed=True),
     "tls+readmit": dict(loss="tls", readmit=True),
     "pcm+tls+readmit": dict(prefilter="pcm", loss="tls", readmit=True),
     "pcm-filter": None,  # pcm_filter alone, no solve: its precision / recall and seconds

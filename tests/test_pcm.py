@@ -237,3 +237,46 @@ def test_the_clique_search_follows_the_density(monkeypatch):
     pcm._maximum_clique(k, u[:cut], v[:cut])  # at the threshold
     pcm._maximum_clique(k, u[:cut - 1], v[:cut - 1])  # just below it
     assert used == ["program", "search", "program", "search"]
+
+
+def test_ties_are_the_vertices_of_every_maximum_clique():
+    """``ties="keep"``'s extra closures against every subset of small random graphs: exactly the
+    vertices of the cliques that equal the best in size and in tests passed (the sum of degrees)."""
+    from itertools import combinations
+
+    from mmpgo_jax._robust.pcm import _maximum_clique, _tied
+
+    rng = np.random.default_rng(11)
+    for trial in range(150):
+        k = int(rng.integers(1, 11))
+        u, v = np.triu_indices(k, 1)
+        keep = rng.random(len(u)) < (0.3, 0.6, 0.9)[trial % 3]
+        u, v = u[keep], v[keep]
+        adjacent = np.eye(k, dtype=bool)
+        adjacent[u, v] = adjacent[v, u] = True
+        degree = adjacent.sum(1) - 1
+        cliques = [c for s in range(1, k + 1) for c in combinations(range(k), s) if adjacent[np.ix_(c, c)].all()]
+        best = max((len(c), degree[list(c)].sum()) for c in cliques)
+        expected = sorted({n for c in cliques if (len(c), degree[list(c)].sum()) == best for n in c})
+        clique = _maximum_clique(k, u, v)
+        assert sorted(np.r_[clique, _tied(k, u, v, clique)].tolist()) == expected, (k, u, v)
+
+
+def test_ties_keep_both_of_two_inconsistent_lone_closures():
+    """A robot pair whose only closures are one correct and one wrong: "break" keeps one of them,
+    "keep" both (PCM has no evidence either way)."""
+    graph, rop, truth = _multi_robot(2)
+    i, j = np.asarray(graph.i), np.asarray(graph.j)
+    pair02 = _inter(graph, rop) & (np.minimum(rop[i], rop[j]) == 0) & (np.maximum(rop[i], rop[j]) == 2)
+    keep = ~pair02
+    keep[np.flatnonzero(pair02)[0]] = True
+    one = graph.select_edges(keep)
+    rng = np.random.default_rng(5)
+    bad = _append(one, [20], [130], random_rotations(rng, (1,), 2), rng.uniform(-1, 1, (1, 2)) * 10.0)
+    row = [[0, 1], [0, 2], [1, 2]].index([0, 2])
+    broke = pcm_filter(bad, rop)
+    assert broke.num_rejected == 1 and broke.kept[row] == 1
+    kept = pcm_filter(bad, rop, ties="keep")
+    assert kept.keep.all() and kept.kept[row] == 2
+    with pytest.raises(ValueError, match="ties"):
+        pcm_filter(bad, rop, ties="both")

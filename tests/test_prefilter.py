@@ -107,6 +107,8 @@ def test_prefilter_arguments_are_checked():
         mm.PCM(confidence=1.5)
     with pytest.raises(ValueError, match="min_clique_size"):
         mm.PCM(min_clique_size=0)
+    with pytest.raises(ValueError, match="ties"):
+        mm.PCM(ties="all")
 
 
 def test_a_robot_cut_off_by_pcm_is_solved_in_its_own_frame():
@@ -177,6 +179,8 @@ def test_cli_pcm_prints_the_count_and_the_lines(tmp_path, capsys):
     assert "PCM rejected" in text and text.splitlines()[-1].split("|")[-5].strip() == "1"  # its column
     rc = main(["sweep", str(path), "-A", "3", "--pcm-confidence", "0.9"])
     assert rc != 0 and "--pcm-confidence applies with --pcm" in capsys.readouterr().err
+    rc = main(["solve", str(path), "-A", "3", "--pcm-ties", "keep", "--no-progress"])
+    assert rc != 0 and "--pcm-ties applies with --pcm" in capsys.readouterr().err
 
 
 def test_robot_team_dataset():

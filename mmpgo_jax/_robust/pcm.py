@@ -11,8 +11,13 @@ composes to nearly the identity; the largest set of pairwise consistent closures
 clique of the consistency graph, exact: a 0/1 program solved by HiGHS, :func:`scipy.optimize.milp`,
 for dense consistency graphs, networkx's branch and bound for sparse ones; among cliques of that
 size, the one whose closures passed the most tests) is kept and the pair's
-other closures are dropped. Odometry edges (j == i + 1, same robot) and intra-robot edges are
-always kept (intra-robot loop closures are not checked).
+other closures are dropped. **Ties** (``ties="keep"``): where another clique of the same size
+exists, the data give PCM no reason to prefer one (a robot pair with one correct and one wrong
+closure: two cliques of one, neither passing a test); "keep" keeps the closures of every clique
+that equals the one found in size and in tests passed and leaves the choice to the robust solver
+after it, "break" (the default, as published) keeps the one above.
+Odometry edges (j == i + 1, same robot) and intra-robot edges are always kept (intra-robot loop
+closures are not checked).
 
 **Chains.** Each robot's odometry is composed once, as a prefix product: P_p = o_start ... o_(p-1)
 is pose p in the frame of the first pose of its *segment* (a maximal run of consecutive poses of
@@ -74,14 +79,15 @@ BLOCK_PAIRS = 1 << 16
 @dataclass(frozen=True)
 class PCMResult:
     """What :func:`pcm_filter` kept. Per robot pair (rows of ``pairs``, a < b): ``closures`` (the
-    pair's inter-robot edges), ``kept`` (closures kept: the maximum cliques' sizes), ``consistent`` (closure pairs
+    pair's inter-robot edges), ``kept`` (closures kept: the maximum
+    clique's size, with ``ties="keep"`` also the closures of tied cliques), ``consistent`` (closure pairs
     that passed the test), ``untestable`` (closure pairs without an odometry path, counted as
     consistent), ``numbers_sent`` (module docstring)."""
 
     keep: np.ndarray  # (m,) bool over the graph's edges; odometry and intra-robot edges always True
     pairs: np.ndarray  # (P, 2) robot pairs a < b that share inter-robot edges
     closures: np.ndarray  # (P,)
-    kept: np.ndarray  # (P,)
+    kept: np.ndarray  # (P,) closures kept
     consistent: np.ndarray  # (P,)
     untestable: np.ndarray  # (P,)
     numbers_sent: np.ndarray  # (P,)
@@ -262,18 +268,23 @@ def _blocked_chi2(cl, chains, u, v):
 DENSE_CONSISTENCY = 0.65
 
 
-def _clique_weights(k: int, u, v) -> np.ndarray:
-    """Integer vertex weights (k^2 + degree) k^2 + position (int64; :func:`_maximum_clique`)."""
-    degree = np.bincount(np.r_[u, v], minlength=k).astype(np.int64)
+def _clique_weights(k: int, u, v, degree=None) -> np.ndarray:
+    """Integer vertex weights (B + degree) k^2 + position, B = max(k^2, k (max degree + 1)) (int64;
+    :func:`_maximum_clique`). ``degree``: the vertices' degrees (default: in the edges (u, v))."""
+    if degree is None:
+        degree = np.bincount(np.r_[u, v], minlength=k)
+    degree = np.asarray(degree, np.int64)
+    base = max(k * k, k * (int(degree.max(initial=0)) + 1))
     scale, order = (k * k, np.arange(k, dtype=np.int64)) if k < 1500 else (1, 0)  # exact sums below 2^53
-    return (k * k + degree) * scale + order
+    return (base + degree) * scale + order
 
 
-def _maximum_clique(k: int, u, v) -> np.ndarray:
+def _maximum_clique(k: int, u, v, degree=None) -> np.ndarray:
     """Positions (0..k-1) of a maximum-weight clique of the graph on k vertices with edges (u, v), exact.
 
-    Weights (:func:`_clique_weights`): (k^2 + degree) k^2 + position. A clique of s + 1 vertices
-    outweighs any of s (s (k - 1) < k^2 in the first term, and the second sums to under k^2); among
+    Weights (:func:`_clique_weights`): (B + degree) k^2 + position, the degrees those of (u, v) unless
+    ``degree`` gives them (a subgraph searched with the whole graph's degrees). A clique of s + 1
+    vertices outweighs any of s (s max-degree < B in the first term, and the second sums to under k^2); among
     the cliques of maximum size the one with the most edges to the whole graph (tests passed) wins,
     then the one whose closures come last in the group's order (the largest sum of positions: PCM has
     no evidence to prefer either; of two inconsistent closures alone in a pair the second is kept).
@@ -292,7 +303,7 @@ def _maximum_clique(k: int, u, v) -> np.ndarray:
     a, b = np.nonzero(np.triu(~adjacent, 1))
     if len(a) == 0:  # every pair consistent: one clique of all
         return np.arange(k, dtype=np.int64)
-    weight = _clique_weights(k, u, v)
+    weight = _clique_weights(k, u, v, degree)
     if len(a) <= (1.0 - DENSE_CONSISTENCY) * k * (k - 1) / 2:
         return _clique_program(k, a, b, weight)
     return _clique_search(k, u, v, weight)
@@ -322,8 +333,33 @@ def _clique_search(k: int, u, v, weight) -> np.ndarray:
     return np.sort(np.asarray(clique, dtype=np.int64))
 
 
+def _tied(k: int, u, v, clique) -> np.ndarray:
+    """Positions outside ``clique`` (:func:`_maximum_clique`'s of the graph on k vertices with edges
+    (u, v)) that belong to another clique as good by PCM's evidence: as many closures, and as many
+    tests passed (the sum of the degrees). Those are PCM's ties, where the data give no reason to
+    prefer the clique it found. A vertex j is tied when its neighbourhood holds a clique of size - 1
+    whose degrees sum to the clique's less j's own (an exact search per vertex of degree >= size - 1)."""
+    size = len(clique)
+    degree = np.bincount(np.r_[u, v], minlength=k).astype(np.int64)
+    best = int(degree[clique].sum())
+    outside = np.setdiff1d(np.arange(k), clique)
+    if size == 1:  # no edges: every vertex is a clique of one, degree 0
+        return outside
+    adjacent = np.zeros((k, k), bool)
+    adjacent[u, v] = adjacent[v, u] = True
+    tied = np.zeros(len(outside), bool)
+    for n in np.flatnonzero(degree[outside] >= size - 1):  # candidates only, not a loop over all closures
+        j = outside[n]
+        near = np.flatnonzero(adjacent[j])
+        a, b = np.nonzero(np.triu(adjacent[np.ix_(near, near)], 1))
+        other = near[_maximum_clique(len(near), a, b, degree[near])]
+        tied[n] = len(other) == size - 1 and int(degree[other].sum()) + int(degree[j]) == best
+    return outside[tied]
+
+
 def pcm_filter(graph: PoseGraph, robot_of_pose, *, confidence: float = 0.99,
-               max_pair_closures: int | None = 200, min_clique_size: int = 1) -> PCMResult:
+               max_pair_closures: int | None = 200, min_clique_size: int = 1,
+               ties: str = "break") -> PCMResult:
     """PCM on the inter-robot loop closures of ``graph`` (module docstring).
 
     ``robot_of_pose`` (n,): the robot of each pose. ``confidence``: the chi-square quantile of the
@@ -334,12 +370,17 @@ def pcm_filter(graph: PoseGraph, robot_of_pose, *, confidence: float = 0.99,
     city10000 with HiGHS); None: no split. ``min_clique_size``: a pair (or
     group) whose maximum clique is smaller loses all its closures (1, the default, is Mangelson et
     al.'s PCM: a lone closure, or one of several mutually inconsistent ones, is kept; 2 demands
-    that every kept closure be corroborated by another)."""
+    that every kept closure be corroborated by another). ``ties``: "break" keeps one maximum clique
+    per pair (Mangelson et al.; among equals the order of :func:`_maximum_clique`), "keep" keeps every
+    closure of a clique as large whose closures passed as many tests (:func:`_tied`): where such
+    cliques disagree PCM has no evidence either way, and the solver after it decides."""
     t0 = time.perf_counter()
     from scipy.stats import chi2 as chi2_distribution
 
     if not 0.0 < confidence < 1.0:
         raise ValueError(f"confidence must lie in (0, 1), got {confidence!r}")
+    if ties not in ("break", "keep"):
+        raise ValueError(f"ties must be 'break' or 'keep', got {ties!r}")
     rop = np.asarray(robot_of_pose)
     if rop.shape != (graph.num_poses,):
         raise ValueError(f"robot_of_pose must have shape ({graph.num_poses},), got {rop.shape}")
@@ -364,6 +405,8 @@ def pcm_filter(graph: PoseGraph, robot_of_pose, *, confidence: float = 0.99,
             untestable += int((~testable).sum())
             tc = time.perf_counter()
             clique = _maximum_clique(len(sub), u[ok], v[ok])
+            if ties == "keep" and len(clique) >= min_clique_size:
+                clique = np.r_[clique, _tied(len(sub), u[ok], v[ok], clique)]
             clique_seconds += time.perf_counter() - tc
             drop = np.ones(len(sub), bool)
             if len(clique) >= min_clique_size:

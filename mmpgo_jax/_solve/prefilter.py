@@ -40,11 +40,14 @@ class PCM:
     confidence: float = 0.99
     max_pair_closures: int | None = 200
     min_clique_size: int = 1
+    ties: str = "break"
 
     def __post_init__(self):
         check_real("PCM", "confidence", self.confidence, 0.0, 1.0, low_open=True, high_open=True, scalar=True)
         check_count("PCM", "max_pair_closures", self.max_pair_closures, 1, optional=True, scalar=True)
         check_count("PCM", "min_clique_size", self.min_clique_size, 1, scalar=True)
+        if self.ties not in ("break", "keep"):
+            raise ValueError(f"PCM: ties must be 'break' or 'keep', got {self.ties!r}")
 
 
 def as_prefilter(prefilter) -> PCM | None:
@@ -118,7 +121,7 @@ def apply_prefilter(graph: PoseGraph, robots, prefilter) -> Prefiltered | None:
     t0 = time.perf_counter()
     rop = robot_of_pose(graph, robots)
     pcm = pcm_filter(graph, rop, confidence=config.confidence, max_pair_closures=config.max_pair_closures,
-                     min_clique_size=config.min_clique_size)
+                     min_clique_size=config.min_clique_size, ties=config.ties)
     rejected = ~pcm.keep
     kept = graph.select_edges(pcm.keep) if rejected.any() else graph
     _, sizes, _ = component_labels(graph.num_poses, np.asarray(kept.i), np.asarray(kept.j))

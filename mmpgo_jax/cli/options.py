@@ -50,27 +50,31 @@ def add_common(p: argparse.ArgumentParser) -> None:
 
 def add_pcm_options(group, what: str) -> None:
     """--pcm (``what``: the sentence after "remove the inter-robot loop closures that PCM finds
-    inconsistent") and --pcm-confidence, of ``mmpgo solve`` and ``mmpgo sweep``."""
+    inconsistent"), --pcm-confidence and --pcm-ties, of ``mmpgo solve`` and ``mmpgo sweep``."""
     group.add_argument("--pcm", action="store_true",
                        help="remove the inter-robot loop closures that PCM (pairwise consistency maximization) "
                             f"finds inconsistent {what}")
     group.add_argument("--pcm-confidence", metavar="Q", type=finite_float(0.0, strict=True, below=1.0),
                        default=None, help="chi-square quantile of PCM's pairwise test, in (0, 1) (default 0.99)")
+    group.add_argument("--pcm-ties", choices=("break", "keep"), default=None,
+                       help="where several largest consistent sets of a robot pair disagree: keep one (break, "
+                            "the default, PCM as published) or the closures of each, for the solver to decide (keep)")
 
 
 def pcm_prefilter(args):
-    """The ``prefilter`` of ``--pcm`` / ``--pcm-confidence``: None without ``--pcm`` (then a given
-    ``--pcm-confidence`` is a one-line error), else a :class:`~mmpgo_jax.PCM`."""
+    """The ``prefilter`` of ``--pcm`` / ``--pcm-confidence`` / ``--pcm-ties``: None without ``--pcm``
+    (then a given ``--pcm-confidence`` or ``--pcm-ties`` is a one-line error), else a :class:`~mmpgo_jax.PCM`."""
     from .errors import CLIError
 
-    confidence = getattr(args, "pcm_confidence", None)
+    given = {"confidence": getattr(args, "pcm_confidence", None), "ties": getattr(args, "pcm_ties", None)}
+    given = {k: v for k, v in given.items() if v is not None}
     if not getattr(args, "pcm", False):
-        if confidence is not None:
-            raise CLIError("--pcm-confidence applies with --pcm")
+        if given:
+            raise CLIError(f"--pcm-{next(iter(given))} applies with --pcm")
         return None
     from .._solve.prefilter import PCM
 
-    return PCM() if confidence is None else PCM(confidence=confidence)
+    return PCM(**given)
 
 
 def add_strict(p: argparse.ArgumentParser) -> None:
