@@ -8,10 +8,11 @@ Per graph (a column): precision and recall of the rejected edges against the pla
 (top two rows; 1 is exact), and the accuracy the robot-teams issue asks for (bottom row): for a file,
 the ATE against the outlier-free optimum in percent of the map's extent (must show: <= 1 %); for a
 team, the ATE against the ground truth over the outlier-free optimum's (must show: <= 1.5x). One
-marker per seed, a line through the median; four pipelines: the default (both starts, the lower robust
+marker per seed, a line through the median; the pipelines: the default (both starts, the lower robust
 objective kept), the fully distributed one (``distributed=True``), PCM then the fully distributed one
-(``prefilter="pcm", distributed=True``), and GTSAM's GNC (TLS, from the centralized chordal start), a
-reference outside this package. Nothing is solved here.
+(``prefilter="pcm", distributed=True``; with PCM's ties broken as published, and with them kept:
+``PCM(ties="keep")``), and GTSAM's GNC (TLS, from the centralized chordal start), a reference
+outside this package. Nothing is solved here.
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ PIPELINES = {  # the files' pipeline name, the teams' method name, the label
     "default": ("default", "tls", "default (both starts)"),
     "distributed": ("distributed", "dist-tls", "fully distributed"),
     "pcm-distributed": ("pcm-distributed", "dist-pcm+tls", "PCM + fully distributed"),
+    "pcmties-distributed": ("pcmties-distributed", "dist-pcmties+tls", "PCM (ties kept) + fully distributed"),
     "gtsam": ("gtsam", "gtsam", "GTSAM's GNC (reference)"),
 }
 ORDER = list(PIPELINES)  # colours and offsets per pipeline, the same in every panel

@@ -181,6 +181,12 @@ def test_cli_pcm_prints_the_count_and_the_lines(tmp_path, capsys):
     assert rc != 0 and "--pcm-confidence applies with --pcm" in capsys.readouterr().err
     rc = main(["solve", str(path), "-A", "3", "--pcm-ties", "keep", "--no-progress"])
     assert rc != 0 and "--pcm-ties applies with --pcm" in capsys.readouterr().err
+    # ties kept: the planted closure is outvoted by its pair's consistent ones, so it still goes
+    rc = main(["sweep", str(path), "-A", "3", "--pcm", "--pcm-ties", "keep", "-n", "5", "--methods", "mm",
+               "--no-progress"])
+    text = capsys.readouterr().out
+    assert rc == 0, text
+    assert text.splitlines()[-1].split("|")[-5].strip() == "1"
 
 
 def test_robot_team_dataset():
