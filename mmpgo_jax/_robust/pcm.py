@@ -268,15 +268,20 @@ def _blocked_chi2(cl, chains, u, v):
 DENSE_CONSISTENCY = 0.65
 
 
+def _evidence(k: int, degree) -> np.ndarray:
+    """Vertex weights B + degree, B = max(k^2, k (max degree + 1)), int64: a clique's sum orders cliques
+    by size, then by tests passed (B exceeds any clique's degree sum)."""
+    degree = np.asarray(degree, np.int64)
+    return max(k * k, k * (int(degree.max(initial=0)) + 1)) + degree
+
+
 def _clique_weights(k: int, u, v, degree=None) -> np.ndarray:
-    """Integer vertex weights (B + degree) k^2 + position, B = max(k^2, k (max degree + 1)) (int64;
-    :func:`_maximum_clique`). ``degree``: the vertices' degrees (default: in the edges (u, v))."""
+    """Integer vertex weights :func:`_evidence` k^2 + position (int64; :func:`_maximum_clique`).
+    ``degree``: the vertices' degrees (default: in the edges (u, v))."""
     if degree is None:
         degree = np.bincount(np.r_[u, v], minlength=k)
-    degree = np.asarray(degree, np.int64)
-    base = max(k * k, k * (int(degree.max(initial=0)) + 1))
     scale, order = (k * k, np.arange(k, dtype=np.int64)) if k < 1500 else (1, 0)  # exact sums below 2^53
-    return (base + degree) * scale + order
+    return _evidence(k, degree) * scale + order
 
 
 def _maximum_clique(k: int, u, v, degree=None) -> np.ndarray:
@@ -309,13 +314,17 @@ def _maximum_clique(k: int, u, v, degree=None) -> np.ndarray:
     return _clique_search(k, u, v, weight)
 
 
-def _clique_program(k: int, a, b, weight) -> np.ndarray:
-    """The maximum-weight clique as a 0/1 program over the non-edges (a, b) (HiGHS)."""
+def _clique_program(k: int, a, b, weight, cover=None) -> np.ndarray:
+    """The maximum-weight clique as a 0/1 program over the non-edges (a, b) (HiGHS); ``cover`` (k,)
+    bool: only cliques with a vertex among them."""
     from scipy.optimize import Bounds, LinearConstraint, milp
 
     rows = np.arange(len(a))
     conflicts = sp.csr_array((np.ones(2 * len(a)), (np.r_[rows, rows], np.r_[a, b])), shape=(len(a), k))
-    res = milp(-weight.astype(float), constraints=LinearConstraint(conflicts, -np.inf, 1.0),
+    constraints = [LinearConstraint(conflicts, -np.inf, 1.0)]
+    if cover is not None:
+        constraints.append(LinearConstraint(np.asarray(cover, float)[None], 1.0, np.inf))
+    res = milp(-weight.astype(float), constraints=constraints,
                integrality=np.ones(k), bounds=Bounds(0.0, 1.0), options=dict(mip_rel_gap=0.0))
     if not res.success:  # a solver failure, not a property of the data
         raise RuntimeError(f"PCM's maximum clique: HiGHS stopped without an optimum ({res.message})")
@@ -336,25 +345,37 @@ def _clique_search(k: int, u, v, weight) -> np.ndarray:
 def _tied(k: int, u, v, clique) -> np.ndarray:
     """Positions outside ``clique`` (:func:`_maximum_clique`'s of the graph on k vertices with edges
     (u, v)) that belong to another clique as good by PCM's evidence: as many closures, and as many
-    tests passed (the sum of the degrees). Those are PCM's ties, where the data give no reason to
-    prefer the clique it found. A vertex j is tied when its neighbourhood holds a clique of size - 1
-    whose degrees sum to the clique's less j's own (an exact search per vertex of degree >= size - 1)."""
+    tests passed (the sum of the degrees), i.e. of the same :func:`_evidence` weight. Those are PCM's
+    ties, where the data give no reason to prefer the clique it found. Exact, by the density's search
+    (as :func:`_maximum_clique`): for a dense graph the 0/1 program again, each time for a best clique
+    with a vertex not yet covered, until the best such clique weighs less (one solve per new clique);
+    for a sparse one, per vertex of degree >= size - 1, networkx's search of its neighbourhood for a
+    clique of size - 1 whose weight completes the clique's."""
     size = len(clique)
     degree = np.bincount(np.r_[u, v], minlength=k).astype(np.int64)
-    best = int(degree[clique].sum())
-    outside = np.setdiff1d(np.arange(k), clique)
-    if size == 1:  # no edges: every vertex is a clique of one, degree 0
-        return outside
-    adjacent = np.zeros((k, k), bool)
+    weight = _evidence(k, degree)
+    target = int(weight[clique].sum())
+    tied = np.zeros(k, bool)
+    tied[clique] = True
+    adjacent = np.eye(k, dtype=bool)
     adjacent[u, v] = adjacent[v, u] = True
-    tied = np.zeros(len(outside), bool)
-    for n in np.flatnonzero(degree[outside] >= size - 1):  # candidates only, not a loop over all closures
-        j = outside[n]
+    a, b = np.nonzero(np.triu(~adjacent, 1))
+    if len(a) <= (1.0 - DENSE_CONSISTENCY) * k * (k - 1) / 2:
+        while not tied.all():  # each round covers a whole clique of new ties
+            other = _clique_program(k, a, b, weight, cover=~tied)
+            if int(weight[other].sum()) < target:
+                break
+            tied[other] = True
+        return np.setdiff1d(np.flatnonzero(tied), clique)
+    if size == 1:  # no edges: every vertex is a clique of one, degree 0
+        return np.setdiff1d(np.arange(k), clique)
+    np.fill_diagonal(adjacent, False)
+    for j in np.setdiff1d(np.flatnonzero(degree >= size - 1), clique):  # candidates only
         near = np.flatnonzero(adjacent[j])
-        a, b = np.nonzero(np.triu(adjacent[np.ix_(near, near)], 1))
-        other = near[_maximum_clique(len(near), a, b, degree[near])]
-        tied[n] = len(other) == size - 1 and int(degree[other].sum()) + int(degree[j]) == best
-    return outside[tied]
+        p, q = np.nonzero(np.triu(adjacent[np.ix_(near, near)], 1))
+        other = near[_maximum_clique(len(near), p, q, degree[near])]
+        tied[j] = len(other) == size - 1 and int(weight[other].sum()) + int(weight[j]) == target
+    return np.setdiff1d(np.flatnonzero(tied), clique)
 
 
 def pcm_filter(graph: PoseGraph, robot_of_pose, *, confidence: float = 0.99,
