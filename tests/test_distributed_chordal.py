@@ -334,12 +334,18 @@ def test_gamma_is_the_blockwise_majorizer_of_the_laplacian(graph, rotation):
 
 
 def test_inverses_that_cannot_fit_are_refused_in_one_line(graph, monkeypatch):
-    """The dense per-robot inverses are sized before they are built: with too little memory the
-    set-up stops with a ValueError naming the size, the memory available and the way out."""
+    """Dense per-robot inverses are sized before they are built: with too little memory
+    ``factorization="dense"`` stops with a ValueError naming the size, the memory available and the
+    ways out; ``"auto"`` takes the sparse factors instead and returns the same start."""
+    dense, _ = distributed_chordal_initialization(graph, ROBOTS, factorization="dense")
     monkeypatch.setattr(dc, "available_memory_bytes", lambda: 1000)
     with pytest.raises(ValueError, match=r"inverse per robot: 4 robots need about .* GB, more than the 0\.0 GB .*"
-                                         r"use more robots .* or init='chordal'"):
-        distributed_chordal_initialization(graph, ROBOTS, rotation_iterations=10, translation_iterations=10)
+                                         r"factorization='sparse' .* more robots .* or init='chordal'"):
+        distributed_chordal_initialization(graph, ROBOTS, rotation_iterations=10, factorization="dense")
+    auto, info = distributed_chordal_initialization(graph, ROBOTS)
+    assert info.factorizations == ("sparse", "sparse")
+    np.testing.assert_allclose(np.asarray(auto.R), np.asarray(dense.R), atol=1e-8)
+    np.testing.assert_allclose(np.asarray(auto.t), np.asarray(dense.t), atol=1e-7 * np.abs(np.asarray(dense.t)).max())
 
 
 @pytest.mark.parametrize("dim", [2, 3])
@@ -407,6 +413,79 @@ def test_planar_inverse_is_the_real_inverse_as_complex_numbers():
     reflected = PoseGraph(g.i, g.j, g.R.at[0].set(jnp.diag(jnp.array([1.0, -1.0]))), g.t, g.kappa, g.tau,
                           num_poses=g.num_poses)
     assert dc._gamma_inverses(dc._setup(reflected, ROBOTS).part, anchor, 0.3, 2, True).ndim == 3
+
+
+@pytest.mark.parametrize("rotation", [True, False], ids=["rotation", "translation"])
+def test_sparse_factors_apply_the_dense_inverse(graph, rotation):
+    """The sparse Gamma (all robots block-diagonal, anchors as identity rows) holds each robot's dense
+    Gamma on its diagonal block and nothing else, and its factors applied from inside a compiled
+    program (the host callback; complex for planar rotations) equal the dense inverse's product."""
+    import jax
+
+    st = dc._setup(graph, ROBOTS)
+    anchor = np.asarray(st.anchor)
+    d = graph.dim
+    dense = dc._gamma_matrices(st.part, anchor, 0.3, d, rotation)
+    A, N, _ = dense.shape
+    planar = rotation and d == 2 and dc._planar(st.part)
+    sparse = dc._gamma_sparse(st.part, anchor, 0.3, d, rotation, planar)
+    if planar:  # the complex matrix of the 2 x 2 blocks [[a, -b], [b, a]] -> a + i b
+        blocks = dense[:, 0::2, 0::2] + 1j * dense[:, 1::2, 0::2]
+    else:
+        blocks = dense
+    from scipy.linalg import block_diag
+
+    # the same entries summed in another order: equal up to rounding
+    np.testing.assert_allclose(sparse.toarray(), block_diag(*blocks), rtol=0, atol=1e-13 * np.abs(dense).max())
+    handle = dc.SparseFactors.register(sparse)
+    try:
+        shape = (A, N // d, d, d) if rotation else (A, N, d)
+        G = jnp.asarray(np.random.default_rng(1).normal(size=shape))
+        got = jax.jit(dc._apply_sparse)(jnp.asarray(handle, jnp.int32), G)
+        apply = dc._apply_inverse_rot if rotation else dc._apply_inverse_trans
+        want = apply(jnp.asarray(np.linalg.inv(dense)), G)
+        np.testing.assert_allclose(np.asarray(got), np.asarray(want), atol=1e-10 * float(np.abs(want).max()))
+    finally:
+        dc.SparseFactors.release(handle)
+
+
+@SCHEMES
+def test_sparse_and_dense_factorizations_give_the_same_start(graph, scheme):
+    """Both stages with the robots' sparse factors: the same iterations and start as with the dense
+    inverses (to the float32 preconditioner's rounding for CG; AMM-Chordal's inverse is exact in
+    both), and no factor left registered afterwards."""
+    dense, di = distributed_chordal_initialization(graph, ROBOTS, scheme=scheme, factorization="dense")
+    sparse, si = distributed_chordal_initialization(graph, ROBOTS, scheme=scheme, factorization="sparse")
+    assert di.factorizations == ("dense", "dense") and si.factorizations == ("sparse", "sparse")
+    assert not dc.SparseFactors._live
+    assert abs(si.rotation_iterations - di.rotation_iterations) <= 10
+    assert abs(si.translation_iterations - di.translation_iterations) <= 10
+    np.testing.assert_allclose(float(cost(graph, sparse)), float(cost(graph, dense)), rtol=1e-8)
+    np.testing.assert_allclose(np.asarray(sparse.R), np.asarray(dense.R), atol=1e-6)
+
+
+def test_factorization_auto_follows_the_cache_and_is_checked(graph, monkeypatch):
+    """``"auto"`` applies dense inverses that fit in the largest CPU cache and sparse factors beyond
+    it (each stage on its own size); an unknown value is refused."""
+    st = dc._setup(graph, ROBOTS)
+    size = dc._dense_inverse_bytes(st, True, True)
+    A, n_max = st.part.pose_mask.shape
+    planar = graph.dim == 2 and dc._planar(st.part)
+    assert size == A * (n_max * (1 if planar else graph.dim)) ** 2 * 4 * (2 if planar else 1)
+    monkeypatch.setattr(dc, "last_level_cache_bytes", lambda: size)
+    assert not dc._use_sparse(st, True, True, "auto")
+    monkeypatch.setattr(dc, "last_level_cache_bytes", lambda: size - 1)
+    assert dc._use_sparse(st, True, True, "auto")
+    assert not dc._use_sparse(st, True, True, "dense") and dc._use_sparse(st, False, True, "sparse")
+    with pytest.raises(ValueError, match="factorization must be one of 'auto', 'dense', 'sparse'"):
+        distributed_chordal_initialization(graph, ROBOTS, factorization="cholmod")
+
+
+def test_last_level_cache_is_a_size():
+    from mmpgo_jax._core.resources import last_level_cache_bytes
+
+    size = last_level_cache_bytes()
+    assert isinstance(size, int) and (1 << 16) <= size <= (1 << 34)
 
 
 @pytest.mark.parametrize("dtype", [np.float32, np.float64, np.complex64, np.complex128])

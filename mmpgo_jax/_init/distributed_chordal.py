@@ -61,6 +61,25 @@ LAPACK) and stored as its real and imaginary parts, applied with two real produc
 bytes of the real 2 n_max x 2 n_max inverse (city10000, 10 robots, CG: 3.9 ms per rotation
 iteration against 7.1, set-up 0.5 s against 1.1; used when every measured rotation is planar).
 
+Factorization (``factorization``, default ``"auto"``). The dense inverses above cost A N^3 to
+build and A N^2 to read at every iteration, which grows with the robots' size; so each robot's
+Gamma^alpha can instead be factored sparse, once, on the host (SuperLU through
+:func:`scipy.sparse.linalg.splu`, symmetric fill-reducing ordering, diagonal pivots: one
+factorization of the block-diagonal matrix of all robots, i.e. each robot's own; complex for planar
+rotations as above), and applied from inside the compiled iteration by one host callback per
+iteration for all robots (``jax.pure_callback``: the triangular solves, O(nnz of the factors)).
+``"auto"`` takes the sparse factors on the CPU for a stage whose dense inverses (the bytes one
+iteration reads) exceed the largest CPU cache, where the dense product streams them from memory at
+every iteration, and on any backend where the dense inverses would not fit in memory (instead of
+refusing). Below that size the dense product runs from the cache, faster than the callback and the
+triangular solves. Measured on a 2-core AMD EPYC (Zen 4, 32 MB L3; benchmarks/vs_authors.md), in the
+process, 10 robots, dense -> sparse: city10000 4.6 -> 2.7 s, the 15 000-pose chain graph 7.4 -> 2.5 s,
+torus3D 1.2 -> 0.6-0.7 s (the dense inverses 80-270 MB; set-up 0.5-2.5 s -> 0.02-0.05 s), parking-garage
+0.7 -> 1.2 s and MIT 0.04 -> 0.10 s (inverses of 0.1-10 MB, which "auto" keeps dense). The two agree
+to the float32 preconditioner's rounding (same iteration counts on those files). A program with a host
+callback is not kept in the persistent compilation cache, so a sparse stage compiles in every process
+(about 0.3-0.6 s for the two stages' programs here).
+
 Momentum restart (``restart=True``, the default). Algorithm 3's momentum never restarts; on
 these strongly convex but badly conditioned quadratics plain Nesterov momentum oscillates (the
 objective is not monotone) and converges slowly. With ``restart`` each robot alpha resets its own
@@ -137,8 +156,10 @@ with budgets of 2000 they stopped far from the solution), benchmarks/initializat
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 from dataclasses import dataclass
+from typing import ClassVar
 
 import equinox as eqx
 import jax
@@ -146,13 +167,14 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
+import scipy.sparse.linalg as spla
 
 from .._core.gauge import FixedPoses, anchor_set
 from .._core.geometry import bmm, mT, project_to_so
 from .._core.partition import Partition
 from .._core.partition import partition as make_partition
 from .._core.pose_graph import PoseGraph, Poses, edge_hessian_blocks
-from .._core.resources import available_memory_bytes
+from .._core.resources import available_memory_bytes, last_level_cache_bytes
 from .._core.validate import check_count, check_real
 from .._mm.driver import RESULTS, Termination, compile_once, drive
 from .._mm.layouts import Placement
@@ -160,11 +182,13 @@ from .._mm.outer import IterationRecord
 from .._mm.solvers import Solver, start_run
 
 __all__ = [
+    "DEFAULT_FACTORIZATION",
     "DEFAULT_ROTATION_ITERATIONS",
     "DEFAULT_SCHEME",
     "DEFAULT_TOL",
     "DEFAULT_TRANSLATION_ITERATIONS",
     "DEFAULT_XI",
+    "FACTORIZATIONS",
     "AMMChordal",
     "CGChordal",
     "DistributedChordalInfo",
@@ -179,6 +203,8 @@ DEFAULT_TOL = 1e-10
 DEFAULT_XI = 1e-3
 DEFAULT_RESTART = True
 DEFAULT_SCHEME = "cg"
+DEFAULT_FACTORIZATION = "auto"
+FACTORIZATIONS = ("auto", "dense", "sparse")
 _CHUNK = 10  # iterations per compiled chunk between the driver's convergence checks
 
 
@@ -195,17 +221,13 @@ def _padded_anchor_mask(part: Partition, anchors: np.ndarray) -> np.ndarray:
     return mask
 
 
-def _gamma_matrices(part: Partition, anchor_mask: np.ndarray, xi: float, d: int, rotation: bool,
-                    dtype=np.float64, planar: bool = False) -> np.ndarray:
-    """(A, N, N) dense Gamma_R^alpha (N = n_max d) or Gamma_t^alpha (N = n_max) of every robot,
-    assembled by one scatter over all robots' edge blocks: an own edge adds its four blocks, an
-    inter-robot edge twice its local end's diagonal block (Eq. (24)), padding edges nothing; then
-    xi on the diagonal (1 on padding slots), and the anchors' rows and columns replaced by the
-    identity's (the anchor is eliminated). In ``dtype`` (the edge blocks are summed in it).
-
-    Rotation layout: row/column ``slot*d + a`` acts on the transposed block R_slot^T. ``planar``
-    (rotations, d = 2, :func:`_planar`): the complex (A, n_max, n_max) matrix of those 2 x 2 blocks.
-    """
+def _gamma_entries(part: Partition, anchor_mask: np.ndarray, xi: float, d: int, rotation: bool, dtype, planar: bool):
+    """Every robot's Gamma^alpha as entries (robot, row, column, value) whose duplicates sum, rows and
+    columns numbered within the robot (N = n_max b of them, b = d for non-planar rotations, else 1),
+    the diagonal's xi (1 on padding slots) included and the anchors' rows and columns left out
+    (their identity is added by the caller): one scatter of the edge blocks, no loop over robots.
+    An own edge adds its four blocks, an inter-robot edge twice its local end's diagonal block
+    (Eq. (24)), padding edges nothing. Returns (robot, row, col, value, N, anchor (robot, index) pairs)."""
     e = part.edges
     A, n_max = part.pose_mask.shape
     b = d if rotation and not planar else 1
@@ -234,21 +256,59 @@ def _gamma_matrices(part: Partition, anchor_mask: np.ndarray, xi: float, d: int,
                              c_ij[:, None, None] * Hij, c_ij[:, None, None] * np.swapaxes(Hij, 1, 2)])
     if planar:  # [[a, -b], [b, a]] -> a + i b
         blocks = (blocks[:, 0, 0] + 1j * blocks[:, 1, 0])[:, None, None]
-        dtype = np.result_type(dtype, np.complex64)
-    # one sparse (A N) x N matrix whose duplicates sum, written out dense (C speed, no N^2 index array)
     shape = (len(rows), rows.shape[1], cols.shape[1])  # (blocks, block rows, block columns)
-    row = np.broadcast_to(np.tile(robot, 4)[:, None, None] * N + rows[:, :, None], shape)
-    col = np.broadcast_to(cols[:, None, :], shape)
-    G = sp.coo_matrix((blocks.reshape(-1).astype(dtype), (row.reshape(-1), col.reshape(-1))),
-                      shape=(A * N, N)).toarray()
-    G = G.reshape(A, N, N)
+    robot = np.broadcast_to(np.tile(robot, 4)[:, None, None], shape).reshape(-1)
+    row = np.broadcast_to(rows[:, :, None], shape).reshape(-1)
+    col = np.broadcast_to(cols[:, None, :], shape).reshape(-1)
+    value = blocks.reshape(-1).astype(dtype)
     diagonal = np.arange(N)
-    G[:, diagonal, diagonal] += np.where(np.repeat(np.asarray(part.pose_mask), b, axis=1), xi, 1.0).astype(dtype)
-    robot_of, fixed = np.nonzero(np.repeat(anchor_mask, b, axis=1))  # the anchors' rows and columns
+    robot = np.concatenate([robot, np.repeat(np.arange(A), N)])
+    row, col = np.concatenate([row, np.tile(diagonal, A)]), np.concatenate([col, np.tile(diagonal, A)])
+    value = np.concatenate([value, np.where(np.repeat(np.asarray(part.pose_mask), b, axis=1), xi, 1.0)
+                            .reshape(-1).astype(dtype)])
+    anchors = np.nonzero(np.repeat(anchor_mask, b, axis=1))  # the anchors' rows and columns
+    return robot, row, col, value, N, anchors
+
+
+def _gamma_matrices(part: Partition, anchor_mask: np.ndarray, xi: float, d: int, rotation: bool,
+                    dtype=np.float64, planar: bool = False) -> np.ndarray:
+    """(A, N, N) dense Gamma_R^alpha (N = n_max d) or Gamma_t^alpha (N = n_max) of every robot
+    (:func:`_gamma_entries`), the anchors' rows and columns replaced by the identity's (the anchor
+    is eliminated). In ``dtype`` (the edge blocks are summed in it).
+
+    Rotation layout: row/column ``slot*d + a`` acts on the transposed block R_slot^T. ``planar``
+    (rotations, d = 2, :func:`_planar`): the complex (A, n_max, n_max) matrix of those 2 x 2 blocks.
+    """
+    A = part.pose_mask.shape[0]
+    if planar:
+        dtype = np.result_type(dtype, np.complex64)
+    robot, row, col, value, N, (robot_of, fixed) = _gamma_entries(part, anchor_mask, xi, d, rotation, dtype, planar)
+    # one sparse (A N) x N matrix whose duplicates sum, written out dense (C speed, no N^2 index array)
+    G = sp.coo_matrix((value, (robot * N + row, col)), shape=(A * N, N)).toarray().reshape(A, N, N)
     G[robot_of, fixed, :] = 0.0
     G[robot_of, :, fixed] = 0.0
     G[robot_of, fixed, fixed] = 1.0
     return G
+
+
+def _gamma_sparse(part: Partition, anchor_mask: np.ndarray, xi: float, d: int, rotation: bool,
+                  planar: bool = False) -> sp.csc_matrix:
+    """All robots' Gamma^alpha as one block-diagonal sparse (A N) x (A N) matrix (float64, or
+    complex128 with ``planar``), robot alpha's block at rows and columns alpha N .. alpha N + N - 1
+    in :func:`_gamma_matrices`' numbering, the anchors' rows and columns those of the identity."""
+    A = part.pose_mask.shape[0]
+    dtype = np.complex128 if planar else np.float64
+    robot, row, col, value, N, (robot_of, fixed) = _gamma_entries(part, anchor_mask, xi, d, rotation, dtype, planar)
+    anchored = np.zeros((A, N), bool)
+    anchored[robot_of, fixed] = True
+    keep = ~(anchored[robot, row] | anchored[robot, col])
+    ones = robot_of * N + fixed
+    index_r = np.concatenate([(robot * N + row)[keep], ones])
+    index_c = np.concatenate([(robot * N + col)[keep], ones])
+    value = np.concatenate([value[keep], np.ones(len(ones), dtype)])
+    gamma = sp.csc_matrix((value, (index_r, index_c)), shape=(A * N, A * N))  # duplicates summed
+    gamma.eliminate_zeros()  # e.g. the off-diagonal entries of kappa I blocks: no fill to carry
+    return gamma
 
 
 def _gamma_inverses(part: Partition, anchor_mask: np.ndarray, xi: float, d: int, rotation: bool,
@@ -320,6 +380,52 @@ def _flush_tiny(c: np.ndarray) -> np.ndarray:
     magnitude = np.abs(c)
     c[magnitude < np.finfo(c.dtype).eps ** 2 * magnitude.max(initial=0.0)] = 0
     return c
+
+
+class SparseFactors:
+    """Every robot's Gamma^alpha factored sparse (SuperLU, :func:`scipy.sparse.linalg.splu`, of the
+    block-diagonal matrix of all robots: robot alpha's factor is the factorization of its own block,
+    the robots are independent), applied on the host from inside the compiled iteration
+    (``jax.pure_callback``, one call per iteration for all robots). A factor is registered under an
+    integer handle, which the compiled programs take as a traced argument: the same program serves
+    every graph of the same shapes, and :meth:`release` drops the factor when its stage is done."""
+
+    _live: ClassVar[dict] = {}
+    _next = 0
+
+    @classmethod
+    def register(cls, gamma: sp.csc_matrix) -> int:
+        """Factor ``gamma`` (real, or complex for planar rotations: :func:`_gamma_sparse`)."""
+        # symmetric (Hermitian) positive definite: a symmetric fill-reducing ordering, diagonal pivots
+        lu = spla.splu(gamma, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options=dict(SymmetricMode=True))
+        cls._next += 1
+        cls._live[cls._next] = lu
+        return cls._next
+
+    @classmethod
+    def release(cls, handle) -> None:
+        cls._live.pop(int(handle), None)
+
+    @classmethod
+    def solve(cls, handle, rhs):
+        """Gamma^{-1} rhs for every robot; a complex factor (planar rotations) reads each slot's four
+        numbers (its transposed 2 x 2 block) as two complex ones, as :func:`_apply_planar_inverse`."""
+        lu = cls._live[int(handle)]
+        if not np.iscomplexobj(lu.L.data[:1]):
+            return lu.solve(np.asarray(rhs, np.float64)).astype(rhs.dtype, copy=False)
+        Z = np.asarray(rhs).reshape(-1, 4)
+        w = lu.solve(Z[:, :2] + 1j * Z[:, 2:])
+        return np.concatenate([w.real, w.imag], axis=1).astype(rhs.dtype, copy=False).reshape(rhs.shape)
+
+
+def _apply_sparse(handle, G):
+    """Gamma^{-1} applied to every robot's block of ``G`` (A, n_max, ...): the rows of its reshape to
+    (A N, columns) are :func:`_gamma_sparse`'s numbering (rotations held transposed: row
+    ``slot*d + a``, column k)."""
+    flat = G.reshape(-1, G.shape[-1])
+    out = jax.pure_callback(SparseFactors.solve, jax.ShapeDtypeStruct(flat.shape, flat.dtype), handle, flat,
+                            vmap_method="sequential")
+    return out.reshape(G.shape)
 
 
 # --------------------------------------------------------------------------------------------
@@ -413,7 +519,14 @@ class _Stage(eqx.Module):
 
     edges: object
     anchor: jax.Array
-    Ginv: jax.Array
+    Ginv: jax.Array  # the dense inverses, or with ``sparse`` the handle of the robots' sparse factors
+    sparse: bool = eqx.field(static=True)
+
+    @property
+    def exportable(self) -> bool:
+        """Whether the stage's programs can be serialized (``jax.export``) into the persistent cache:
+        not with the sparse factors' host callback."""
+        return not self.sparse
 
     @property
     def pose_slots(self) -> int:
@@ -449,7 +562,7 @@ class RotationStage(_Stage):
         return _rotation_gradient(self.edges, self.anchor, Y)
 
     def apply_inverse(self, G):
-        return _apply_inverse_rot(self.Ginv, G)
+        return _apply_sparse(self.Ginv, G) if self.sparse else _apply_inverse_rot(self.Ginv, G)
 
     def matvec(self, P):
         return _rotation_gradient(self.edges, self.anchor, P)[0]  # the gradient is linear in R
@@ -467,7 +580,7 @@ class TranslationStage(_Stage):
         return _translation_gradient(self.edges, self.anchor, self.v, t)
 
     def apply_inverse(self, g):
-        return _apply_inverse_trans(self.Ginv, g)
+        return _apply_sparse(self.Ginv, g) if self.sparse else _apply_inverse_trans(self.Ginv, g)
 
     def matvec(self, P):
         return _translation_gradient(self.edges, self.anchor, jnp.zeros_like(self.v), P)[0]
@@ -626,8 +739,8 @@ def _drive_stage(part: Partition, problem: _Stage, X0, budget: int, tol, solver:
     by ``tol`` then goes on where its residual is large against it (:func:`_projection_settled`)."""
     placement = Placement(part)
     # the start's program from the persistent cache when it is on (a warm process does not trace it)
-    start_fn = compile_once(start_run, solver, problem, X0,
-                            exported=(start_run.__wrapped__, (), solver.start_structure(problem)), once=True)
+    exported = (start_run.__wrapped__, (), solver.start_structure(problem)) if problem.exportable else None
+    start_fn = compile_once(start_run, solver, problem, X0, exported=exported, once=True)
     state, start = start_fn(solver, problem, X0)
     termination = Termination(budget, _CHUNK, rel_change_tol=tol, stop_when_stalled=False)
     chunk = placement.compile_chunk(solver, problem)
@@ -693,6 +806,7 @@ class DistributedChordalInfo:
     tol: float | None
     scheme: str
     restart: bool  # AMM-Chordal's per-robot momentum restart (False for "cg")
+    factorizations: tuple[str, str] = ("dense", "dense")  # how Gamma^alpha was applied: rotations, translations
 
 
 def _as_partition(graph: PoseGraph, robots) -> Partition:
@@ -726,9 +840,15 @@ class _Setup(eqx.Module):
     dim: int = eqx.field(static=True)
     dtype: object = eqx.field(static=True)
 
-    def gamma_inverse(self, xi: float, rotation: bool, single: bool = False) -> jax.Array:
+    def gamma_inverse(self, xi: float, rotation: bool, single: bool = False, sparse: bool = False):
         """Every robot's Gamma^{-1} in the graph's precision, or with ``single`` in float32 where its
-        factorization succeeds (a preconditioner needs no more: half the bytes each iteration reads)."""
+        factorization succeeds (a preconditioner needs no more: half the bytes each iteration reads).
+        ``sparse``: the robots' sparse factors instead (:class:`SparseFactors`), returned as their
+        handle (an int), to be released when the stage is done."""
+        if sparse:
+            planar = rotation and self.dim == 2 and _planar(self.part)
+            return SparseFactors.register(_gamma_sparse(self.part, np.asarray(self.anchor), float(xi), self.dim,
+                                                        rotation, planar))
         _check_memory(self.part, self.dim if rotation else 1, np.dtype(self.dtype).itemsize)
         G = _gamma_inverses(self.part, np.asarray(self.anchor), float(xi), self.dim, rotation, single)
         return jnp.asarray(G, np.float32 if G.dtype == np.float32 else self.dtype)
@@ -745,7 +865,7 @@ def _check_memory(part: Partition, b: int, itemsize: int) -> None:
         raise ValueError(
             f"distributed-chordal initialization holds a dense {N} x {N} inverse per robot: {A} robots need "
             f"about {need / 1e9:.1f} GB, more than the {available / 1e9:.1f} GB of memory available; "
-            "use more robots (the memory falls as 1 / robots) or init='chordal'")
+            "use factorization='sparse' (or 'auto'), more robots (the memory falls as 1 / robots) or init='chordal'")
 
 
 def _setup(graph: PoseGraph, robots, fixed: FixedPoses | None = None) -> _Setup:
@@ -786,7 +906,7 @@ def _run_rotations(st: _Setup, Ginv, R0, budget: int, tol, solver: Solver):
     """The rotation stage on the driver; ``budget`` and ``tol`` are traced (the compiled chunk of 10
     iterations serves every budget and tolerance). The stage holds the blocks transposed
     (:class:`RotationStage`): ``R0`` (host) and the result are transposed here, on the host."""
-    stage = RotationStage(st.part.edges, jnp.asarray(st.anchor), Ginv)
+    stage = RotationStage(st.part.edges, jnp.asarray(st.anchor), *_inverse_field(Ginv))
     Y, history, k, converged = _drive_stage(st.part, stage, jnp.asarray(np.swapaxes(R0, -1, -2)), budget,
                                             _check_tol(tol), solver, conditioning=_smallest_singular_value(st))
     return np.swapaxes(np.asarray(Y), -1, -2), history, k, converged
@@ -798,8 +918,55 @@ def _run_translations(st: _Setup, Ginv, Rpad, t0, budget: int, tol, solver: Solv
     # v_e = R_i tt_e with the fixed rotations, per robot edge slot (constant over iterations)
     Rpad = np.asarray(Rpad)
     v = np.einsum("aexy,aey->aex", Rpad[np.asarray(edges.robot_i), np.asarray(edges.slot_i)], np.asarray(edges.t))
-    stage = TranslationStage(edges, jnp.asarray(st.anchor), Ginv, jnp.asarray(v))
+    stage = TranslationStage(edges, jnp.asarray(st.anchor), *_inverse_field(Ginv), v=jnp.asarray(v))
     return _drive_stage(st.part, stage, jnp.asarray(t0), budget, _check_tol(tol), solver)
+
+
+def _inverse_field(Ginv) -> tuple:
+    """A stage's (``Ginv``, ``sparse``) fields from :meth:`_Setup.gamma_inverse`'s result."""
+    if isinstance(Ginv, int):  # the handle of sparse factors
+        return jnp.asarray(Ginv, jnp.int32), True
+    return Ginv, False
+
+
+def _check_factorization(factorization) -> str:
+    if factorization not in FACTORIZATIONS:
+        raise ValueError(f"factorization must be one of {', '.join(map(repr, FACTORIZATIONS))}, got {factorization!r}")
+    return factorization
+
+
+def _dense_inverse_bytes(st: _Setup, rotation: bool, single: bool) -> int:
+    """The bytes of all robots' dense Gamma^{-1} of a stage: what each of its iterations reads."""
+    A, n_max = st.part.pose_mask.shape
+    planar = rotation and st.dim == 2 and _planar(st.part)
+    N = n_max * (st.dim if rotation and not planar else 1)
+    itemsize = 4 if single else np.dtype(st.dtype).itemsize
+    return A * N * N * itemsize * (2 if planar else 1)
+
+
+def _use_sparse(st: _Setup, rotation: bool, single: bool, factorization: str) -> bool:
+    """Whether a stage applies sparse factors (module docstring, "Factorization"). ``"auto"``: on
+    the CPU, where the dense inverses exceed the largest CPU cache (each iteration would then
+    stream them from memory); on other backends only where they would not fit in memory (the
+    sparse solve runs on the host, a transfer each iteration)."""
+    if factorization != "auto":
+        return factorization == "sparse"
+    need = _dense_inverse_bytes(st, rotation, single)
+    if need > available_memory_bytes():
+        return True
+    return jax.default_backend() == "cpu" and need > last_level_cache_bytes()
+
+
+@contextlib.contextmanager
+def _preconditioner(st: _Setup, xi: float, rotation: bool, solver: Solver, factorization: str):
+    """A stage's Gamma^{-1}: dense inverses, or the handle of sparse factors released afterwards."""
+    single = _single(solver)
+    Ginv = st.gamma_inverse(xi, rotation, single, _use_sparse(st, rotation, single, factorization))
+    try:
+        yield Ginv
+    finally:
+        if isinstance(Ginv, int):
+            SparseFactors.release(Ginv)
 
 
 def _unpad(st: _Setup, X):
@@ -817,6 +984,7 @@ def distributed_relaxed_rotations(
     scheme: str = DEFAULT_SCHEME,
     restart: bool | None = None,
     initial=None,
+    factorization: str = DEFAULT_FACTORIZATION,
 ):
     """The relaxed rotation problem (22), distributed: ``scheme`` ``"cg"`` (default, preconditioned
     conjugate gradients, :class:`CGChordal`) or ``"amm"`` (AMM-Chordal, Algorithm 3, with the
@@ -826,15 +994,18 @@ def distributed_relaxed_rotations(
     ``initial``: R^(0) (n, d, d); default every block I (anchor poses are always I).
     ``iterations`` and ``tol`` are traced: another tolerance or budget reuses the compiled chunk
     (module docstring, "Stopping").
+    ``factorization``: how every robot's Gamma^alpha is applied, ``"auto"``, ``"dense"`` or
+    ``"sparse"`` (module docstring, "Factorization").
     Returns (R (n, d, d) not projected, history (k+1,) of 2 F_R, iterations used k, converged).
     """
     iterations = _check_iters("iterations", iterations)
     tol = _check_tol(tol)
+    factorization = _check_factorization(factorization)
     solver = _stage_solver(scheme, restart)
     st = _setup(graph, robots)
-    X, history, k, converged = _run_rotations(st, st.gamma_inverse(xi, True, _single(solver)),
-                                              _initial_rotations(st, initial, graph.num_poses), iterations, tol,
-                                              solver)
+    with _preconditioner(st, xi, True, solver, factorization) as Ginv:
+        X, history, k, converged = _run_rotations(st, Ginv, _initial_rotations(st, initial, graph.num_poses),
+                                                  iterations, tol, solver)
     return _unpad(st, X), history, k, converged
 
 
@@ -849,6 +1020,7 @@ def distributed_translations(
     scheme: str = DEFAULT_SCHEME,
     restart: bool | None = None,
     initial=None,
+    factorization: str = DEFAULT_FACTORIZATION,
 ):
     """The translation problem (25) with rotations ``R`` (n, d, d) fixed, anchor translations 0,
     from t^(0) = ``initial`` (default 0), by ``scheme`` (as :func:`distributed_relaxed_rotations`).
@@ -857,6 +1029,7 @@ def distributed_translations(
     """
     iterations = _check_iters("iterations", iterations)
     tol = _check_tol(tol)
+    factorization = _check_factorization(factorization)
     solver = _stage_solver(scheme, restart)
     st = _setup(graph, robots)
     n, d = graph.num_poses, graph.dim
@@ -864,8 +1037,9 @@ def distributed_translations(
     if R.shape != (n, d, d):
         raise ValueError(f"rotations must have shape ({n}, {d}, {d}), got {R.shape}")
     Rpad = st.part.scatter(Poses(R, np.zeros((n, d), st.dtype)), host=True).R
-    X, history, k, converged = _run_translations(st, st.gamma_inverse(xi, False, _single(solver)), Rpad,
-                                                 _initial_translations(st, initial, n), iterations, tol, solver)
+    with _preconditioner(st, xi, False, solver, factorization) as Ginv:
+        X, history, k, converged = _run_translations(st, Ginv, Rpad, _initial_translations(st, initial, n),
+                                                     iterations, tol, solver)
     return _unpad(st, X), history, k, converged
 
 
@@ -882,6 +1056,7 @@ def distributed_chordal_initialization(
     initial_rotations=None,
     initial_translations=None,
     fixed: FixedPoses | None = None,
+    factorization: str = DEFAULT_FACTORIZATION,
 ) -> tuple[Poses, DistributedChordalInfo]:
     """Distributed chordal initialization: the relaxed rotations (22), projection of every block to
     SO(d) (each robot its own poses, SVD with det fixed), then the translations (25) given those
@@ -897,23 +1072,28 @@ def distributed_chordal_initialization(
     ``initial_rotations`` (n, d, d) / ``initial_translations`` (n, d): starting iterates
     (default: all rotations I, all translations 0). ``fixed``: poses held at their values in both
     stages (the anchors; default the first pose of every component, at identity).
+    ``factorization``: how every robot's Gamma^alpha is applied in each stage: ``"auto"`` (default),
+    ``"dense"`` (explicit inverses) or ``"sparse"`` (sparse factors; module docstring, "Factorization").
 
     Returns the poses (graph dtype) and a :class:`DistributedChordalInfo`.
     """
     rotation_iterations = _check_iters("rotation_iterations", rotation_iterations)
     translation_iterations = _check_iters("translation_iterations", translation_iterations)
     tol = _check_tol(tol)  # before any set-up work
+    factorization = _check_factorization(factorization)
     solver = _stage_solver(scheme, restart)
     n = graph.num_poses
     st = _setup(graph, robots, fixed)
     R0 = _initial_rotations(st, initial_rotations, n)
     t0 = _initial_translations(st, initial_translations, n)
-    single = _single(solver)
-    RX, hR, kR, convR = _run_rotations(st, st.gamma_inverse(xi, True, single), R0, rotation_iterations, tol, solver)
+    with _preconditioner(st, xi, True, solver, factorization) as Ginv:
+        RX, hR, kR, convR = _run_rotations(st, Ginv, R0, rotation_iterations, tol, solver)
+        sparse_rotations = isinstance(Ginv, int)
     # each robot projects its own blocks; padding slots hold I, anchors keep their values
     Rpad = np.where(st.anchor[..., None, None], st.anchor_R, project_to_so(np.asarray(RX)))
-    tX, ht, kt, convt = _run_translations(st, st.gamma_inverse(xi, False, single), Rpad, t0, translation_iterations,
-                                          tol, solver)
+    with _preconditioner(st, xi, False, solver, factorization) as Ginv:
+        tX, ht, kt, convt = _run_translations(st, Ginv, Rpad, t0, translation_iterations, tol, solver)
+        sparse_translations = isinstance(Ginv, int)
     info = DistributedChordalInfo(
         rotation_iterations=kR,
         translation_iterations=kt,
@@ -926,5 +1106,6 @@ def distributed_chordal_initialization(
         tol=tol,
         scheme=scheme,
         restart=isinstance(solver, AMMChordal) and solver.restart,
+        factorizations=("sparse" if sparse_rotations else "dense", "sparse" if sparse_translations else "dense"),
     )
     return st.part.gather(Poses(Rpad, np.asarray(tX))), info

@@ -61,8 +61,10 @@ class Placement:
 
         def compile_chunk(state, length, limit):
             out = (state, solver.record_structure(problem))  # the chunk's result structure
+            # a problem with host callbacks (``exportable`` False) cannot be serialized: compiled as usual
+            exported = (run_chunk.__wrapped__, (3,), out) if getattr(problem, "exportable", True) else None
             compiled = compile_once(run_chunk, solver, problem, state, length, limit, static=(length,),
-                                    exported=(run_chunk.__wrapped__, (3,), out))
+                                    exported=exported)
             return lambda st, lim: compiled(solver, problem, st, lim)
 
         return compile_chunk
