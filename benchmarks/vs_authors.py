@@ -60,11 +60,11 @@ def dataset_file(name: str, data: Path, tmp: Path) -> str:
     return str(path)
 
 
-def timed_process(cmd: list[str], env: dict | None = None) -> tuple[str, float, float]:
+def timed_process(cmd: list[str], env: dict | None = None, cwd: Path | None = None) -> tuple[str, float, float]:
     """(stdout, wall seconds, processor seconds of the child) of one process."""
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t = time.perf_counter()
-    out = subprocess.run(cmd, capture_output=True, text=True, env=env, check=True).stdout
+    out = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=cwd, check=True).stdout
     wall = time.perf_counter() - t
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
@@ -82,7 +82,10 @@ def authors(file: str) -> dict:
 def ours_env(root: Path) -> dict:
     """Our processes' environment: the checkout ``root`` first on the path, and Python's bytecode
     cache on (a shell's ``PYTHONDONTWRITEBYTECODE`` would recompile every module at every start, about
-    0.1 s that an installed package does not pay)."""
+    0.1 s that an installed package does not pay). The processes also run in ``root``: ``python -m``
+    puts the working directory before ``PYTHONPATH``, so a run started from another checkout would
+    import that one (until 2026-12-07 15:10 UTC, ``--baseline`` started from this repository ran
+    this repository's code in both columns)."""
     env = dict(os.environ, PYTHONPATH=str(root))
     env.pop("PYTHONDONTWRITEBYTECODE", None)
     return env
@@ -90,7 +93,7 @@ def ours_env(root: Path) -> dict:
 
 def ours(file: str) -> dict:
     out, wall, cpu = timed_process([sys.executable, "-m", "mmpgo_jax.cli", "solve", file, "--robots", "10",
-                             "--iterations", "1000", "--all-iterations"], ours_env(HERE))
+                             "--iterations", "1000", "--all-iterations"], ours_env(HERE), cwd=HERE)
     ms = float(re.search(r"\(([0-9.]+) ms/iteration\)", out).group(1))
     f = float(re.search(r"f = 2F\s+\S+ -> (\S+)", out).group(1))
     return dict(ms=ms, wall=wall, cpu=cpu, f=f)
@@ -108,7 +111,7 @@ def authors_start(file: str) -> dict:
 
 def ours_start(file: str, init: str = "distributed-chordal", root: Path = HERE) -> dict:
     out, wall, cpu = timed_process([sys.executable, "-m", "mmpgo_jax.cli", "solve", file, "--robots", "10",
-                             "--init", init, "--iterations", "0"], ours_env(root))
+                             "--init", init, "--iterations", "0"], ours_env(root), cwd=root)
     f = float(re.search(r"f = 2F\s+(\S+)", out).group(1))
     inside = float(re.search(r"initialize ([0-9.]+) s", out).group(1))  # the start itself, in the process
     return dict(wall=wall, cpu=cpu, f=f, inside=inside)

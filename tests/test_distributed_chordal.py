@@ -378,10 +378,38 @@ def test_cg_preconditioner_in_float32_unless_its_factorization_fails(graph, monk
     invert = dc._invert_in_place
     # a float32 factorization reports "not positive definite" (LAPACK info > 0)
     monkeypatch.setattr(dc, "_invert_in_place",
-                        lambda G, out=None: (0, 1) if G.dtype in (np.float32, np.complex64) else invert(G, out))
+                        lambda G, out=None, max_condition=None: (0, 1) if G.dtype in (np.float32, np.complex64)
+                        else invert(G, out, max_condition))
     fallback = st.gamma_inverse(1e-3, True, single=True)
     assert fallback.dtype == np.float64
     np.testing.assert_allclose(np.asarray(fallback), exact, rtol=1e-12, atol=1e-14)
+
+
+def test_cg_preconditioner_in_float64_where_float32_would_be_inexact(graph, monkeypatch):
+    """float32 only where every robot's condition number times float32's roundoff is at most
+    SINGLE_PRECISION_ERROR: the rule follows LAPACK's condition estimate (within a factor 10 of the
+    exact 1-norm condition number of each robot's Gamma)."""
+    st = dc._setup(graph, ROBOTS)
+    G = dc._gamma_matrices(st.part, np.asarray(st.anchor), 1e-3, graph.dim, True)
+    kappa = max(np.linalg.cond(G[a], 1) for a in range(G.shape[0]))
+    u = np.finfo(np.float32).eps
+    monkeypatch.setattr(dc, "SINGLE_PRECISION_ERROR", 10 * kappa * u)
+    assert st.gamma_inverse(1e-3, True, single=True).dtype == np.float32
+    monkeypatch.setattr(dc, "SINGLE_PRECISION_ERROR", 0.1 * kappa * u)
+    assert st.gamma_inverse(1e-3, True, single=True).dtype == np.float64
+
+
+def test_invert_in_place_refuses_an_ill_conditioned_matrix_by_its_condition_estimate():
+    """``max_condition``: a matrix whose estimated condition number exceeds it is a failure (info 0)
+    and a well-conditioned one is inverted as without it."""
+    rng = np.random.default_rng(3)
+    Q, _ = np.linalg.qr(rng.normal(size=(40, 40)))
+    ill = (Q * np.logspace(0, 8, 40)) @ Q.T
+    well = (Q * np.linspace(1, 2, 40)) @ Q.T
+    assert dc._invert_in_place(np.stack([well, ill]).astype(np.float32), max_condition=1e6) == (1, 0)
+    G = np.stack([well, well]).astype(np.float32)
+    assert dc._invert_in_place(G, max_condition=1e6) is None
+    np.testing.assert_allclose(G[0], np.linalg.inv(well), rtol=1e-4, atol=1e-5)
 
 
 def test_scheme_options_are_checked():

@@ -111,10 +111,17 @@ slightly inexact one.
 Preconditioner precision. CG only needs Gamma^{-1} as a preconditioner, so its inverses are
 factored and stored in float32 (half the bytes every iteration reads, the iteration being
 memory-bound; the factorization is about 2.5x faster) while the iterates, residuals and objective
-stay in the graph's precision: the iteration counts and results were the same as with float64
-inverses on the benchmark files. Where a float32 Cholesky factorization fails (a Gamma too
-ill-conditioned for float32) all inverses are float64. AMM-Chordal's inverse is its majorizer's
-exact minimiser, always in the graph's precision.
+stay in the graph's precision. A float32 inverse is off by about kappa(Gamma^alpha) u (u = 6e-8,
+float32's unit roundoff), and CG's fast final phase is sensitive to it: kitti_00 (10 robots, kappa u
+0.35 for rotations, 0.020 for translations, LAPACK's estimate) took 470 / 440 CG iterations with
+float32 inverses against 210 / 240 with float64 ones, the same start. So float32 is used only where
+every robot's kappa u, from LAPACK's condition estimate of the float32 Cholesky factor (``pocon``,
+1-norm, O(N^2) beside the O(N^3) factorization), is at most ``SINGLE_PRECISION_ERROR`` = 0.01 (the
+preconditioner within 1 % of the exact one); otherwise, or where a float32 factorization fails, all
+inverses are float64. On the other benchmark files kappa u is 1e-5 to 0.023 and float32 costs no
+iterations (the counts agree within a chunk: e.g. CSAIL 8.4e-3, the chain graph's translations 0.023
+and manhattan's rotations 0.012, the last two now float64 by the rule, which errs towards float64).
+AMM-Chordal's inverse is its majorizer's exact minimiser, always in the graph's precision.
 
 Convergence of AMM-Chordal. The iteration count is governed by lambda_min(Gamma^{-1} L) of the anchored
 problem; the slowest mode is the "gauge" mode (all free poses left-multiplied by a common matrix,
@@ -204,6 +211,7 @@ DEFAULT_XI = 1e-3
 DEFAULT_RESTART = True
 DEFAULT_SCHEME = "cg"
 DEFAULT_FACTORIZATION = "auto"
+SINGLE_PRECISION_ERROR = 0.01  # the float32 preconditioner's largest relative error, kappa u (module docstring)
 FACTORIZATIONS = ("auto", "dense", "sparse")
 _CHUNK = 10  # iterations per compiled chunk between the driver's convergence checks
 
@@ -321,7 +329,9 @@ def _gamma_inverses(part: Partition, anchor_mask: np.ndarray, xi: float, d: int,
     for dtype in ((np.float32,) if single else ()) + (np.float64,):
         G = _gamma_matrices(part, anchor_mask, xi, d, rotation, dtype, planar)  # assembled in dtype too
         out = np.empty((G.shape[0], 2, *G.shape[1:]), dtype) if planar else None
-        bad = _invert_in_place(G, out)
+        # float32 only where its rounding leaves the preconditioner within SINGLE_PRECISION_ERROR
+        max_condition = SINGLE_PRECISION_ERROR / np.finfo(np.float32).eps if dtype == np.float32 else None
+        bad = _invert_in_place(G, out, max_condition)
         if bad is None:
             return G if out is None else out
     robot, info = bad
@@ -341,23 +351,29 @@ def _planar(part: Partition) -> bool:
                 and np.allclose(R[:, 1, 0], -R[:, 0, 1], rtol=0, atol=1e-12 * scale))
 
 
-def _invert_in_place(G: np.ndarray, out: np.ndarray | None = None) -> tuple[int, int] | None:
+def _invert_in_place(G: np.ndarray, out: np.ndarray | None = None,
+                     max_condition: float | None = None) -> tuple[int, int] | None:
     """Every G[a] (symmetric or Hermitian positive definite) replaced by its inverse (LAPACK potrf,
     trtri and lauum: potri's steps, in G's precision), or for complex G written to
-    ``out[a] = (real part, imaginary part)``; (robot, info) of the first failure.
+    ``out[a] = (real part, imaginary part)``; (robot, info) of the first failure. With
+    ``max_condition``, a robot whose condition number (1-norm, LAPACK's ``pocon`` estimate from the
+    Cholesky factor) exceeds it fails too (info 0).
 
     Between the steps the entries below eps^2 of the largest are set to zero (:func:`_flush_tiny`):
     these inverses decay along the graph (city10000's float32 inverse is 77 % exact zeros after
     underflow), and products of those tiny entries are subnormal numbers, which the CPU handles in
     microcode: potri took 110 ms per robot of city10000 (N = 1000, complex) against 45 ms for a
     random matrix, and the flushed steps 60 ms (float32 2.0 s -> 0.6 s for its 10 robots)."""
-    potrf, trtri, lauum = sla.lapack.get_lapack_funcs(("potrf", "trtri", "lauum"), (G,))
+    potrf, pocon, trtri, lauum = sla.lapack.get_lapack_funcs(("potrf", "pocon", "trtri", "lauum"), (G,))
     upper = np.triu(np.ones(G.shape[1:], bool), 1)
     # the one loop over robots left in the set-up, each pass an O(N^3) LAPACK call. NumPy and SciPy
     # have no batched potri; the batched alternatives (np.linalg.inv, a batched Cholesky and
     # triangular solves) do 3x the flops (measured 3.5x slower for N = 1500).
     for a in range(G.shape[0]):
+        norm = np.abs(G[a]).sum(axis=0).max() if max_condition is not None else 0.0  # 1-norm, before potrf
         c, info = potrf(G[a], lower=1, clean=1, overwrite_a=1)  # clean: no stale upper triangle
+        if info == 0 and max_condition is not None and pocon(c, norm, uplo="L")[0] * max_condition < 1.0:
+            return a, 0
         if info == 0:
             c, info = trtri(_flush_tiny(c), lower=1, overwrite_c=1)
         if info == 0:
