@@ -73,12 +73,14 @@ iteration reads) exceed the largest CPU cache, where the dense product streams t
 every iteration, and on any backend where the dense inverses would not fit in memory (instead of
 refusing). Below that size the dense product runs from the cache, faster than the callback and the
 triangular solves. Measured on a 2-core AMD EPYC (Zen 4, 32 MB L3; benchmarks/vs_authors.md), in the
-process, 10 robots, dense -> sparse: city10000 4.6 -> 2.7 s, the 15 000-pose chain graph 7.4 -> 2.5 s,
-torus3D 1.2 -> 0.6-0.7 s (the dense inverses 80-270 MB; set-up 0.5-2.5 s -> 0.02-0.05 s), parking-garage
-0.7 -> 1.2 s and MIT 0.04 -> 0.10 s (inverses of 0.1-10 MB, which "auto" keeps dense). The two agree
-to the float32 preconditioner's rounding (same iteration counts on those files). A program with a host
-callback is not kept in the persistent compilation cache, so a sparse stage compiles in every process
-(about 0.3-0.6 s for the two stages' programs here).
+process, 10 robots, dense -> sparse: city10000 3.7-4.7 -> 1.9-2.7 s, the 15 000-pose chain graph
+6.2-7.4 -> 2.5-3.1 s, torus3D 1.2 -> 0.6-0.7 s (dense inverses of 80-270 MB; their set-up alone
+0.5-2.5 s, the sparse factorization 0.02-0.05 s), parking-garage 0.7 -> 1.2-1.4 s and MIT 0.04 -> 0.10 s
+(inverses of 0.1-10 MB, which "auto" keeps dense: an empty callback costs 65-100 us, SuperLU's
+solves with few columns run at about 1 GFLOP/s). The two give the same iteration counts on those
+files (the float32 rule below aside). A program with a host callback is not kept in the persistent
+compilation cache, so a sparse stage compiles in every process (about 0.5-0.7 s for both stages'
+programs here), which the whole process still recovers on those three graphs.
 
 Momentum restart (``restart=True``, the default). Algorithm 3's momentum never restarts; on
 these strongly convex but badly conditioned quadratics plain Nesterov momentum oscillates (the
