@@ -505,6 +505,18 @@ def test_factorization_auto_follows_the_cache_and_is_checked(graph, monkeypatch)
     monkeypatch.setattr(dc, "last_level_cache_bytes", lambda: size - 1)
     assert dc._use_sparse(st, True, True, "auto")
     assert not dc._use_sparse(st, True, True, "dense") and dc._use_sparse(st, False, True, "sparse")
+    # float32 inverses that fit, refused by the precision rule: their float64 twins do not fit
+    solver = dc.CGChordal()
+    monkeypatch.setattr(dc, "last_level_cache_bytes", lambda: size)
+    with dc._preconditioner(st, 1e-3, True, solver, "auto") as Ginv:
+        assert not isinstance(Ginv, int) and Ginv.dtype == np.float32
+    monkeypatch.setattr(dc, "SINGLE_PRECISION_ERROR", 0.0)
+    with dc._preconditioner(st, 1e-3, True, solver, "auto") as Ginv:
+        assert isinstance(Ginv, int)
+    assert not dc.SparseFactors._live
+    monkeypatch.setattr(dc, "last_level_cache_bytes", lambda: 2 * size)
+    with dc._preconditioner(st, 1e-3, True, solver, "auto") as Ginv:
+        assert not isinstance(Ginv, int) and Ginv.dtype == np.float64
     with pytest.raises(ValueError, match="factorization must be one of 'auto', 'dense', 'sparse'"):
         distributed_chordal_initialization(graph, ROBOTS, factorization="cholmod")
 

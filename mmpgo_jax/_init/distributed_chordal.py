@@ -69,7 +69,8 @@ factorization of the block-diagonal matrix of all robots, i.e. each robot's own;
 rotations as above), and applied from inside the compiled iteration by one host callback per
 iteration for all robots (``jax.pure_callback``: the triangular solves, O(nnz of the factors)).
 ``"auto"`` takes the sparse factors on the CPU for a stage whose dense inverses (the bytes one
-iteration reads) exceed the largest CPU cache, where the dense product streams them from memory at
+iteration reads, in the precision they get: float32 or, by the rule below, float64) exceed the
+largest CPU cache, where the dense product streams them from memory at
 every iteration, and on any backend where the dense inverses would not fit in memory (instead of
 refusing). Below that size the dense product runs from the cache, faster than the callback and the
 triangular solves. Measured on a 2-core AMD EPYC (Zen 4, 32 MB L3; benchmarks/vs_authors.md), in the
@@ -964,9 +965,10 @@ def _dense_inverse_bytes(st: _Setup, rotation: bool, single: bool) -> int:
 
 def _use_sparse(st: _Setup, rotation: bool, single: bool, factorization: str) -> bool:
     """Whether a stage applies sparse factors (module docstring, "Factorization"). ``"auto"``: on
-    the CPU, where the dense inverses exceed the largest CPU cache (each iteration would then
-    stream them from memory); on other backends only where they would not fit in memory (the
-    sparse solve runs on the host, a transfer each iteration)."""
+    the CPU, where the dense inverses (float32 with ``single``) exceed the largest CPU cache (each
+    iteration would then stream them from memory); on other backends only where they would not fit
+    in memory (the sparse solve runs on the host, a transfer each iteration). Where float32 inverses
+    are refused (:func:`_gamma_inverses`), the float64 ones are sized again."""
     if factorization != "auto":
         return factorization == "sparse"
     need = _dense_inverse_bytes(st, rotation, single)
@@ -979,7 +981,10 @@ def _use_sparse(st: _Setup, rotation: bool, single: bool, factorization: str) ->
 def _preconditioner(st: _Setup, xi: float, rotation: bool, solver: Solver, factorization: str):
     """A stage's Gamma^{-1}: dense inverses, or the handle of sparse factors released afterwards."""
     single = _single(solver)
-    Ginv = st.gamma_inverse(xi, rotation, single, _use_sparse(st, rotation, single, factorization))
+    sparse = _use_sparse(st, rotation, single, factorization)
+    Ginv = st.gamma_inverse(xi, rotation, single, sparse)
+    if not sparse and single and Ginv.dtype != jnp.float32 and _use_sparse(st, rotation, False, factorization):
+        Ginv = st.gamma_inverse(xi, rotation, single, True)  # float32 was refused; float64 is over the size
     try:
         yield Ginv
     finally:
