@@ -490,6 +490,11 @@ def test_sparse_and_dense_factorizations_give_the_same_start(graph, scheme):
     assert abs(si.translation_iterations - di.translation_iterations) <= 10
     np.testing.assert_allclose(float(cost(graph, sparse)), float(cost(graph, dense)), rtol=1e-8)
     np.testing.assert_allclose(np.asarray(sparse.R), np.asarray(dense.R), atol=1e-6)
+    if scheme == "cg":  # the option through initialize(), as the CLI's and solve()'s starts call it
+        from mmpgo_jax import initialize
+
+        via = initialize(graph, "distributed-chordal", robots=ROBOTS, factorization="sparse")
+        np.testing.assert_array_equal(np.asarray(via.R), np.asarray(sparse.R))
 
 
 def test_factorization_auto_follows_the_cache_and_is_checked(graph, monkeypatch):
