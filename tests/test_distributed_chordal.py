@@ -178,7 +178,8 @@ def test_algorithm3_without_restart_converges():
     assert _rel(relaxed_rotation_cost(graph, R), relaxed_rotation_cost(graph, Rc)) <= 1e-9
 
 
-def test_arbitrary_robot_assignment_and_disconnected_graph():
+@pytest.mark.parametrize("factorization", ["dense", "sparse"])
+def test_arbitrary_robot_assignment_and_disconnected_graph(factorization):
     g1, _, _ = random_graph(20, 2, 12, seed=11)
     g2, _, _ = random_graph(12, 2, 8, seed=12)
     g = PoseGraph.from_arrays(
@@ -188,7 +189,7 @@ def test_arbitrary_robot_assignment_and_disconnected_graph():
     )  # fmt: skip
     robots = np.random.default_rng(0).permutation(np.arange(32) % 3)
     p, _ = distributed_chordal_initialization(
-        g, robots, rotation_iterations=ROT_IT, translation_iterations=TRANS_IT, tol=None
+        g, robots, rotation_iterations=ROT_IT, translation_iterations=TRANS_IT, tol=None, factorization=factorization
     )
     c = chordal_initialization(g)
     np.testing.assert_allclose(np.asarray(p.R), np.asarray(c.R), atol=1e-6)

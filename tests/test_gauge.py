@@ -84,6 +84,10 @@ def test_every_initialization_holds_fixed_poses(init):
     fixed = _fixed(g, [0, 7])
     X0 = mm.initialize(g, init, robots=3, fixed=fixed)
     _assert_fixed(X0, fixed, tol=1e-12)
+    if init == "distributed-chordal":  # the robots' sparse factors hold them too, at the same start
+        Xs = mm.initialize(g, init, robots=3, fixed=fixed, factorization="sparse")
+        _assert_fixed(Xs, fixed, tol=1e-12)
+        np.testing.assert_allclose(np.asarray(Xs.t), np.asarray(X0.t), atol=1e-6 * float(jnp.abs(X0.t).max()))
 
 
 def test_initialize_from_poses_sets_fixed_values():
