@@ -376,6 +376,30 @@ def test_solve_reports_accuracy_with_ground_truth(tmp_path):
     assert "ground-truth file" in proc.stderr and "small.g2o" in proc.stderr
 
 
+def test_solve_reports_the_distributed_chordal_start(tmp_path):
+    """--init distributed-chordal: the summary names the start's CG iterations per stage and how each
+    stage applied Gamma, the numbers the library's start reports (``stats["distributed_chordal"]``)."""
+    import mmpgo_jax as mm
+    from mmpgo_jax._init.distributed_chordal import distributed_chordal_initialization
+    from mmpgo_jax._io.g2o import write_g2o
+
+    mm.enable_float64()
+    data = mm.cube_dataset(2, num_poses=120, grid=3)
+    problem = tmp_path / "cube.g2o"
+    write_g2o(problem, data.graph, None)
+    proc = mmpgo("solve", problem, "--robots", 3, "--iterations", 5, "--no-progress", "--init", "distributed-chordal")
+    _ok(proc)
+    graph = read_g2o(problem).graph
+    _, info = distributed_chordal_initialization(graph, 3)
+    line = (f"start       distributed chordal: {info.rotation_iterations} + {info.translation_iterations} CG "
+            "iterations (rotations + translations), each robot's Gamma applied as dense inverses / dense inverses")
+    assert line in proc.stdout
+    stats = mm.solve(graph, 3, init="distributed-chordal", iterations=5).stats["distributed_chordal"]
+    assert stats == dict(rotation_iterations=info.rotation_iterations,
+                         translation_iterations=info.translation_iterations, factorizations=["dense", "dense"])
+    assert "distributed_chordal" not in mm.solve(graph, 3, iterations=5).stats
+
+
 def test_solve_certify_reports_global_optimum(tmp_path):
     """--certify on a converged centralized run prints the dual certificate's verdict."""
     import mmpgo_jax as mm

@@ -94,7 +94,8 @@ def initial_classified(graph: PoseGraph, method="chordal", *, initial: Poses | N
 
 def _initial_poses(graph, method, initial, robots, fixed, options, host=False):
     """(poses, weights or None, info or None): only the distributed robust start classifies the
-    edges."""
+    edges (info: its maps' ``variance_factor``); the distributed chordal start reports its stages
+    (info: ``distributed_chordal``, CG iterations per stage and how Gamma was applied)."""
     if isinstance(method, str) and method == "distributed-robust":
         from .robust_distributed import distributed_robust_initialization
 
@@ -107,12 +108,14 @@ def _initial_poses(graph, method, initial, robots, fixed, options, host=False):
         poses = start.poses if fixed is None else express_in_frame(start.poses, fixed)  # gauge: 1st fixed pose
         info = dict(variance_factor=start.variance_factor)
         return poses_from_arrays(graph, poses.R, poses.t, host=host), start.weights, info
-    return _start_poses(graph, method, initial, robots, fixed, options, host), None, None
+    poses, info = _start_poses(graph, method, initial, robots, fixed, options, host)
+    return poses, None, info
 
 
 def _start_poses(graph, method, initial, robots, fixed, options, host=False):
+    """(poses, info or None) of every start but the distributed robust one."""
     if isinstance(method, Poses):
-        return poses_from_arrays(graph, method.R, method.t, host=host)
+        return poses_from_arrays(graph, method.R, method.t, host=host), None
     if isinstance(method, str) and method in INITIALIZATION_METHODS:
         if options and method not in _WITH_OPTIONS:
             raise ValueError(f"options {sorted(options)} only apply to {', '.join(map(repr, _WITH_OPTIONS))}")
@@ -120,27 +123,29 @@ def _start_poses(graph, method, initial, robots, fixed, options, host=False):
             from .robust_start import gnc_chordal_initialization
 
             start = gnc_chordal_initialization(graph, fixed=fixed, **options)
-            return poses_from_arrays(graph, start.poses.R, start.poses.t)
+            return poses_from_arrays(graph, start.poses.R, start.poses.t), None
         if method == "chordal":
-            return chordal_initialization(graph, fixed)
+            return chordal_initialization(graph, fixed), None
         if method == "odometry":
-            return odometry_initialization(graph, fixed)
+            return odometry_initialization(graph, fixed), None
         if method == "vertices":
             if initial is None:
                 raise ValueError(
                     "method 'vertices' needs the file's VERTEX estimates (initial=...), but none were given"
                 )
-            return poses_from_arrays(graph, initial.R, initial.t, what="VERTEX estimates", host=host)
+            return poses_from_arrays(graph, initial.R, initial.t, what="VERTEX estimates", host=host), None
         from .distributed_chordal import distributed_chordal_initialization
 
         if robots is None:
             robots = min(10, graph.num_poses)
-        poses, _ = distributed_chordal_initialization(graph, robots, fixed=fixed, **options)
-        return poses
+        poses, info = distributed_chordal_initialization(graph, robots, fixed=fixed, **options)
+        return poses, dict(distributed_chordal=dict(rotation_iterations=int(info.rotation_iterations),
+                                                    translation_iterations=int(info.translation_iterations),
+                                                    factorizations=list(info.factorizations)))
     if isinstance(method, (str, os.PathLike)):
         p = Path(method)
         if p.suffix.lower() in (".g2o", ".npz") or p.exists():
-            return load_poses(graph, p)
+            return load_poses(graph, p), None
         raise ValueError(
             f"unknown initialization {method!r}: expected one of {', '.join(INITIALIZATION_METHODS)}, "
             "a Poses, or a path to a .g2o / .npz file"

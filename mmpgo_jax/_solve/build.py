@@ -114,7 +114,7 @@ class Prepared:
     saver: Checkpointer | None
     clock: Clock
     start_weights: np.ndarray | None = None  # (m,) held as the robust run's first stage, graph order
-    start_info: dict | None = None  # the distributed robust start's maps' variance factor
+    start_info: dict | None = None  # what the start reported (initial_classified's info)
 
 
 def prepare(graph: PoseGraph, solver: Solver, robots, layout, termination: Termination, *, start=None, initial=None,
@@ -155,8 +155,8 @@ def prepare(graph: PoseGraph, solver: Solver, robots, layout, termination: Termi
             X0 = placement.share_start(X0)
             if weights is None and loss is not None:
                 weights = from_start
-            else:
-                start_info = None  # given weights: the start's maps are not the run's classification's
+            elif start_info is not None:  # given weights: the start's maps are not the run's classification's
+                start_info = {k: v for k, v in start_info.items() if k != "variance_factor"} or None
         if checkpoint is not None:
             saver = Checkpointer(checkpoint, checkpoint_every, key, jax.device_get(X0),
                                  chunk_size=termination.chunk_size, **placement.checkpoint_options())
@@ -229,8 +229,11 @@ def finish(graph: PoseGraph, solver: Solver, run: Prepared, driven, termination:
 
 
 def _start_stats(run: Prepared) -> dict:
-    """``stats["start_variance_factor"]``: the distributed robust start's maps' variance factor (no
-    entry for other starts)."""
-    if run.start_info is None:
-        return {}
-    return {"start_variance_factor": float(run.start_info["variance_factor"])}
+    """``stats["start_variance_factor"]``: the distributed robust start's maps' variance factor;
+    ``stats["distributed_chordal"]``: the distributed chordal start's CG iterations per stage and how
+    each stage applied Gamma (no entry for other starts)."""
+    info = run.start_info or {}
+    stats = {"start_variance_factor": float(info["variance_factor"])} if "variance_factor" in info else {}
+    if "distributed_chordal" in info:
+        stats["distributed_chordal"] = info["distributed_chordal"]
+    return stats

@@ -275,6 +275,11 @@ def print_summary(result, fstar, data: LoadedInput | None = None) -> None:
         if stats["pcm_components"] > 1:
             print(f"            the graph without them has {stats['pcm_components']} connected components: each "
                   "is solved in its own frame (its first pose at the identity), not placed relative to the others")
+    stages = result.stats.get("distributed_chordal")
+    if stages is not None:
+        how = " / ".join("sparse factors" if f == "sparse" else "dense inverses" for f in stages["factorizations"])
+        print(f"start       distributed chordal: {stages['rotation_iterations']} + {stages['translation_iterations']} "
+              f"CG iterations (rotations + translations), each robot's Gamma applied as {how}")
     for row in result.stats.get("starts", ()):
         kept = "kept" if row["kept"] else "not kept"
         count = row["rejected"]
