@@ -38,7 +38,8 @@ and the contiguous partition). An anchor is eliminated from the robot's
 subproblem by zeroing its gradient and its rows/columns of Gamma (identity on the diagonal), so
 its value never moves.
 
-Solves. Gamma^alpha is factored once, on the host: all robots' Gamma are assembled densely by one
+Solves (the dense inverses; "Factorization" below for the sparse factors that large robots use).
+Gamma^alpha is factored once, on the host: all robots' Gamma are assembled densely by one
 scatter of the edge blocks (n_max slots, identity on padding slots and anchor rows/columns) and
 each is inverted from its Cholesky factor (LAPACK potrf, trtri, lauum; on this machine 5-10x faster
 than a sparse LU solved against the identity, e.g. 0.28 s vs 1.6 s for one torus3D robot,
@@ -49,7 +50,8 @@ then applies all robots' inverses by one batched matrix product, (A, N, N) x (A,
 (rotations) or n_max (translations). Measured on this 2-core CPU for A = 10, N = 2000, d = 2
 right-hand sides: batched product 29-34 ms per application, vmapped
 ``jax.scipy.linalg.cho_solve`` with the dense Cholesky factor 840 ms (XLA's CPU triangular solve
-is not blocked for few right-hand sides), so the explicit inverse is used. The product is
+is not blocked for few right-hand sides), so the explicit inverse is used (a sparse factorization
+is applied on the host instead, "Factorization"). The product is
 memory-bound: A N^2 float64 are read per iteration (320 MB for city10000 with 10 robots, which
 is also the memory held). Structure is not exploited beyond that: for d = 2 the blocks are
 complex numbers (half the bytes; measured only 1.3-1.5x faster), and for city10000 ~85% of the
