@@ -420,7 +420,7 @@ class SparseFactors:
         # symmetric (Hermitian) positive definite: a symmetric fill-reducing ordering, diagonal pivots
         lu = spla.splu(gamma, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options=dict(SymmetricMode=True))
         cls._next += 1
-        cls._live[cls._next] = lu
+        cls._live[cls._next] = (lu, np.iscomplexobj(gamma.data))
         return cls._next
 
     @classmethod
@@ -431,8 +431,8 @@ class SparseFactors:
     def solve(cls, handle, rhs):
         """Gamma^{-1} rhs for every robot; a complex factor (planar rotations) reads each slot's four
         numbers (its transposed 2 x 2 block) as two complex ones, as :func:`_apply_planar_inverse`."""
-        lu = cls._live[int(handle)]
-        if not np.iscomplexobj(lu.L.data[:1]):
+        lu, planar = cls._live[int(handle)]
+        if not planar:
             return lu.solve(np.asarray(rhs, np.float64)).astype(rhs.dtype, copy=False)
         Z = np.asarray(rhs).reshape(-1, 4)
         w = lu.solve(Z[:, :2] + 1j * Z[:, 2:])
