@@ -325,11 +325,12 @@ def _gamma_sparse(part: Partition, anchor_mask: np.ndarray, xi: float, d: int, r
 
 
 def _gamma_inverses(part: Partition, anchor_mask: np.ndarray, xi: float, d: int, rotation: bool,
-                    single: bool = False) -> np.ndarray:
+                    single: bool = False, double: bool = True) -> np.ndarray | None:
     """Every robot's Gamma^{-1}, each from its Cholesky factor: (A, N, N), or for planar rotations
     (A, 2, n_max, n_max), the real and imaginary parts of the complex n_max x n_max inverse
     (:func:`_planar`). With ``single`` in float32 when every robot's float32 factorization succeeds
-    (else float64)."""
+    (else float64; without ``double``, None where float32 was refused for its precision alone: the
+    caller has another way)."""
     planar = rotation and d == 2 and _planar(part)
     for dtype in ((np.float32,) if single else ()) + (np.float64,):
         G = _gamma_matrices(part, anchor_mask, xi, d, rotation, dtype, planar)  # assembled in dtype too
@@ -339,6 +340,8 @@ def _gamma_inverses(part: Partition, anchor_mask: np.ndarray, xi: float, d: int,
         bad = _invert_in_place(G, out, max_condition)
         if bad is None:
             return G if out is None else out
+        if dtype == np.float32 and not double and bad[1] == 0:
+            return None
     robot, info = bad
     raise ValueError(
         f"Gamma of robot {robot} is not positive definite (LAPACK info {info}); use xi > 0 or check the weights"
@@ -861,17 +864,21 @@ class _Setup(eqx.Module):
     dim: int = eqx.field(static=True)
     dtype: object = eqx.field(static=True)
 
-    def gamma_inverse(self, xi: float, rotation: bool, single: bool = False, sparse: bool = False):
+    def gamma_inverse(self, xi: float, rotation: bool, single: bool = False, sparse: bool = False,
+                      double: bool = True):
         """Every robot's Gamma^{-1} in the graph's precision, or with ``single`` in float32 where its
-        factorization succeeds (a preconditioner needs no more: half the bytes each iteration reads).
-        ``sparse``: the robots' sparse factors instead (:class:`SparseFactors`), returned as their
-        handle (an int), to be released when the stage is done."""
+        factorization succeeds (a preconditioner needs no more: half the bytes each iteration reads;
+        where it does not, None without ``double``). ``sparse``: the robots' sparse factors instead
+        (:class:`SparseFactors`), returned as their handle (an int), to be released when the stage
+        is done."""
         if sparse:
             planar = rotation and self.dim == 2 and _planar(self.part)
             return SparseFactors.register(_gamma_sparse(self.part, np.asarray(self.anchor), float(xi), self.dim,
                                                         rotation, planar))
         _check_memory(self.part, self.dim if rotation else 1, np.dtype(self.dtype).itemsize)
-        G = _gamma_inverses(self.part, np.asarray(self.anchor), float(xi), self.dim, rotation, single)
+        G = _gamma_inverses(self.part, np.asarray(self.anchor), float(xi), self.dim, rotation, single, double)
+        if G is None:
+            return None
         return jnp.asarray(G, np.float32 if G.dtype == np.float32 else self.dtype)
 
 
@@ -984,9 +991,11 @@ def _preconditioner(st: _Setup, xi: float, rotation: bool, solver: Solver, facto
     """A stage's Gamma^{-1}: dense inverses, or the handle of sparse factors released afterwards."""
     single = _single(solver)
     sparse = _use_sparse(st, rotation, single, factorization)
-    Ginv = st.gamma_inverse(xi, rotation, single, sparse)
-    if not sparse and single and Ginv.dtype != jnp.float32 and _use_sparse(st, rotation, False, factorization):
-        Ginv = st.gamma_inverse(xi, rotation, single, True)  # float32 was refused; float64 is over the size
+    # where float32 is refused and the float64 inverses are over the size, no float64 ones are made
+    double = sparse or not single or not _use_sparse(st, rotation, False, factorization)
+    Ginv = st.gamma_inverse(xi, rotation, single, sparse, double)
+    if Ginv is None:
+        Ginv = st.gamma_inverse(xi, rotation, single, True)
     try:
         yield Ginv
     finally:
