@@ -138,6 +138,7 @@ if TYPE_CHECKING:  # the same names, eagerly, for type checkers and IDEs
     from ._mm.subproblem import SubproblemConfig
     from ._robust.pcm import PCMResult, pcm_filter
     from ._robust.readmit import Readmission, readmit_loop_closures
+    from ._solve.build import NamedStart
     from ._solve.devices import use_cpu_cores
     from ._solve.prefilter import PCM
     from ._solve.result import SolveResult, output_frame
@@ -206,6 +207,7 @@ _LAZY = {  # public name -> the private module that defines it (imported on firs
     "robot_team_dataset": "._experiments.synthetic",
     "RobotTeamDataset": "._experiments.synthetic",
     "PCM": "._solve.prefilter",
+    "NamedStart": "._solve.build",
     "grid_2d_dataset": "._experiments.synthetic",
     "chordal_initialization": "._init.chordal",
     "initialize": "._init.start",
@@ -308,6 +310,7 @@ __all__ = [
     "MMProblem",
     "MMState",
     "Monitor",
+    "NamedStart",
     "NoiseLevel",
     "NonFiniteError",
     "OneDevice",

@@ -97,6 +97,7 @@ from .._core.noise import noise_level
 from .._core.pose_graph import HostPoses, PoseGraph, component_labels, host_graph
 from .._mm.robust import TLS, chi2_scale, gnc_initial_mu, gnc_weight
 from .chordal import chordal_initialization
+from .closure_check import DEFAULT_PATIENCE, ClosureCheck, check_inter_robot_closures
 from .robust_start import gnc_chordal_initialization
 
 __all__ = ["FRAME_METHODS", "DistributedRobustStart", "PairAverages", "chain_variances",
@@ -139,7 +140,9 @@ class DistributedRobustStart:
     the test's variance model (NaN on the other edges and on excluded ones), ``frame_scale`` the test's
     c (a hypothesis is accepted within c^2 unless the frame search found it cheaper to reject);
     ``variance_factor``: the local maps' a-posteriori variance factor (:func:`variance_factor`; 1 with
-    ``map_sigma`` given as numbers)."""
+    ``map_sigma`` given as numbers); ``team_check``: what the check of the accepted closures at the
+    team's chordal map found (:class:`~mmpgo_jax._init.closure_check.ClosureCheck`), None when not
+    asked for."""
 
     poses: HostPoses
     local: HostPoses
@@ -157,6 +160,7 @@ class DistributedRobustStart:
     hypothesis_cost: np.ndarray | None = None
     frame_scale: float = float("nan")
     variance_factor: float = 1.0
+    team_check: ClosureCheck | None = None
 
     @property
     def accepted(self) -> np.ndarray:
@@ -544,6 +548,8 @@ def distributed_robust_initialization(
     trust_odometry: bool = True,
     seed: int = 0,
     excluded=None,
+    team_check: bool = False,
+    patience: int = DEFAULT_PATIENCE,
 ) -> DistributedRobustStart:
     """The distributed robust start (module docstring). ``robots``: a count (contiguous blocks), an
     (n,) robot-of-pose array or a Partition. ``scale``: the local GNC's c (default
@@ -557,7 +563,12 @@ def distributed_robust_initialization(
     sigma_t in map units) for every pose ((0, 0): the closure's information alone, as dpgo), as given.
     ``seed``: of the random probes and spanning trees (the result is a function of it). ``excluded``:
     (m,) bool, edges left out of every step (weight 0; a robust solve that overruled the start's
-    acceptance of them, :func:`~mmpgo_jax._solve.solve.solve`)."""
+    acceptance of them, :func:`~mmpgo_jax._solve.solve.solve`). ``team_check``: then check the
+    accepted inter-robot closures at the team's distributed chordal map, dropping them one by one by
+    residual while the TLS objective there falls (``patience`` rounds without a lower one end it;
+    :func:`~mmpgo_jax._init.closure_check.check_inter_robot_closures`); the start is then that
+    chordal map of the edges kept, not the rigid maps in their frames (for long noisy chains, where
+    the frame test passes wrong closures and rigid maps are far from the team's optimum)."""
     if frames not in FRAME_METHODS:
         raise ValueError(f"frames must be one of {', '.join(FRAME_METHODS)}, got {frames!r}")
     if int(min_inliers) < 1:
@@ -671,11 +682,18 @@ def distributed_robust_initialization(
     if keep.any():
         single = np.bincount(pair, weights=keep, minlength=P)[pair] == 1
         unverified[e[keep]] = single[keep] & _bridges(K, a[keep], b[keep]) & ~trusted[keep]
+    checked = None
+    if team_check and placed.all():
+        c_team = float(chi2_scale(d) if scale is None else scale)
+        checked = check_inter_robot_closures(g, rop, w > 0.5, c_team, patience=patience,
+                                             trusted=np.abs(g.i - g.j) == 1 if trust_odometry else np.zeros(m, bool))
+        w = checked.accepted.astype(np.float64)
+        R, t = checked.poses.R, checked.poses.t
     return DistributedRobustStart(
         poses=HostPoses(R, t), local=HostPoses(TR, Tt), map_of_pose=map_of_pose, robot_of_map=robot_of_map,
         frames=HostPoses(FR, Ft), placed=placed, weights=w, inter=inter, unverified=unverified, pairs=averages,
         unplaced_robots=np.unique(robot_of_map[~placed]), local_stages=local.stages, frame_stages=frame_stages,
-        hypothesis_cost=cost, frame_scale=c_frame, variance_factor=float(factor))
+        hypothesis_cost=cost, frame_scale=c_frame, variance_factor=float(factor), team_check=checked)
 
 
 def _solve_frames(fg: PoseGraph, keep, K, d):

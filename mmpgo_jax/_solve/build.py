@@ -40,8 +40,11 @@ ROBUST_STARTS = ("gnc-chordal", "distributed-robust")
 
 @dataclass(frozen=True)
 class NamedStart:
-    """A start by name with options of its own, added to those :func:`start_for` gives the name (the
-    distributed robust start without the closures a run overruled: ``options=dict(excluded=...)``)."""
+    """A start by name with options of its own, added to those :func:`start_for` gives the name: the
+    user's (``NamedStart("distributed-robust", {"team_check": True})``, the options of
+    :func:`~mmpgo_jax._init.robust_distributed.distributed_robust_initialization`), or the search's
+    (the distributed robust start without the closures a run overruled: ``options=dict(excluded=...)``,
+    added to the user's)."""
 
     name: str
     options: dict = field(default_factory=dict)

@@ -97,7 +97,10 @@ def solve(
 
     ``robots``: a count (contiguous blocks, as in the paper), an (n,) robot-of-pose array, or a
     prepared :class:`Partition`. ``start``: see :func:`mmpgo_jax.initialize` (default ``"chordal"``,
-    the paper's start; for a robust loss :data:`ROBUST_STARTS`, below); ``initial`` holds the file's
+    the paper's start; for a robust loss :data:`ROBUST_STARTS`, below), or a :class:`~mmpgo_jax.NamedStart`:
+    a start by name with options of its own (``NamedStart("distributed-robust", {"team_check": True})``:
+    the distributed robust start's accepted closures checked at the team's chordal map,
+    :func:`~mmpgo_jax._init.robust_distributed.distributed_robust_initialization`); ``initial`` holds the file's
     VERTEX estimates for ``init="vertices"``. A sequence of starts runs the whole solve from each and
     returns the run of lowest final objective (f, or for a robust loss 2 F_rho recomputed at each
     run's poses); ``stats["starts"]`` lists each start's f, iterations, rejected edges and seconds
@@ -407,8 +410,9 @@ def _best_of(starts: tuple, run_from: Callable, graph: PoseGraph, monitor: Monit
             t = time.perf_counter()
             others = [run.inliers for j, run in enumerate(runs) if j != k]
             row_finish = _finish_for(finish, row["start"])
+            options = starts[k].options if isinstance(starts[k], NamedStart) else {}
             runs[k], row["f"], row["revisits"], first = _revisited(
-                firsts[k], runs[k], row["f"], others, label, run_from, graph, monitor, row_finish)
+                firsts[k], runs[k], row["f"], others, label, run_from, graph, monitor, row_finish, options)
             exchanges = _ExchangeMemory()  # each move tried once in this search
             while True:  # a closure left out may let a rejected one back in: again until none is left out
                 runs[k], row["f"], rounds = _readmitted_to_start(first, runs[k], row["f"], label, run_from, graph,
@@ -499,7 +503,7 @@ def _overruled(start_weights, run: SolveResult, others=()) -> np.ndarray:
 
 
 def _revisited(first: SolveResult, run: SolveResult, f: float, others: list, label: str, run_from: Callable,
-               graph: PoseGraph, monitor: Monitor, finish: Callable | None) -> tuple:
+               graph: PoseGraph, monitor: Monitor, finish: Callable | None, options=None) -> tuple:
     """A robust run that rejected edges its distributed robust start had accepted says the start was
     wrong: an outlier its frame search accepted holds the maps bent while it is held, and the run
     then rejects it *and* correct closures near it. So the start is made again without the overruled
@@ -515,7 +519,7 @@ def _revisited(first: SolveResult, run: SolveResult, f: float, others: list, lab
     Measured on 10 x 500-pose teams (benchmarks/robust_teams.md) and files
     (benchmarks/robust_distributed_files.md). ``first``: the first run from the start (its
     ``start_weights``: the start's classification). Returns (run, f, rounds, the first run from the
-    kept run's start)."""
+    kept run's start). ``options``: the start's own (a :class:`NamedStart`'s), kept by the starts made again."""
     excluded = np.zeros(graph.num_edges, bool)
     rounds = []
     while True:
@@ -525,7 +529,7 @@ def _revisited(first: SolveResult, run: SolveResult, f: float, others: list, lab
         residual = host_edge_costs(graph, run.poses)
         edge = int(np.flatnonzero(over)[np.argmax(residual[over])])
         excluded[edge] = True
-        begin = NamedStart("distributed-robust", dict(excluded=excluded.copy()))
+        begin = NamedStart("distributed-robust", {**(options or {}), "excluded": excluded.copy()})
         again_label = f"{label}, without {int(excluded.sum())} overruled"
         first_again, again, f_again, iterations, _, _ = _run_finished(begin, again_label, run_from, graph, monitor,
                                                                       finish)
