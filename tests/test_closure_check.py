@@ -95,3 +95,33 @@ def test_solve_takes_the_check_as_a_named_start_s_option(monkeypatch):
     assert calls and set(calls) == {4}
     assert len(calls) == 1 + sum(len(row["revisits"]) for row in res.stats["starts"])
     assert not (np.asarray(res.inliers, bool) & c.outlier).any()
+
+
+def test_cli_team_check(tmp_path, capsys, monkeypatch):
+    """``mmpgo solve FILE --loss tls --distributed --team-check`` runs the check (and the default's
+    two starts take it on the distributed one); without a robust loss, or with a start other than
+    the distributed robust one, it is a one-line error."""
+    import mmpgo_jax._init.robust_distributed as robust_distributed
+    from mmpgo_jax.cli import main
+
+    calls = []
+
+    def counted(*args, **kwargs):
+        calls.append(1)
+        return check_inter_robot_closures(*args, **kwargs)
+
+    monkeypatch.setattr(robust_distributed, "check_inter_robot_closures", counted)
+    ds, c, _ = _team_with_wrong_closures()
+    path = tmp_path / "team.g2o"
+    mm.write_g2o(path, c.graph, ds.ground_truth)
+    common = [str(path), "--robots", "4", "-n", "20", "--no-progress"]
+    assert main(["solve", *common, "--loss", "tls", "--distributed", "--team-check"]) == 0
+    assert calls
+    calls.clear()
+    assert main(["solve", *common, "--loss", "tls", "--team-check"]) == 0
+    assert calls
+    capsys.readouterr()
+    assert main(["solve", *common, "--team-check"]) != 0
+    assert "--team-check" in capsys.readouterr().err
+    assert main(["solve", *common, "--loss", "tls", "--init", "gnc-chordal", "--team-check"]) != 0
+    assert "--init distributed-robust" in capsys.readouterr().err

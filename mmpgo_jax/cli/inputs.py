@@ -114,6 +114,25 @@ class LoadedInput:
         return self.poses_file(init, "--init file")
 
 
+def _team_checked(init, robust: dict):
+    """``--team-check``: the distributed robust start among the starts, with its check
+    (``NamedStart("distributed-robust", {"team_check": True})``); by default (no --init) with a robust
+    loss the default's two starts, or the distributed robust start alone with --distributed."""
+    from .._solve.build import ROBUST_STARTS, NamedStart
+
+    if "loss" not in robust:
+        raise CLIError("--team-check checks the distributed robust start of a robust --loss: give one "
+                       "(e.g. --loss tls)")
+    if init is None:
+        init = "distributed-robust" if robust.get("distributed") else ROBUST_STARTS
+    names = (init,) if isinstance(init, str) else init
+    if not isinstance(names, tuple) or "distributed-robust" not in names:
+        raise CLIError("--team-check applies to the distributed robust start: give --init distributed-robust "
+                       "(or --distributed, or no --init)")
+    checked = tuple(NamedStart(n, {"team_check": True}) if n == "distributed-robust" else n for n in names)
+    return checked[0] if len(checked) == 1 else checked
+
+
 def _largest_component(g2o, comp: np.ndarray):
     """A G2OFile's graph, information and VERTEX estimates restricted to the poses ``comp``."""
     from .._core.pose_graph import PoseGraph, Poses
@@ -232,7 +251,10 @@ def solve_options(args, data: LoadedInput) -> dict:
         if "loss" not in robust:
             raise CLIError("--readmit re-admits loop closures a robust --loss rejected: give one (e.g. --loss tls)")
         robust["readmit"] = True
-    return dict(method=args.method, iterations=args.iterations, init=data.start(args.init, SOLVE_STARTS),
+    init = data.start(args.init, SOLVE_STARTS)
+    if getattr(args, "team_check", False):
+        init = _team_checked(init, robust)
+    return dict(method=args.method, iterations=args.iterations, init=init,
                 initial=data.initial, chunk_size=args.chunk, grad_tol=args.grad_tol,
                 stop_when_stalled=not args.all_iterations, fixed=data.fixed, frame=data.frame, **shortcuts,
                 **robust, **checkpoint_options(args))
