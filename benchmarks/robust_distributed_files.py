@@ -38,6 +38,9 @@ loop-closure information) so that ``rate`` percent of the inter-robot closures a
   (the report names the start kept); since 2026-12-06 the distributed start's runs are finished from
   the distributed chordal start of their kept edges, as in ``distributed``, and that row ends with a
   run from its kept edges' optimum (kept when the TLS objective is lower);
+* ``distributed-checked``: ``distributed`` with the start's accepted inter-robot closures checked at
+  the team's chordal map (``start=NamedStart("distributed-robust", {"team_check": True})``,
+  ``mmpgo solve --distributed --team-check``);
 * ``gtsam``: a reference outside this package: GTSAM's ``GncOptimizer`` (TLS, Levenberg-Marquardt
   stages) from the centralized chordal start, odometry known inliers, the same scale c
   (:func:`~mmpgo_jax._experiments.gtsam_lm.gtsam_gnc`; needs ``pip install gtsam``); its inliers are
@@ -82,7 +85,9 @@ PIPELINES = {"distributed": dict(distributed=True), "distributed-gnc": dict(dist
                                                                               stage_tolerance=0.0)),
              "pcm-distributed": dict(distributed=True, prefilter="pcm"),
              "pcmties-distributed": dict(distributed=True, prefilter=mm.PCM(ties="keep")),
-             "central": dict(start="gnc-chordal"), "default": {}, "gtsam": None}
+             "central": dict(start="gnc-chordal"), "default": {}, "gtsam": None,
+             "distributed-checked": dict(distributed=True,
+                                         start=mm.NamedStart("distributed-robust", {"team_check": True}))}
 
 
 #: Generated graphs ``--files`` accepts besides the benchmark files (module docstring).
