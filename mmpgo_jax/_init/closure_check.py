@@ -23,11 +23,12 @@ either way, and a wrong closure's removal raised it once while 83 were left; hen
 rather than the first rise. A correct closure can be dropped while wrong ones still bend the map
 (on a 4-robot team with three wrong closures the second round's largest residual was a correct
 one, 400 c^2 there and 2.7 c^2 at the final map, where putting it back raised the chordal map's
-objective by about c^2): the check only prepares the start, and the robust run re-weighs every
-loop closure once its held stage ends, so such a closure comes back where it fits.
+objective by about c^2). The check only prepares the start: the pipelines' search re-admits rejected
+closures one by one (:func:`~mmpgo_jax._solve.solve.solve`); a plain TLS run from the start need not
+take such a closure back (that one stayed at 2.7 c^2, beyond c).
 
-Trusted edges (consecutive poses) are never candidates. A closure dropped here may come back in the
-robust run: TLS re-weighs every loop closure once the held stage ends.
+Trusted edges (consecutive poses) are never candidates, nor a closure whose removal would split the
+team's graph.
 """
 
 from __future__ import annotations
@@ -98,9 +99,11 @@ def check_inter_robot_closures(graph: PoseGraph, robot_of_pose: np.ndarray, acce
     return ClosureCheck(accepted=acc, poses=X, removed=np.asarray(removed[:count], np.int64),
                         objective=np.asarray(objective))
 
+
 def _tls_objective(s: np.ndarray, trusted: np.ndarray, c2: float) -> float:
     """The TLS objective of every edge: trusted edges at their cost s, the others at min(s, c^2)."""
     return float(np.sum(np.where(trusted, s, np.minimum(s, c2))))
+
 
 def _next_map(acc, s, candidate, kept_in, removed, chordal_map):
     """The chordal map after dropping the open candidate of largest residual ``s`` (``acc``,

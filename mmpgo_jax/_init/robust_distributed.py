@@ -568,7 +568,8 @@ def distributed_robust_initialization(
     residual while the TLS objective there falls (``patience`` rounds without a lower one end it;
     :func:`~mmpgo_jax._init.closure_check.check_inter_robot_closures`); the start is then that
     chordal map of the edges kept, not the rigid maps in their frames (for long noisy chains, where
-    the frame test passes wrong closures and rigid maps are far from the team's optimum)."""
+    the frame test passes wrong closures and rigid maps are far from the team's optimum); only when
+    every map is placed (otherwise the accepted edges do not join the team, and the start warns)."""
     if frames not in FRAME_METHODS:
         raise ValueError(f"frames must be one of {', '.join(FRAME_METHODS)}, got {frames!r}")
     if int(min_inliers) < 1:
