@@ -254,17 +254,18 @@ def test_a_run_that_overrules_its_distributed_start_goes_on_from_that_start_with
 def test_rejected_inter_robot_closures_are_admitted_by_residual_while_the_objective_falls(monkeypatch):
     """The converse of the revisits: candidates are the inter-robot closures the run rejected (not
     the consecutive-pose edges between robots, which the start trusts), whether the start rejected
-    them too or accepted them. One per round, the one of smallest residual at the
-    current run's result, a run from that result holding its classification with the closure
-    accepted (and made to try it: ``keeps``), a round kept when its objective is lower, the search
-    ending at the first round that is not."""
+    them too or accepted them. In batches of the smallest residuals at the current run's result, a
+    run from that result holding its classification with the batch accepted (and made to try it:
+    ``keeps``), a round kept when its run keeps every one and its objective is lower by more than the
+    margin per closure; the batch doubles after a kept round and halves after one not kept, the
+    search ending at a round of one closure that is not kept."""
     from types import SimpleNamespace
 
     import mmpgo_jax._solve.solve as solve_module
 
     m = 12
     a, b, c = 3, 5, 7
-    outcome = {b: 9.0, c: 8.5, a: 9.5}  # f after admitting b (kept), then c (kept), then a (not kept)
+    gain = {b: -1.0, c: -0.5, a: 1.0}  # how admitting each changes f: b and c lower it, a (wrong) raises it
     tried, made = [], {}
     residual = np.full(m, 50.0)
     residual[[b, c, a]] = [1.0, 2.0, 3.0]  # at every run's result: b, then c, then a
@@ -287,10 +288,11 @@ def test_rejected_inter_robot_closures_are_admitted_by_residual_while_the_object
         here = made[begin]  # the run the trial goes on from
         expected = here.inliers.astype(float)
         expected[keeps] = 1.0
-        np.testing.assert_array_equal(weights, expected)  # its classification, the closure accepted
+        np.testing.assert_array_equal(weights, expected)  # its classification, the batch accepted
         tried.append(keeps)
-        again = run([e for e in (a, b, c) if e not in tried], outcome[keeps])
-        return again, again, outcome[keeps], 7, None, None
+        f = here.f + sum(gain[e] for e in keeps)
+        again = run([e for e in np.flatnonzero(~here.inliers) if e not in keeps], f)
+        return again, again, f, 7, None, None
 
     monkeypatch.setattr(solve_module, "_run_finished", run_finished)
     monkeypatch.setattr(solve_module, "host_edge_costs", lambda graph, poses: residual.copy())
@@ -300,32 +302,40 @@ def test_rejected_inter_robot_closures_are_admitted_by_residual_while_the_object
         return solve_module._readmitted_to_start(first, run(rejected, 10.0), 10.0, "start", None, graph, None, None)
 
     # 11 rejected by the start but accepted by the run, 0 (consecutive poses) and 1 (one robot's own)
-    # rejected by both but no inter-robot closures, cheapest of all: not candidates; b, c, a by residual
+    # rejected by both but no inter-robot closures, cheapest of all: not candidates. b alone (kept),
+    # then b's double, c and a (a raises f: not kept), then c alone (kept), then a alone (not kept: the end)
     residual[[0, 1]] = 0.1
     tried.clear()
     out, f, rounds = readmit(run([], 0.0, doubted=[b, 11, c, a, 0, 1]), [a, b, c, 0, 1])
-    assert tried == [b, c, a]
-    assert [r["admitted"] for r in rounds] == [b, c, a] and [r["kept"] for r in rounds] == [True, True, False]
-    assert [r["f_before"] for r in rounds] == [10.0, 9.0, 8.5]
+    assert tried == [[b], [c, a], [c], [a]]
+    assert [r["admitted"] for r in rounds] == tried and [r["kept"] for r in rounds] == [True, False, True, False]
+    assert [r["f_before"] for r in rounds] == [10.0, 9.0, 9.0, 8.5]
     assert f == out.f == 8.5 and all(r["iterations"] == 7 for r in rounds)
+    # a batch that lowers f is kept whole, and the next one is twice its size
+    gain[a] = -0.2
+    tried.clear()
+    out, f, rounds = readmit(run([], 0.0, doubted=[b, c, a]), [a, b, c])
+    assert tried == [[b], [c, a]] and all(r["kept"] for r in rounds) and f == out.f == pytest.approx(8.3)
+    gain[a] = 1.0
     # the first round not kept ends the search (a first by residual, its f above the run's); a, which
     # the start accepted and the run rejected (overruled), is a candidate too
     tried.clear()
-    residual[a], outcome[a] = 0.5, 10.5
+    residual[a], gain[a] = 0.5, 0.5
     out, f, rounds = readmit(run([], 0.0, doubted=[b, c]), [a, b, c])
-    assert tried == [a] and [(r["admitted"], r["kept"]) for r in rounds] == [(a, False)] and f == out.f == 10.0
-    residual[a], outcome[a] = 3.0, 9.5
+    assert tried == [[a]] and [(r["admitted"], r["kept"]) for r in rounds] == [([a], False)] and f == out.f == 10.0
+    residual[a], gain[a] = 3.0, 1.0
     # maps whose residuals are 0.6 of what their information claims (variance factor 0.6): a round is
-    # kept only when f falls by more than (1 - 0.6) c^2 = 0.8 (c = sqrt(2)): 10 -> 9.0 (b) is kept,
-    # 9.0 -> 8.5 (c) is not
+    # kept only when f falls by more than (1 - 0.6) c^2 = 0.8 (c = sqrt(2)) per closure: 10 -> 9.0 (b)
+    # is kept, 9.0 -> 8.5 (c) is not
     tried.clear()
     first = run([], 0.0, doubted=[b, c])
     first.stats["start_variance_factor"] = 0.6
     base = run([a, b, c], 10.0)
     base.loss = SimpleNamespace(scale=np.sqrt(2.0))
     out, f, rounds = solve_module._readmitted_to_start(first, base, 10.0, "start", None, graph, None, None)
-    assert [(r["admitted"], r["f_before"], r["kept"]) for r in rounds] == [(b, 10.0, True), (c, 9.0, False)]
-    assert f == out.f == 9.0 and tried == [b, c]
+    assert [(r["admitted"], r["f_before"], r["kept"]) for r in rounds] == [([b], 10.0, True), ([c, a], 9.0, False),
+                                                                            ([c], 9.0, False)]
+    assert f == out.f == 9.0 and tried == [[b], [c, a], [c]]
     # a trial whose run rejects the admitted closure again is not finished from its kept edges; the
     # weights go to the trial's first run only (its finish starts from the kept edges)
     from mmpgo_jax._mm.driver import RESULTS
@@ -360,7 +370,7 @@ def test_rejected_inter_robot_closures_are_admitted_by_residual_while_the_object
 
     monkeypatch.setattr(solve_module, "_run_finished", rejected_again)
     out, f, rounds = readmit(run([], 0.0, doubted=[b, c]), [a, b, c])
-    assert tried == [b] and [(r["admitted"], r["f"], r["kept"]) for r in rounds] == [(b, 9.0, False)] and f == 10.0
+    assert tried == [[b]] and [(r["admitted"], r["f"], r["kept"]) for r in rounds] == [([b], 9.0, False)] and f == 10.0
     monkeypatch.setattr(solve_module, "_run_finished", run_finished)
     # the run rejected no inter-robot closure (it took back every one the start doubted): no round
     tried.clear()
@@ -576,6 +586,11 @@ def test_accepted_inter_robot_closures_are_left_out_by_predicted_change_while_th
     rounds = [dict(removed=e, kept=True) for e in (a, b, c)]
     text = _trials_text(SimpleNamespace(inliers=np.ones(m, bool)), rounds, None, "removed", "it had accepted left out")
     assert text == "; 3 closures it had accepted left out in turn from its result, 3 of those runs kept (lower f)"
+    # re-admissions in batches: the closures tried, those kept and by how many runs
+    rounds = [dict(admitted=[a], kept=True), dict(admitted=[b, c], kept=False), dict(admitted=[b], kept=True),
+              dict(admitted=[c], kept=False)]
+    text = _trials_text(SimpleNamespace(inliers=np.ones(m, bool)), rounds, None, "admitted", "it had rejected tried")
+    assert text == "; 3 closures it had rejected tried in turn from its result, 2 of those kept, by 2 of 4 runs (lower f)"
 
 
 def test_closures_the_run_overruled_are_admitted_alone_or_in_exchange_by_predicted_change(monkeypatch):
@@ -761,7 +776,7 @@ def test_distributed_tls_on_mit_admits_the_correct_closure_its_start_rejected(be
     res = mg.solve(graph, 10, loss="tls", distributed=True)
     (row,) = res.stats["starts"]
     first = row["readmissions"][0]
-    assert first["admitted"] == e and first["kept"] and first["f"] < 62.0
+    assert first["admitted"] == [e] and first["kept"] and first["f"] < 62.0
     assert res.inliers.all() and res.f == pytest.approx(61.1541, rel=1e-4)
     from mmpgo_jax.cli import main
 
@@ -794,12 +809,13 @@ def test_distributed_tls_admits_a_correct_closure_its_frame_test_rejected_by_far
     res = mg.solve(c.graph, rop, loss="tls", distributed=True)
     (row,) = res.stats["starts"]
     first = row["readmissions"][0]
-    assert first["kept"] and not c.outlier[first["admitted"]]
+    assert first["kept"] and not c.outlier[first["admitted"]].any()
     np.testing.assert_array_equal(res.inliers, ~c.outlier)
     from mmpgo_jax._init.robust_distributed import distributed_robust_initialization
 
     start = distributed_robust_initialization(c.graph, rop)
-    assert start.weights[first["admitted"]] == 0.0 and start.hypothesis_cost[first["admitted"]] > 10 * start.frame_scale**2
+    (admitted,) = first["admitted"]
+    assert start.weights[admitted] == 0.0 and start.hypothesis_cost[admitted] > 10 * start.frame_scale**2
 
 
 @pytest.mark.slow  # two 5000-pose robust solves with trials, about a minute
@@ -813,7 +829,7 @@ def test_the_default_readmits_a_correct_closure_both_starts_runs_rejected():
     gnc, dist = res.stats["starts"]
     assert gnc["start"] == "gnc-chordal" and dist["start"] == "distributed-robust" and dist["kept"]
     kept = [r for r in dist["readmissions"] if r["kept"]]
-    assert kept and not any(c.outlier[r["admitted"]] for r in kept)
+    assert kept and not any(c.outlier[r["admitted"]].any() for r in kept)
     assert dist["f"] < gnc["f"]
     np.testing.assert_array_equal(res.inliers, ~c.outlier)
 

@@ -87,8 +87,8 @@ class Prefiltered:
         if "starts" in stats:  # the edges of the revisits, re-admissions, removals and exchanges: original order
             original = np.flatnonzero(keep)
 
-            def renumbered(rounds, *edges):
-                return [dict(r, **{e: int(original[r[e]]) for e in edges}) for r in rounds]
+            def renumbered(rounds, *edges):  # an edge, or a list of them (a batch of re-admissions)
+                return [dict(r, **{e: original[r[e]].tolist() for e in edges}) for r in rounds]
 
             def moves_renumbered(rounds):  # an exchange's (admitted, left out); None (admitted alone) stays None
                 return [dict(r, moves=[(int(original[a]), None if out is None else int(original[out]))

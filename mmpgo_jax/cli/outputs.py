@@ -167,14 +167,18 @@ def _revisits_text(rounds) -> str:
 
 def _trials_text(result, rounds, data, edge: str, what: str) -> str:
     """How many inter-robot closures were tried in turn by a run from the result (``rounds``:
-    ``stats["starts"][k]["readmissions"]``, ``edge`` "admitted", or ``["removals"]``, "removed"), and
-    the lines of those kept; ``what``: the closures tried, in words."""
+    ``stats["starts"][k]["readmissions"]``, ``edge`` "admitted": a list per round, or ``["removals"]``,
+    "removed"), and the lines of those kept; ``what``: the closures tried, in words."""
     if not rounds:
         return ""
     kept = np.zeros(len(result.inliers), bool)
-    kept[[r[edge] for r in rounds if r["kept"]]] = True
-    return (f"; {len(rounds)} closure{'' if len(rounds) == 1 else 's'} {what} in turn from its "
-            f"result, {int(kept.sum())} of those runs kept (lower f){_rejected_lines(result, data, kept, lead=': ')}")
+    kept[[e for r in rounds if r["kept"] for e in np.atleast_1d(r[edge])]] = True
+    tried = len({int(e) for r in rounds for e in np.atleast_1d(r[edge])})
+    count = int(kept.sum())
+    tail = (f"{count} of those runs kept" if all(np.size(r[edge]) == 1 for r in rounds) else  # batches
+            f"{count} of those kept, by {sum(r['kept'] for r in rounds)} of {len(rounds)} runs")
+    return (f"; {tried} closure{'' if tried == 1 else 's'} {what} in turn from its result, {tail} (lower f)"
+            f"{_rejected_lines(result, data, kept, lead=': ')}")
 
 
 def _exchanges_text(result, rounds, data) -> str:
