@@ -24,7 +24,7 @@ rather than the first rise. A correct closure can be dropped while wrong ones st
 (on a 4-robot team with three wrong closures the second round's largest residual was a correct
 one, 400 c^2 there and 2.7 c^2 at the final map, where putting it back raised the chordal map's
 objective by about c^2). The check only prepares the start: the pipelines' search re-admits rejected
-closures one by one (:func:`~mmpgo_jax._solve.solve.solve`); a plain TLS run from the start need not
+closures, cheapest first, in batches (:func:`~mmpgo_jax._solve.solve.solve`); a plain TLS run from the start need not
 take such a closure back (that one stayed at 2.7 c^2, beyond c).
 
 Trusted edges (consecutive poses) are never candidates, nor a closure whose removal would split the
