@@ -35,13 +35,15 @@ def test_planted_wrong_closures_accepted_by_hand_are_dropped():
     assert not (found.accepted & c.outlier).any()
     assert int((~found.accepted & ~c.outlier).sum()) <= 1
     assert set(np.flatnonzero(~found.accepted).tolist()) == set(found.removed.tolist())
-    assert found.objective.min() == found.objective[len(found.removed)]
+    kept_round = int(found.rounds[-1]) if found.removed.size else 0
+    assert found.objective.min() == found.objective[kept_round]
+    assert np.all(np.diff(found.rounds) >= 0) and np.all(np.bincount(found.rounds)[1:] <= 2)
     X, _ = distributed_chordal_initialization(c.graph.select_edges(found.accepted), rop)
     np.testing.assert_allclose(found.poses.t, np.asarray(X.t), atol=1e-9)
     s = host_edge_costs(c.graph, found.poses)
     odometry = np.abs(np.asarray(c.graph.i) - np.asarray(c.graph.j)) == 1
     expected = np.sum(np.where(odometry, s, np.minimum(s, scale**2)))
-    assert found.objective[len(found.removed)] == pytest.approx(expected, rel=1e-12)
+    assert found.objective[kept_round] == pytest.approx(expected, rel=1e-12)
 
 
 def test_without_wrong_closures_nothing_is_dropped():
@@ -98,9 +100,10 @@ def test_solve_takes_the_check_as_a_named_start_s_option(monkeypatch):
 
 
 def test_cli_team_check(tmp_path, capsys, monkeypatch):
-    """``mmpgo solve FILE --loss tls --distributed --team-check`` runs the check (and the default's
-    two starts take it on the distributed one); without a robust loss, or with a start other than
-    the distributed robust one, it is a one-line error."""
+    """``mmpgo solve FILE --loss tls --distributed --team-check`` runs the check, as ``--distributed``
+    does by default and ``--no-team-check`` does not (and the default's two starts take it on the
+    distributed one); without a robust loss, or with a start other than the distributed robust one,
+    it is a one-line error."""
     import mmpgo_jax._init.robust_distributed as robust_distributed
     from mmpgo_jax.cli import main
 
@@ -118,6 +121,11 @@ def test_cli_team_check(tmp_path, capsys, monkeypatch):
     assert main(["solve", *common, "--loss", "tls", "--distributed", "--team-check"]) == 0
     assert calls
     calls.clear()
+    assert main(["solve", *common, "--loss", "tls", "--distributed"]) == 0  # on by default with --distributed
+    assert calls
+    calls.clear()
+    assert main(["solve", *common, "--loss", "tls", "--distributed", "--no-team-check"]) == 0
+    assert not calls
     assert main(["solve", *common, "--loss", "tls", "--team-check"]) == 0
     assert calls
     capsys.readouterr()
@@ -125,3 +133,30 @@ def test_cli_team_check(tmp_path, capsys, monkeypatch):
     assert "--team-check" in capsys.readouterr().err
     assert main(["solve", *common, "--loss", "tls", "--init", "gnc-chordal", "--team-check"]) != 0
     assert "--init distributed-robust" in capsys.readouterr().err
+
+
+def _round_with(objectives: dict, split=()):
+    """One round of the check's decision on three candidate closures (residuals 9, 8, 1) with a
+    chordal map stubbed as the set of edges dropped and the objective of each such map given."""
+    from mmpgo_jax._init.closure_check import _next_drop
+
+    acc = np.ones(3, bool)
+
+    def chordal_map(keep):
+        dropped = frozenset(np.flatnonzero(~keep).tolist())
+        return None if dropped in split else dropped
+
+    return _next_drop(acc, np.array([9.0, 8.0, 1.0]), np.ones(3, bool), np.zeros(3, bool), chordal_map,
+                      lambda dropped: objectives[dropped], 4.0), acc
+
+
+def test_a_round_drops_the_trial_of_lower_objective_or_both_when_tied():
+    """The two largest residuals are each dropped on trial: the lower objective goes (the second
+    residual here), both go when their objectives differ by less than c^2 (4 here), and a tie whose
+    double removal would split the team drops the lower one alone."""
+    (dropped, X), acc = _round_with({frozenset({0}): 50.0, frozenset({1}): 20.0})
+    assert dropped == [1] and X == frozenset({1}) and acc.tolist() == [True, False, True]
+    (dropped, X), acc = _round_with({frozenset({0}): 21.0, frozenset({1}): 20.0, frozenset({0, 1}): 5.0})
+    assert dropped == [0, 1] and X == frozenset({0, 1}) and acc.tolist() == [False, False, True]
+    (dropped, X), acc = _round_with({frozenset({0}): 21.0, frozenset({1}): 20.0}, split={frozenset({0, 1})})
+    assert dropped == [1] and acc.tolist() == [True, False, True]

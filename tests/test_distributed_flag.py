@@ -35,12 +35,17 @@ def test_default_start_is_the_distributed_chordal_one_and_the_distributed_robust
     r = mm.solve(graph, rop, distributed=True, iterations=0)
     np.testing.assert_array_equal(np.asarray(r.start.t), np.asarray(ref.start.t))
     robust = mm.solve(graph, rop, distributed=True, loss="tls", iterations=0)
-    dr = mm.initialize(graph, "distributed-robust", robots=rop)
+    # a robust loss: the distributed robust start with its accepted closures checked at the team's map
+    dr = mm.initialize(graph, "distributed-robust", robots=rop, team_check=True)
     np.testing.assert_allclose(np.asarray(robust.start.t), np.asarray(dr.t), atol=1e-12)
     assert not bool(robust.loss.use_gnc) and robust.stats["start_weights_given"]
+    unchecked = mm.solve(graph, rop, distributed=True, loss="tls", start="distributed-robust", iterations=0)
+    plain = mm.initialize(graph, "distributed-robust", robots=rop)
+    np.testing.assert_allclose(np.asarray(unchecked.start.t), np.asarray(plain.t), atol=1e-12)
+    assert np.abs(np.asarray(plain.t) - np.asarray(dr.t)).max() > 1e-6  # the check's start is another map
     gnc = mm.solve(graph, rop, distributed=True, loss="tls", gnc=mm.GNCConfig(), iterations=0)  # GNC when asked
     assert bool(gnc.loss.use_gnc) and gnc.stats["start_weights_given"]
-    huber = mm.solve(graph, rop, distributed=True, loss="huber", iterations=0)
+    huber = mm.solve(graph, rop, distributed=True, loss="huber", iterations=0)  # the same start
     np.testing.assert_allclose(np.asarray(huber.start.t), np.asarray(dr.t), atol=1e-12)
     given = mm.solve(graph, rop, distributed=True, start="vertices", initial=ref.start, iterations=0)
     np.testing.assert_allclose(np.asarray(given.start.t), np.asarray(ref.start.t), atol=1e-12)

@@ -72,9 +72,14 @@ def test_without_the_start_s_weights_tls_rejects_the_correct_inter_robot_closure
 def test_distributed_robust_loss_defaults_to_the_distributed_robust_start_and_its_weights():
     ds, c, st = _team_with_outliers()
     rop = ds.robot_of_pose
-    r = mm.solve(c.graph, rop, loss="tls", distributed=True, iterations=0)
-    np.testing.assert_allclose(np.asarray(r.start.t), st.poses.t, atol=1e-9)
+    r = mm.solve(c.graph, rop, loss="tls", distributed=True, iterations=0)  # the start with its team check
+    checked = distributed_robust_initialization(c.graph, rop, team_check=True)
+    np.testing.assert_allclose(np.asarray(r.start.t), checked.poses.t, atol=1e-9)
+    np.testing.assert_array_equal(r.start_weights, checked.weights)
     assert r.stats["start_weights_given"] and not bool(r.loss.use_gnc)
+    unchecked = mm.solve(c.graph, rop, loss="tls", distributed=True, start="distributed-robust", iterations=0)
+    np.testing.assert_allclose(np.asarray(unchecked.start.t), st.poses.t, atol=1e-9)
+    np.testing.assert_array_equal(unchecked.start_weights, st.weights)
     plain = mm.solve(c.graph, rop, distributed=True, iterations=0)  # least squares: the distributed chordal start
     ref = mm.initialize(c.graph, "distributed-chordal", robots=rop)
     np.testing.assert_allclose(np.asarray(plain.start.t), np.asarray(ref.t), atol=1e-12)

@@ -12,20 +12,26 @@ iterations).
 This check places every pose at once: the distributed chordal start
 (:func:`~mmpgo_jax._init.distributed_chordal.distributed_chordal_initialization`, neighbour exchanges
 only) of the edges accepted so far, where a wrong closure pulls the chains it joins and shows the
-largest residual. Each round drops the accepted inter-robot closure of largest residual (a
-max-reduction over robots) and solves again; the TLS objective of every edge at each round's map
-(odometry at its cost s, loop closures at min(s, c^2); a sum-reduction) says which round was best,
-and the check ends when ``patience`` rounds in a row found no lower objective or no accepted
-closure's residual exceeds c^2 (one that fits within c is no suspect), keeping the acceptance of the
-round of lowest objective. The chordal map is not an optimum, so its objective is noisy: removing
-a wrong closure lowered it by 1e5-2e7 on that graph and removing a correct one moved it by 1e2-1e4
-either way, and a wrong closure's removal raised it once while 83 were left; hence the patience
-rather than the first rise. A correct closure can be dropped while wrong ones still bend the map
-(on a 4-robot team with three wrong closures the second round's largest residual was a correct
-one, 400 c^2 there and 2.7 c^2 at the final map, where putting it back raised the chordal map's
-objective by about c^2). The check only prepares the start: the pipelines' search re-admits rejected
-closures, cheapest first, in batches (:func:`~mmpgo_jax._solve.solve.solve`); a plain TLS run from the start need not
-take such a closure back (that one stayed at 2.7 c^2, beyond c).
+largest residual. Each round drops one of the two accepted inter-robot closures of largest residual (a
+max-reduction over robots), each dropped on trial with the map solved again: the one whose map has the
+lower TLS objective (every edge: odometry at its cost s, loop closures at min(s, c^2); a sum-reduction)
+goes, or both when the two differ by less than c^2 (one closure's share), where the map cannot tell
+which is wrong: the run's weights and the search then judge both at a better map. On a 10 x 500-pose
+team (seed 2 at 50 %, benchmarks/robust_teams.md) a wrong closure and a correct one of another robot
+pair pulled one robot two ways, both at 3.4 c^2, the correct one's residual the larger by a hair:
+dropping the largest residual lost it for good; their maps' objectives were 1 623.5 and 1 622.7, and as
+both could not go (the robot would be cut off) the wrong one went. The same objective at each round's
+map says which round was best, and the check ends when ``patience`` rounds in a row found no lower
+objective or no accepted closure's residual exceeds c^2 (one that fits within c is no suspect), keeping
+the acceptance of the round of lowest objective. The chordal map is not an optimum, so its objective is
+noisy: removing a wrong closure lowered it by 1e5-2e7 on that graph and removing a correct one moved it
+by 1e2-1e4 either way, and a wrong closure's removal raised it once while 83 were left; hence the
+patience rather than the first rise. A correct closure can be dropped while wrong ones still bend the
+map (on a 4-robot team with three wrong closures the second round's largest residual was a correct one,
+400 c^2 there and 2.7 c^2 at the final map, where putting it back raised the chordal map's objective by
+about c^2). The check only prepares the start: the pipelines' search re-admits rejected closures,
+cheapest first, in batches (:func:`~mmpgo_jax._solve.solve.solve`); a plain TLS run from the start need
+not take such a closure back (that one stayed at 2.7 c^2, beyond c).
 
 Trusted edges (consecutive poses) are never candidates, nor a closure whose removal would split the
 team's graph.
@@ -46,12 +52,14 @@ DEFAULT_PATIENCE = 10
 @dataclass(frozen=True)
 class ClosureCheck:
     """What :func:`check_inter_robot_closures` found: ``accepted`` (m,) bool after the check,
-    ``poses`` the chordal map of those edges, ``removed`` the edges dropped (in order), ``objective``
-    the TLS objective at each round's map (round 0: the given acceptance)."""
+    ``poses`` the chordal map of those edges, ``removed`` the edges dropped (in order), ``rounds`` the
+    round that dropped each (one or two per round), ``objective`` the TLS objective at each round's
+    map (round 0: the given acceptance)."""
 
     accepted: np.ndarray
     poses: HostPoses
     removed: np.ndarray
+    rounds: np.ndarray
     objective: np.ndarray
 
 
@@ -83,7 +91,7 @@ def check_inter_robot_closures(graph: PoseGraph, robot_of_pose: np.ndarray, acce
     if X is None:
         raise ValueError("check_inter_robot_closures: the accepted edges do not join every pose")
     best = (np.inf, acc.copy(), X, 0)
-    objective, removed, since = [], [], 0
+    objective, removed, rounds, since = [], [], [], 0
     kept_in = np.zeros(g.num_edges, bool)  # closures whose removal would split the team
     while X is not None:
         s = host_edge_costs(g, X)
@@ -93,11 +101,16 @@ def check_inter_robot_closures(graph: PoseGraph, robot_of_pose: np.ndarray, acce
             best, since = (f, acc.copy(), X, len(removed)), 0
         else:
             since += 1
+        if since >= patience:
+            break
         suspect = candidate & (s > c2)  # a closure that fits within c is no suspect
-        X = None if since >= patience else _next_map(acc, s, suspect, kept_in, removed, chordal_map)
+        dropped, X = _next_drop(acc, s, suspect, kept_in, chordal_map, lambda Y: _tls_objective(
+            host_edge_costs(g, Y), trusted, c2), c2)
+        removed += dropped
+        rounds += [len(objective)] * len(dropped)
     _, acc, X, count = best
     return ClosureCheck(accepted=acc, poses=X, removed=np.asarray(removed[:count], np.int64),
-                        objective=np.asarray(objective))
+                        rounds=np.asarray(rounds[:count], np.int64), objective=np.asarray(objective))
 
 
 def _tls_objective(s: np.ndarray, trusted: np.ndarray, c2: float) -> float:
@@ -105,18 +118,46 @@ def _tls_objective(s: np.ndarray, trusted: np.ndarray, c2: float) -> float:
     return float(np.sum(np.where(trusted, s, np.minimum(s, c2))))
 
 
-def _next_map(acc, s, candidate, kept_in, removed, chordal_map):
-    """The chordal map after dropping the open candidate of largest residual ``s`` (``acc``,
-    ``removed`` updated); a candidate whose removal would split the team is kept (``kept_in``) and
-    the next one tried. None when no candidate is left."""
+def _dropped_map(acc, s, candidate, kept_in, chordal_map, skip=-1):
+    """(edge, map) for the open candidate of largest residual ``s`` other than ``skip``, whose
+    removal does not split the team (one that would is marked in ``kept_in`` and the next tried);
+    None when no candidate is left. ``acc`` is left as given."""
     while True:
         open_ = np.flatnonzero(acc & candidate & ~kept_in)
+        open_ = open_[open_ != skip]
         if not open_.size:
             return None
         edge = int(open_[np.argmax(s[open_])])
         acc[edge] = False
         X = chordal_map(acc)
+        acc[edge] = True
         if X is not None:
-            removed.append(edge)
-            return X
-        acc[edge], kept_in[edge] = True, True
+            return edge, X
+        kept_in[edge] = True
+
+
+def _next_drop(acc, s, candidate, kept_in, chordal_map, objective_of, c2):
+    """One round: the closures dropped (``acc`` updated) and the chordal map after, or ([], None)
+    when no candidate is left. The two open candidates of largest residual are each dropped on
+    trial; the one whose map has the lower objective goes, or both when the two objectives differ by
+    less than c^2 (one closure's share of the objective): the map cannot tell which of them is wrong
+    (a wrong and a correct closure pulling one robot two ways show the same residual), so neither
+    is held, and the run's TLS weights and the search's re-admissions judge them at a better map."""
+    first = _dropped_map(acc, s, candidate, kept_in, chordal_map)
+    if first is None:
+        return [], None
+    second = _dropped_map(acc, s, candidate, kept_in, chordal_map, skip=first[0])
+    if second is None:
+        acc[first[0]] = False
+        return [first[0]], first[1]
+    (a, Xa), (b, Xb) = first, second
+    fa, fb = objective_of(Xa), objective_of(Xb)
+    if abs(fa - fb) < c2:
+        acc[[a, b]] = False
+        both = chordal_map(acc)
+        if both is not None:
+            return [a, b], both
+        acc[[a, b]] = True
+    edge, X = (a, Xa) if fa <= fb else (b, Xb)
+    acc[edge] = False
+    return [edge], X

@@ -788,10 +788,12 @@ def _projection_settled(grad_norm: np.ndarray, sigma: float, tol: float) -> floa
     translations follow them along the chains (f at the start +500 % against the centralized
     start's). So the relative residual (CG's error bound up to the conditioning) must be within
     sqrt(tol) sigma: the relative-change rule holds f to tol, i.e. the iterate to about sqrt(tol),
-    and that bound is asked of the projected blocks."""
-    relative = grad_norm[-1] / grad_norm[0]
+    and that bound is asked of the projected blocks. None too where there is nothing to ask: a
+    stage that starts at its solution (residual 0: an exact graph) or blocks of no rank."""
     bound = np.sqrt(tol) * sigma
-    return None if relative <= bound else float(bound * grad_norm[0])
+    if not (grad_norm[0] > 0 and bound > 0):
+        return None
+    return None if grad_norm[-1] / grad_norm[0] <= bound else float(bound * grad_norm[0])
 
 
 def _smallest_singular_value(st: _Setup):

@@ -37,8 +37,8 @@ from .methods import check_loss, solver_for
 from .prefilter import PCM, apply_prefilter
 from .result import SolveResult, output_frame
 
-__all__ = ["RESULTS", "ROBUST_START", "ROBUST_STARTS", "History", "NonFiniteError", "SolveResult",
-           "centralized_optimum", "output_frame", "solve", "solve_sharded"]
+__all__ = ["DISTRIBUTED_ROBUST_START", "RESULTS", "ROBUST_START", "ROBUST_STARTS", "History", "NonFiniteError",
+           "SolveResult", "centralized_optimum", "output_frame", "solve", "solve_sharded"]
 
 
 def solve(
@@ -160,9 +160,13 @@ def solve(
 
     ``distributed=True``: refuse every step that gathers the whole graph in one place (the starts
     "chordal", "gnc-chordal" and "odometry": ValueError naming it); the start is by default
-    "distributed-chordal" (§VII's stages, distributed) for least squares and "distributed-robust" for a robust loss
-    (each robot's own GNC, then the robots' frames from their inter-robot closures). PCM is a
-    per-robot-pair test and stays allowed.
+    "distributed-chordal" (§VII's stages, distributed) for least squares and, for a robust loss,
+    :data:`DISTRIBUTED_ROBUST_START`: the distributed robust start (each robot's own GNC, then the
+    robots' frames from their inter-robot closures) with its accepted inter-robot closures checked at
+    the team's distributed chordal map (:mod:`~mmpgo_jax._init.closure_check`; without the check, on
+    long noisy robot chains, the wrong closures the frame test passes wreck the team's map:
+    benchmarks/robust_teams.md); ``start="distributed-robust"`` is that start without the check. PCM
+    is a per-robot-pair test and stays allowed.
 
     ``start_weights``: (m,) robust weights in [0, 1], in the graph's edge order, that the robust run
     holds as its first stage (the weighted least squares of that classification, until the weighted
@@ -822,6 +826,10 @@ def _moves_on_disjoint_robots(moves: list, change: np.ndarray, robot: np.ndarray
     return chosen
 
 
+#: the start of a robust ``distributed=True`` run by default: the distributed robust start with its
+#: accepted inter-robot closures checked at the team's map (``solve``'s docstring)
+DISTRIBUTED_ROBUST_START = NamedStart("distributed-robust", {"team_check": True})
+
 #: starts that need the whole graph in one place, and why (refused by ``distributed=True``)
 CENTRALIZED_STARTS = {
     "chordal": "solves the chordal relaxation of the whole graph in one place",
@@ -832,7 +840,7 @@ CENTRALIZED_STARTS = {
 
 def _distributed_defaults(start, loss, gnc):
     """(start, gnc) of a ``distributed=True`` run: a centralized start refused with its name; by
-    default the distributed chordal start for least squares and the distributed robust start for a
+    default the distributed chordal start for least squares and :data:`DISTRIBUTED_ROBUST_START` for a
     robust loss (its weights held as the first stage, then the kernel's own)."""
     for one in start if isinstance(start, (tuple, list)) else (start,):
         if isinstance(one, str) and one in CENTRALIZED_STARTS:
@@ -840,7 +848,7 @@ def _distributed_defaults(start, loss, gnc):
                              "use start='distributed-chordal' or 'distributed-robust'")
     robust = isinstance(loss, RobustLoss) or (loss is not None and loss != "l2") or gnc is not None
     if start is None:
-        start = "distributed-robust" if robust else "distributed-chordal"
+        start = DISTRIBUTED_ROBUST_START if robust else "distributed-chordal"
     return start, gnc
 
 

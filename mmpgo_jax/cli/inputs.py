@@ -117,7 +117,8 @@ class LoadedInput:
 def _team_checked(init, robust: dict):
     """``--team-check``: the distributed robust start among the starts, with its check
     (``NamedStart("distributed-robust", {"team_check": True})``); by default (no --init) with a robust
-    loss the default's two starts, or the distributed robust start alone with --distributed."""
+    loss the default's two starts, or the distributed robust start alone with --distributed (where the
+    check is on by default; ``--no-team-check`` turns it off there)."""
     from .._solve.build import ROBUST_STARTS, NamedStart
 
     if "loss" not in robust:
@@ -252,8 +253,11 @@ def solve_options(args, data: LoadedInput) -> dict:
             raise CLIError("--readmit re-admits loop closures a robust --loss rejected: give one (e.g. --loss tls)")
         robust["readmit"] = True
     init = data.start(args.init, SOLVE_STARTS)
-    if getattr(args, "team_check", False):
+    team_check = getattr(args, "team_check", None)
+    if team_check:
         init = _team_checked(init, robust)
+    elif team_check is False and init is None and robust.get("distributed") and "loss" in robust:
+        init = "distributed-robust"  # --distributed's default start, without its check
     return dict(method=args.method, iterations=args.iterations, init=init,
                 initial=data.initial, chunk_size=args.chunk, grad_tol=args.grad_tol,
                 stop_when_stalled=not args.all_iterations, fixed=data.fixed, frame=data.frame, **shortcuts,

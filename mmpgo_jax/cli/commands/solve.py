@@ -105,11 +105,11 @@ def _add_robust_options(p: argparse.ArgumentParser) -> None:
     g.add_argument("--drop-outliers", action="store_true",
                    help="--out / --out-dir keep only the inlier edges (by default every edge is written)")
     add_pcm_options(g, "before the start and the solve; the count and lines are printed")
-    g.add_argument("--team-check", action="store_true",
+    g.add_argument("--team-check", action=argparse.BooleanOptionalAction, default=None,
                    help="the distributed robust start (--init distributed-robust, --distributed, or the default's "
                         "second start) checks its accepted inter-robot closures at the team's chordal map, dropping "
-                        "the one of largest residual per round while the TLS objective falls (for long noisy "
-                        "robot chains; see README)")
+                        "closures of largest residual while the TLS objective falls (for long noisy robot chains; "
+                        "see README); on by default with --distributed and a robust --loss, off otherwise")
     g.add_argument("--readmit", action="store_true",
                    help="after a robust solve, re-admit rejected loop closures one at a time while the robust "
                         "objective falls (centralized Newton per rejected closure; for robot teams with few "
