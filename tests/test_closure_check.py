@@ -44,6 +44,9 @@ def test_planted_wrong_closures_accepted_by_hand_are_dropped():
     odometry = np.abs(np.asarray(c.graph.i) - np.asarray(c.graph.j)) == 1
     expected = np.sum(np.where(odometry, s, np.minimum(s, scale**2)))
     assert found.objective[kept_round] == pytest.approx(expected, rel=1e-12)
+    # every chordal solve counted (the first map, then one to three per round), each with CG iterations
+    assert len(found.objective) <= len(found.cg_iterations) <= 1 + 3 * (len(found.objective) - 1)
+    assert (found.cg_iterations > 0).all()
 
 
 def test_without_wrong_closures_nothing_is_dropped():
@@ -121,8 +124,11 @@ def test_cli_team_check(tmp_path, capsys, monkeypatch):
     assert main(["solve", *common, "--loss", "tls", "--distributed", "--team-check"]) == 0
     assert calls
     calls.clear()
+    capsys.readouterr()
     assert main(["solve", *common, "--loss", "tls", "--distributed"]) == 0  # on by default with --distributed
     assert calls
+    (line,) = [x for x in capsys.readouterr().out.splitlines() if x.startswith("exchanged")]
+    assert "team check" in line and "distributed chordal solve" in line
     calls.clear()
     assert main(["solve", *common, "--loss", "tls", "--distributed", "--no-team-check"]) == 0
     assert not calls

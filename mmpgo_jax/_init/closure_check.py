@@ -54,13 +54,16 @@ class ClosureCheck:
     """What :func:`check_inter_robot_closures` found: ``accepted`` (m,) bool after the check,
     ``poses`` the chordal map of those edges, ``removed`` the edges dropped (in order), ``rounds`` the
     round that dropped each (one or two per round), ``objective`` the TLS objective at each round's
-    map (round 0: the given acceptance)."""
+    map (round 0: the given acceptance), ``cg_iterations`` (solves, 2): the rotation and translation
+    CG iterations of every distributed chordal solve the check made (trials included), what its
+    neighbour exchanges follow."""
 
     accepted: np.ndarray
     poses: HostPoses
     removed: np.ndarray
     rounds: np.ndarray
     objective: np.ndarray
+    cg_iterations: np.ndarray
 
 
 def check_inter_robot_closures(graph: PoseGraph, robot_of_pose: np.ndarray, accepted, scale: float, *,
@@ -80,11 +83,14 @@ def check_inter_robot_closures(graph: PoseGraph, robot_of_pose: np.ndarray, acce
     acc = np.array(accepted, bool)
     c2 = float(scale) ** 2
 
+    cg_iterations = []
+
     def chordal_map(keep):
         kept = connected_subgraph(g, keep)
         if kept is None:  # dropping that closure would split the team: it stays
             return None
-        X, _ = distributed_chordal_initialization(kept, robot)
+        X, info = distributed_chordal_initialization(kept, robot)
+        cg_iterations.append((info.rotation_iterations, info.translation_iterations))
         return HostPoses(np.asarray(X.R, np.float64), np.asarray(X.t, np.float64))
 
     X = chordal_map(acc)
@@ -110,7 +116,8 @@ def check_inter_robot_closures(graph: PoseGraph, robot_of_pose: np.ndarray, acce
         rounds += [len(objective)] * len(dropped)
     _, acc, X, count = best
     return ClosureCheck(accepted=acc, poses=X, removed=np.asarray(removed[:count], np.int64),
-                        rounds=np.asarray(rounds[:count], np.int64), objective=np.asarray(objective))
+                        rounds=np.asarray(rounds[:count], np.int64), objective=np.asarray(objective),
+                        cg_iterations=np.asarray(cg_iterations, np.int64).reshape(-1, 2))
 
 
 def _tls_objective(s: np.ndarray, trusted: np.ndarray, c2: float) -> float:

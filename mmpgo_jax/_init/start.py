@@ -94,7 +94,9 @@ def initial_classified(graph: PoseGraph, method="chordal", *, initial: Poses | N
 
 def _initial_poses(graph, method, initial, robots, fixed, options, host=False):
     """(poses, weights or None, info or None): only the distributed robust start classifies the
-    edges (info: its maps' ``variance_factor``); the distributed chordal start reports its stages
+    edges (info: its maps' ``variance_factor``, and with its team check ``team_check``: the closures
+    dropped, the rounds, and the check's chordal solves and their CG iterations); the distributed
+    chordal start reports its stages
     (info: ``distributed_chordal``, CG iterations per stage and how Gamma was applied)."""
     if isinstance(method, str) and method == "distributed-robust":
         from .robust_distributed import distributed_robust_initialization
@@ -107,6 +109,12 @@ def _initial_poses(graph, method, initial, robots, fixed, options, host=False):
                           stacklevel=5)
         poses = start.poses if fixed is None else express_in_frame(start.poses, fixed)  # gauge: 1st fixed pose
         info = dict(variance_factor=start.variance_factor)
+        if start.team_check is not None:
+            check = start.team_check
+            rotation, translation = check.cg_iterations.sum(axis=0).tolist()
+            info["team_check"] = dict(removed=check.removed.tolist(), rounds=len(check.objective) - 1,
+                                      solves=len(check.cg_iterations), rotation_iterations=rotation,
+                                      translation_iterations=translation)
         return poses_from_arrays(graph, poses.R, poses.t, host=host), start.weights, info
     poses, info = _start_poses(graph, method, initial, robots, fixed, options, host)
     return poses, None, info

@@ -234,9 +234,12 @@ def finish(graph: PoseGraph, solver: Solver, run: Prepared, driven, termination:
 def _start_stats(run: Prepared) -> dict:
     """``stats["start_variance_factor"]``: the distributed robust start's maps' variance factor;
     ``stats["distributed_chordal"]``: the distributed chordal start's CG iterations per stage and how
-    each stage applied Gamma (no entry for other starts)."""
+    each stage applied Gamma; ``stats["team_check"]``: what the distributed robust start's team check
+    did (the closures it dropped, its rounds, its chordal solves and their CG iterations) (no entry
+    for other starts)."""
     info = run.start_info or {}
     stats = {"start_variance_factor": float(info["variance_factor"])} if "variance_factor" in info else {}
-    if "distributed_chordal" in info:
-        stats["distributed_chordal"] = info["distributed_chordal"]
+    for key in ("distributed_chordal", "team_check"):
+        if key in info:
+            stats[key] = info[key]
     return stats

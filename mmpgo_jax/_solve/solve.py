@@ -404,7 +404,8 @@ def _best_of(starts: tuple, run_from: Callable, graph: PoseGraph, monitor: Monit
         rejected = None if run.inliers is None else int((~np.asarray(run.inliers, bool)).sum())
         rows.append(dict(start=name, f=f, iterations=iterations, rejected=rejected, finished=before,
                          finished_by=finished_by, held=bool(first.stats.get("start_weights_given", False)),
-                         start_seconds=float(first.stats.get("initialize_seconds", 0.0)), revisits=[],
+                         start_seconds=float(first.stats.get("initialize_seconds", 0.0)),
+                         team_check=first.stats.get("team_check"), revisits=[],
                          readmissions=[], removals=[], exchanges=[], seconds=time.perf_counter() - t))
         runs.append(run)
         firsts.append(first)

@@ -204,8 +204,10 @@ def _solve(args) -> int:
 def _exchanged_line(graph, result, start: str, row: dict | None = None) -> str:
     """The bytes a robot team exchanges for this run: the distributed robust start's messages
     (:class:`~mmpgo_jax._init.robust_distributed.StartTraffic`), the solver's neighbour exchanges
-    (every robot's poses at its inter-robot edge ends, d^2 + d float64 numbers each, per iteration)
-    and, for a run finished from its kept edges (``row``: its line of ``stats["starts"]``), the
+    (every robot's poses at its inter-robot edge ends, d^2 + d float64 numbers each, per iteration),
+    the start's team check (each CG iteration of its distributed chordal solves the same boundary
+    poses; counted for the first start, not the starts a revisit makes again) and, for a run
+    finished from its kept edges (``row``: its line of ``stats["starts"]``), the
     distributed chordal start's (each CG iteration the same boundary poses' rotations, d^2 numbers,
     then translations, d; its scalar all-reductions not counted)."""
     from ..._baselines.rbcd import boundary_poses_sent
@@ -220,6 +222,14 @@ def _exchanged_line(graph, result, start: str, row: dict | None = None) -> str:
         traffic = start_traffic(graph, result.partition)
         parts.append(f"start {traffic.bytes / 1e3:.1f} kB ({traffic.closures} inter-robot closures' far ends, "
                      f"their hypotheses to all {traffic.robots} robots)")
+    check = (row or {}).get("team_check") or result.stats.get("team_check")
+    if check is not None:
+        cg = 8 * boundary * (d * d * check["rotation_iterations"] + d * check["translation_iterations"])
+        solves, rounds, dropped = check["solves"], check["rounds"], len(check["removed"])
+        parts.append(f"team check {cg / 1e3:.1f} kB ({solves} distributed chordal solve{'s' * (solves != 1)}, "
+                     f"{rounds} round{'s' * (rounds != 1)}, {check['rotation_iterations']} + "
+                     f"{check['translation_iterations']} CG iterations; {dropped} closure{'s' * (dropped != 1)} "
+                     "dropped)")
     parts.append(f"iterations {per_iteration * iterations / 1e3:.1f} kB "
                  f"({per_iteration / 1e3:.2f} kB each, boundary poses)")
     by = None if row is None else row.get("finished_by")
