@@ -15,7 +15,11 @@ loop-closure information) so that ``rate`` percent of the inter-robot closures a
   distributed robust start (each robot's own GNC-TLS, then the robots' frames from a robust solve of
   their inter-robot closures' frame hypotheses), its classification of the edges held as the first
   stage, then TLS; a run that used its budget goes on from the distributed chordal start of the
-  edges it keeps (since 2026-12-05; kept when the TLS objective is lower: "finished");
+  edges it keeps (since 2026-12-05; kept when the TLS objective is lower: "finished"); since
+  2026-12-08 its start checks its accepted inter-robot closures at the team's chordal map by default
+  (as ``distributed-checked``; rows of this name before that date ran without the check);
+* ``distributed-unchecked``: ``distributed`` without the team check (``start="distributed-robust"``,
+  ``mmpgo solve --distributed --no-team-check``): what ``distributed`` ran until 2026-12-07;
 * ``distributed-gnc``: the same with ``gnc=GNCConfig()``: after the held classification, GNC's
   stages (mu's schedule, weights per stage) in the distributed solver instead of TLS's own weights;
 * ``distributed-gnc-blocks``: the same with Kimera-Multi's block schedule (mit-acl/dpgo's
@@ -87,7 +91,8 @@ PIPELINES = {"distributed": dict(distributed=True), "distributed-gnc": dict(dist
              "pcmties-distributed": dict(distributed=True, prefilter=mm.PCM(ties="keep")),
              "central": dict(start="gnc-chordal"), "default": {}, "gtsam": None,
              "distributed-checked": dict(distributed=True,
-                                         start=mm.NamedStart("distributed-robust", {"team_check": True}))}
+                                         start=mm.NamedStart("distributed-robust", {"team_check": True})),
+             "distributed-unchecked": dict(distributed=True, start="distributed-robust")}
 
 
 #: Generated graphs ``--files`` accepts besides the benchmark files (module docstring).

@@ -9,7 +9,8 @@ Per graph (a column): precision and recall of the rejected edges against the pla
 the ATE against the outlier-free optimum in percent of the map's extent (must show: <= 1 %); for a
 team, the ATE against the ground truth over the outlier-free optimum's (must show: <= 1.5x). One
 marker per seed, a line through the median; the pipelines: the default (both starts, the lower robust
-objective kept), the fully distributed one (``distributed=True``), PCM then the fully distributed one
+objective kept), the fully distributed one (``distributed=True``: with the team check, its default
+since 2026-12-08, and the rows before without it), PCM then the fully distributed one
 (``prefilter="pcm", distributed=True``; with PCM's ties broken as published, and with them kept:
 ``PCM(ties="keep")``), and GTSAM's GNC (TLS, from the centralized chordal start), a reference
 outside this package. Nothing is solved here.
@@ -25,10 +26,11 @@ import numpy as np
 
 PIPELINES = {  # the files' pipeline name, the teams' method name, the label
     "default": ("default", "tls", "default (both starts)"),
-    "distributed": ("distributed", "dist-tls", "fully distributed"),
+    "distributed": ("distributed", "dist-tls", "fully distributed, no team check (until 2026-12-07)"),
     "pcm-distributed": ("pcm-distributed", "dist-pcm+tls", "PCM + fully distributed"),
     "pcmties-distributed": ("pcmties-distributed", "dist-pcmties+tls", "PCM (ties kept) + fully distributed"),
     "gtsam": ("gtsam", "gtsam", "GTSAM's GNC (reference)"),
+    "distributed-checked": ("distributed-checked", "dist-tls-checked", "fully distributed (team check, default)"),
 }
 ORDER = list(PIPELINES)  # colours and offsets per pipeline, the same in every panel
 ATE_FLOOR = 1e-9  # exact rows (ATE ~1e-11 % of the extent) drawn at this floor of the log axis

@@ -23,7 +23,9 @@ Methods (AMM, the team's robots, ``--iterations`` at most, default stopping rule
 * ``dist-pcmties+tls``: ``dist-pcm+tls`` with ``PCM(ties="keep")`` (every closure of a maximum clique
   kept where cliques of the largest size disagree);
 * ``dist-tls-checked``: ``dist-tls`` with the start's accepted inter-robot closures checked at the
-  team's distributed chordal map (``NamedStart("distributed-robust", {"team_check": True})``);
+  team's distributed chordal map (``NamedStart("distributed-robust", {"team_check": True})``), what
+  ``dist-tls`` runs by default since 2026-12-08; ``dist-tls-unchecked``: without the check
+  (``start="distributed-robust"``), what ``dist-tls`` ran until 2026-12-07;
 * ``tls+readmit``, ``pcm+tls+readmit``: ``tls`` and ``pcm+tls`` with ``readmit=True`` (rejected loop
   closures, PCM's removals included, re-admitted one at a time while the TLS objective falls, then a run
   from there);
@@ -69,6 +71,7 @@ METHODS = {
     "dist-pcmties+tls": dict(prefilter=mm.PCM(ties="keep"), loss="tls", distributed=True),
     "dist-tls-checked": dict(loss="tls", distributed=True,
                              start=mm.NamedStart("distributed-robust", {"team_check": True})),
+    "dist-tls-unchecked": dict(loss="tls", distributed=True, start="distributed-robust"),
     "tls+readmit": dict(loss="tls", readmit=True),
     "pcm+tls+readmit": dict(prefilter="pcm", loss="tls", readmit=True),
     "pcm-filter": None,  # pcm_filter alone, no solve: its precision / recall and seconds
